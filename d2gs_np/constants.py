@@ -1,0 +1,35 @@
+"""Every threshold and epsilon of the project, named once.
+
+Renderer values follow gsplat 1.5.3's reference renderer (see
+``../shared/CONVENTIONS.md``); the section of that page is given beside each.
+Numerical epsilons carry a comment saying why they have the value they have.
+"""
+
+# --- Rendering (CONVENTIONS.md) -------------------------------------------
+EPS2D = 0.3  # §3: low-pass dilation added to the 2D covariance, always applied
+NEAR_PLANE = 0.01  # §4: Gaussians with camera z <= NEAR_PLANE are culled
+FAR_PLANE = 1e10  # §4: Gaussians with camera z >= FAR_PLANE are culled
+RADIUS_SIGMA = 3.33  # §4: per-axis screen radius = ceil(3.33 * sqrt(cov2d_ii))
+TILE_SIZE = 16  # §5: square tile side in pixels
+FOV_CLAMP_MARGIN = 0.3  # §3: x/z clamped to the fov widened by 0.3 * tan_fov, in J only
+DET_MIN = 1e-10  # §3: det of the dilated 2D covariance is clamped below at this
+ALPHA_MAX = 0.999  # §6: alpha = min(ALPHA_MAX, o * exp(-sigma)); not Inria's 0.99
+ALPHA_THRESHOLD = 1.0 / 255.0  # §6: a Gaussian with alpha < 1/255 is skipped
+TRANSMITTANCE_MIN = 1e-4  # §6: stop *before* a Gaussian that would bring T*(1-alpha) <= 1e-4
+EXPECTED_DEPTH_ALPHA_MIN = 1e-10  # §7: expected depth = D / max(alpha, 1e-10)
+PIXEL_CENTER_OFFSET = 0.5  # §2: pixel (i, j) has its centre at (j + 0.5, i + 0.5)
+
+# --- Geometry ----------------------------------------------------------------
+# Below this squared angle the Lie-group series are evaluated by Taylor
+# expansion. Series are kept to an order whose first dropped term is
+# O(theta^4) relative, i.e. < 1e-16 for theta^2 < 1e-8 ... we use a generous
+# threshold with enough terms (see so3.py) so both branches agree to ~1e-16.
+SMALL_ANGLE2 = 1e-8
+# Closer to pi than this (in radians) so3_log takes the axis from the
+# symmetric part of R instead of dividing by sin(theta): sin(theta) < 1e-6 would
+# amplify rounding of the skew part by 1e6.
+NEAR_PI = 1e-6
+# Quaternion norms below this are rejected rather than normalised.
+QUAT_NORM_MIN = 1e-12
+# A rotation matrix whose R^T R deviates from I by more than this is "not rigid".
+RIGID_TOL = 1e-6

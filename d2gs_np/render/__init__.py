@@ -1,0 +1,1 @@
+"""Gaussian splatting renderer: Numba fast path (see api.py)."""
