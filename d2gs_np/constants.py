@@ -20,16 +20,19 @@ EXPECTED_DEPTH_ALPHA_MIN = 1e-10  # §7: expected depth = D / max(alpha, 1e-10)
 PIXEL_CENTER_OFFSET = 0.5  # §2: pixel (i, j) has its centre at (j + 0.5, i + 0.5)
 
 # --- Geometry ----------------------------------------------------------------
-# Below this squared angle the Lie-group series are evaluated by Taylor
-# expansion. Series are kept to an order whose first dropped term is
-# O(theta^4) relative, i.e. < 1e-16 for theta^2 < 1e-8 ... we use a generous
-# threshold with enough terms (see so3.py) so both branches agree to ~1e-16.
-SMALL_ANGLE2 = 1e-8
-# Closer to pi than this (in radians) so3_log takes the axis from the
-# symmetric part of R instead of dividing by sin(theta): sin(theta) < 1e-6 would
-# amplify rounding of the skew part by 1e6.
-NEAR_PI = 1e-6
+# Below this squared angle (theta < 0.5 rad) the Lie-group coefficient
+# functions (sin(t)/t, (t - sin t)/t^3, ...) are evaluated from their Taylor
+# series (8 terms, truncation < 1e-19). Above it the closed forms are used;
+# their worst cancellation, (2t - 3 sin t + t cos t)/(2 t^5) at t = 0.5, loses
+# about 6e-14 relative, which is why the threshold is not smaller.
+SERIES_ANGLE2 = 0.25
+# so3_log takes the rotation axis from the symmetric part of R once
+# cos(theta) < this (theta > 2*pi/3): there sin(theta) is small enough that
+# dividing the skew part by it would amplify rounding, while the symmetric
+# part (R + R^T)/2 - cos(theta) I = (1 - cos(theta)) a a^T is well conditioned.
+LOG_SYMMETRIC_BRANCH_COS = -0.5
 # Quaternion norms below this are rejected rather than normalised.
 QUAT_NORM_MIN = 1e-12
-# A rotation matrix whose R^T R deviates from I by more than this is "not rigid".
+# A rotation matrix whose R^T R deviates from I by more than this (max abs
+# entry), or whose determinant deviates from +1 by more, is "not rigid".
 RIGID_TOL = 1e-6
