@@ -36,3 +36,10 @@ QUAT_NORM_MIN = 1e-12
 # A rotation matrix whose R^T R deviates from I by more than this (max abs
 # entry), or whose determinant deviates from +1 by more, is "not rigid".
 RIGID_TOL = 1e-6
+
+# --- Metrics ---------------------------------------------------------------------
+# Trajectory metrics reject camera centres whose spread (mean squared distance
+# from their centroid) is below this fraction of their mean squared norm: the
+# points are then at one place up to float64 rounding (relative 1e-6 in
+# position, far above the 1e-16 rounding) and a Sim(3) alignment is undefined.
+TRAJECTORY_SPREAD_MIN_REL = 1e-12
