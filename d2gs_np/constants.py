@@ -43,3 +43,18 @@ RIGID_TOL = 1e-6
 # points are then at one place up to float64 rounding (relative 1e-6 in
 # position, far above the 1e-16 rounding) and a Sim(3) alignment is undefined.
 TRAJECTORY_SPREAD_MIN_REL = 1e-12
+
+# --- Scene initialisation, optimizer, SSIM -----------------------------------
+# Initial squared neighbour distance is clamped below at this (3DGS's
+# clamp_min(distCUDA2(points), 1e-7)): duplicate points would otherwise get
+# log(0) = -inf log-scales.
+INIT_DIST2_MIN = 1e-7
+# Adam's denominator epsilon, sqrt(v_hat) + eps. 3DGS uses 1e-15 (not torch's
+# 1e-8): gradients of Gaussian parameters are often ~1e-8 per pixel-sum, and a
+# 1e-8 epsilon would silently shrink their steps.
+ADAM_EPS = 1e-15
+# SSIM stabilisers C1 = (K1 L)^2, C2 = (K2 L)^2 with K1 = 0.01, K2 = 0.03 and
+# data range L = 1 (Wang et al. 2004; scikit-image's defaults): they keep the
+# ratio finite on flat, dark patches.
+SSIM_C1 = 0.01**2
+SSIM_C2 = 0.03**2
