@@ -58,3 +58,10 @@ ADAM_EPS = 1e-15
 # ratio finite on flat, dark patches.
 SSIM_C1 = 0.01**2
 SSIM_C2 = 0.03**2
+
+# --- Trajectory model (PoseNet) -----------------------------------------------
+# PoseNet standardises each input component (log T̂ and t) by its spread over the
+# frames; a component whose standard deviation is below this (world units,
+# radians, normalised time) is constant up to meaningless jitter, and dividing
+# by it would blow float rounding up to O(1) inputs, so it is only centred.
+POSENET_INPUT_STD_MIN = 1e-6
