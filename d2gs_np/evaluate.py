@@ -1,0 +1,118 @@
+"""Evaluation of a finished run (DATASET_FORMAT.md, METHOD.md §10) -> RUN/metrics.json.
+
+- dvs: render each training frame at its optimised mid-exposure pose and time,
+  compare with its sharp ground truth (PSNR, SSIM over the whole image).
+- nvs: align the optimised mid-exposure trajectory to the true one with a
+  similarity (Umeyama on camera centres), map each test view into the
+  reconstruction frame with its inverse, render at the test time, compare.
+- input_blur: the blurry inputs against the sharp frames (what doing nothing scores).
+- trajectory: ATE, RPE_t, RPE_r of the optimised mid poses against the true
+  ones, and the same three for the given (initial) poses under ``initial``.
+Absent ground truth means absent keys, never zeros.
+"""
+from __future__ import annotations
+
+import json
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from d2gs_np import metrics
+from d2gs_np.data.io import load_scene
+from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint
+from d2gs_np.train.config import ExperimentConfig
+from d2gs_np.train.trainer import CHECKPOINT_NAME, FINAL_NAME, mid_exposure_pose, render_at
+
+
+@dataclass
+class LoadedRun:
+    run_dir: Path
+    params: dict
+    config: ExperimentConfig
+    meta: dict
+
+    @property
+    def blur_on(self) -> bool:
+        return bool(self.meta["components"]["blur"])
+
+    @property
+    def poses_est(self):
+        return np.asarray(self.meta["poses_est"], dtype=np.float64)
+
+    @property
+    def times(self):
+        return np.asarray(self.meta["times"], dtype=np.float64)
+
+    def mid_pose(self, k: int):
+        return mid_exposure_pose(self.params, self.config, self.blur_on, self.poses_est, self.times, k)
+
+    def mid_poses(self):
+        return np.stack([self.mid_pose(k) for k in range(len(self.times))])
+
+    def render(self, t, cam_T_world, K, width, height):
+        return render_at(self.params, self.config, t, cam_T_world, K, width, height)
+
+
+def load_run(run_dir) -> LoadedRun:
+    """The finished model of a run (final.npz, else the latest checkpoint)."""
+    run_dir = Path(run_dir)
+    if not run_dir.is_dir():
+        raise FileNotFoundError(f"run folder {run_dir} does not exist; train first (d2gs train SCENE --out {run_dir})")
+    path = run_dir / FINAL_NAME
+    if not path.exists():
+        path = run_dir / CHECKPOINT_NAME
+    arrays, meta = load_checkpoint(path)
+    params = {k[len("params/"):]: v for k, v in arrays.items() if k.startswith("params/")}
+    return LoadedRun(run_dir, params, ExperimentConfig.from_dict(meta["config"]), meta)
+
+
+def _image_metrics(pairs):
+    ps = [metrics.psnr(a, b) for a, b in pairs]
+    ss = [metrics.ssim(a, b) for a, b in pairs]
+    return {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "num_images": len(pairs)}
+
+
+def evaluate(run: LoadedRun, scene) -> dict:
+    """Metrics dictionary of METHOD.md §10 for a loaded run and its scene (images loaded)."""
+    out = {}
+    frames = scene.frames
+    if len(frames) != len(run.times):
+        raise ValueError(f"the scene has {len(frames)} frames but the run was trained on {len(run.times)}; "
+                         "evaluate with the scene it was trained on")
+    mids = run.mid_poses()
+    if scene.has_sharp:
+        renders = [run.render(f.time, mids[k], f.K, f.width, f.height) for k, f in enumerate(frames)]
+        out["dvs"] = _image_metrics([(r, f.sharp) for r, f in zip(renders, frames)])
+        out["input_blur"] = _image_metrics([(f.image, f.sharp) for f in frames])
+    if scene.has_gt_poses and len(frames) >= 3:
+        gt = np.stack([f.gt_cam_T_world for f in frames])
+        ate = metrics.ate(mids, gt)
+        rpe_t, rpe_r = metrics.rpe(mids, gt)
+        ate0 = metrics.ate(run.poses_est, gt)
+        rpe_t0, rpe_r0 = metrics.rpe(run.poses_est, gt)
+        out["trajectory"] = {"ate": float(ate), "rpe_t": float(rpe_t), "rpe_r": float(rpe_r),
+                             "initial": {"ate": float(ate0), "rpe_t": float(rpe_t0), "rpe_r": float(rpe_r0)}}
+        if scene.test_frames:
+            s, R, t = metrics.sim3_inverse(*metrics.align_trajectory(mids, gt))
+            pairs = []
+            for f in scene.test_frames:
+                pose = metrics.sim3_apply_to_poses(s, R, t, f.cam_T_world)
+                pairs.append((run.render(f.time, pose, f.K, f.width, f.height), f.image))
+            out["nvs"] = _image_metrics(pairs)
+    out["train_seconds"] = float(run.meta["seconds"])
+    out["steps"] = int(run.meta["step"])
+    out["left_out"] = list(run.meta["left_out"])
+    return out
+
+
+def evaluate_run(run_dir, scene_dir=None) -> dict:
+    """Load a run and its scene, evaluate, write RUN/metrics.json atomically, return the metrics."""
+    run = load_run(run_dir)
+    scene_dir = scene_dir or run.meta.get("scene_root")
+    if scene_dir is None:
+        raise ValueError("the run does not record its scene folder; pass it explicitly (d2gs eval RUN --scene SCENE)")
+    scene = load_scene(scene_dir)
+    result = evaluate(run, scene)
+    atomic_write_text(Path(run_dir) / "metrics.json", json.dumps(result, indent=2))
+    return result

@@ -1,0 +1,1 @@
+"""Training: configuration, stages and hooks, run log, atomic checkpoints, progressive schedule."""

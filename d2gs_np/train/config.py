@@ -1,0 +1,164 @@
+"""Experiment configuration: frozen per-component dataclasses composed into one record.
+
+``ExperimentConfig`` round-trips to JSON (``to_json``/``from_json``) by walking
+the dataclass fields; no argparse reflection, no eval. Unknown keys are an error
+naming the key and the known ones, so a typo in a config file fails before any
+work is done.
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import typing
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+from d2gs_np.blur import BlurConfig
+from d2gs_np.render.config import RenderConfig
+from d2gs_np.scene.deformation import DeformConfig
+from d2gs_np.scene.initialize import InitConfig
+from d2gs_np.train.schedule import ScheduleConfig
+from d2gs_np.trajectory import TrajectoryConfig
+
+_AUTO = ("auto", "on", "off")
+
+
+@dataclass(frozen=True)
+class LossConfig:
+    """Weights of the total loss (METHOD.md §6, Eq. 18). Regularisers plug in here."""
+
+    lambda_ssim: float = 0.2  # L_render = (1 - lambda_ssim) L1 + lambda_ssim (1 - SSIM)
+
+    def __post_init__(self):
+        if not 0.0 <= self.lambda_ssim <= 1.0:
+            raise ValueError(f"LossConfig.lambda_ssim must be in [0, 1]; got {self.lambda_ssim}")
+
+
+@dataclass(frozen=True)
+class LearningRates:
+    """Adam learning rates per block kind (3DGS defaults scaled to scene extent for means)."""
+
+    means: float = 1.6e-4  # times scene extent; decays exponentially to means_final
+    means_final: float = 1.6e-6
+    log_scales: float = 5e-3
+    quats: float = 1e-3
+    opacity_logits: float = 5e-2
+    colors: float = 2.5e-3 * 4  # no SH: plain RGB learns faster than 3DGS's SH DC term
+    deform: float = 1.6e-4  # deformation coefficients of means (times extent); others use deform_other
+    deform_other: float = 1e-3
+    camera: float = 1e-3  # trajectory endpoints xi_start / xi_end and PoseNet weights
+    exposure: float = 1e-2
+
+
+@dataclass(frozen=True)
+class TrainConfig:
+    iters: int = 1500
+    # Stage split (METHOD.md §8): camera/static warm-up, deformation, joint; fractions of iters.
+    warmup_fraction: float = 0.1
+    deform_fraction: float = 0.3
+    seed: int = 0
+    background: tuple = (0.0, 0.0, 0.0)
+    lr: LearningRates = field(default_factory=LearningRates)
+    # Components: "auto" lets the scene decide (METHOD.md §9); "on"/"off" force.
+    dynamic: str = "auto"
+    blur: str = "auto"
+    learn_exposure: str = "auto"  # learned tau when the scene gives no exposure_fraction
+    progressive: bool = True
+    # Housekeeping
+    log_every: int = 10
+    eval_every: int = 250
+    checkpoint_every: int = 500
+    prune_every: int = 250
+    prune_opacity: float = 0.005
+    time_budget: Optional[float] = None  # seconds of training; stops cleanly when exceeded
+    eval_frames: int = 4  # held-out PSNR on this many frames (sharp GT if present, else blurry)
+    quiet: bool = False
+
+    def __post_init__(self):
+        if self.iters < 1:
+            raise ValueError(f"TrainConfig.iters must be >= 1; got {self.iters}")
+        if not (0 <= self.warmup_fraction and 0 <= self.deform_fraction and self.warmup_fraction + self.deform_fraction <= 1):
+            raise ValueError(
+                f"TrainConfig stage fractions must be >= 0 and sum to <= 1; got warmup_fraction="
+                f"{self.warmup_fraction}, deform_fraction={self.deform_fraction}")
+        for name in ("dynamic", "blur", "learn_exposure"):
+            if getattr(self, name) not in _AUTO:
+                raise ValueError(f"TrainConfig.{name} must be one of {_AUTO}; got {getattr(self, name)!r}")
+        if len(self.background) != 3:
+            raise ValueError(f"TrainConfig.background must have 3 values; got {self.background}")
+        if self.time_budget is not None and self.time_budget <= 0:
+            raise ValueError(f"TrainConfig.time_budget must be positive seconds; got {self.time_budget}")
+
+
+@dataclass(frozen=True)
+class ExperimentConfig:
+    train: TrainConfig = field(default_factory=TrainConfig)
+    loss: LossConfig = field(default_factory=LossConfig)
+    render: RenderConfig = field(default_factory=RenderConfig)
+    deform: DeformConfig = field(default_factory=DeformConfig)
+    blur: BlurConfig = field(default_factory=BlurConfig)
+    trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
+    schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
+    init: InitConfig = field(default_factory=InitConfig)
+
+    def to_dict(self) -> dict:
+        return _to_plain(self)
+
+    def to_json(self) -> str:
+        return json.dumps(self.to_dict(), indent=2)
+
+    @classmethod
+    def from_dict(cls, d: dict) -> "ExperimentConfig":
+        return _from_plain(cls, d, "config")
+
+    @classmethod
+    def from_json(cls, text: str) -> "ExperimentConfig":
+        return cls.from_dict(json.loads(text))
+
+    @classmethod
+    def load(cls, path) -> "ExperimentConfig":
+        path = Path(path)
+        if not path.exists():
+            raise FileNotFoundError(f"config file {path} does not exist")
+        try:
+            data = json.loads(path.read_text())
+        except json.JSONDecodeError as e:
+            raise ValueError(f"config file {path} is not valid JSON: {e}") from e
+        return cls.from_dict(data)
+
+    def replace(self, **sections) -> "ExperimentConfig":
+        return dataclasses.replace(self, **sections)
+
+
+def _to_plain(obj):
+    if dataclasses.is_dataclass(obj):
+        return {f.name: _to_plain(getattr(obj, f.name)) for f in dataclasses.fields(obj)}
+    if isinstance(obj, (tuple, list)):
+        return [_to_plain(v) for v in obj]
+    if isinstance(obj, dict):
+        return {k: _to_plain(v) for k, v in obj.items()}
+    return obj
+
+
+def _from_plain(cls, data, where):
+    if not isinstance(data, dict):
+        raise ValueError(f"{where} must be a JSON object; got {type(data).__name__}")
+    hints = typing.get_type_hints(cls)
+    names = {f.name for f in dataclasses.fields(cls)}
+    unknown = set(data) - names
+    if unknown:
+        raise ValueError(f"{where}: unknown key(s) {sorted(unknown)}; known keys are {sorted(names)}")
+    kwargs = {}
+    for name, value in data.items():
+        tp = hints[name]
+        if dataclasses.is_dataclass(tp):
+            kwargs[name] = _from_plain(tp, value, f"{where}.{name}")
+        elif isinstance(value, list):
+            kwargs[name] = tuple(value)
+        else:
+            kwargs[name] = value
+    try:
+        return cls(**kwargs)
+    except TypeError as e:
+        raise ValueError(f"{where}: {e}") from e

@@ -1,0 +1,90 @@
+"""Run log: error against wall-clock time, and the decisions the pipeline made.
+
+Every row records the step, the seconds of training so far (JIT warm-up and
+evaluation excluded, see ``Stopwatch``), the loss and train PSNR, and, on
+evaluation steps, held-out PSNR. Rows are appended to ``RUN/log.csv`` as they
+come (so a crash keeps them) and the whole history is rewritten atomically to
+``RUN/log.json`` at checkpoints.
+"""
+from __future__ import annotations
+
+import csv
+import json
+import math
+import os
+import sys
+import time
+from pathlib import Path
+
+from d2gs_np.train.checkpoint import atomic_write_text
+
+LOG_FIELDS = ("step", "seconds", "stage", "loss", "train_psnr", "heldout_psnr", "scale", "num_gaussians")
+
+
+class Stopwatch:
+    """Accumulates training time only; ``pause()`` around evaluation and checkpointing."""
+
+    def __init__(self, elapsed: float = 0.0):
+        self.elapsed = float(elapsed)
+        self._t0 = None
+
+    def start(self):
+        if self._t0 is None:
+            self._t0 = time.perf_counter()
+
+    def pause(self):
+        if self._t0 is not None:
+            self.elapsed += time.perf_counter() - self._t0
+            self._t0 = None
+
+    def seconds(self) -> float:
+        return self.elapsed + (time.perf_counter() - self._t0 if self._t0 is not None else 0.0)
+
+
+class RunLog:
+    def __init__(self, run_dir, quiet: bool = False, resume: bool = False):
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.rows: list = []
+        self.notes: list = []  # (seconds, message): what was left out and why, stage changes, ...
+        self.quiet = quiet
+        self._csv_path = self.run_dir / "log.csv"
+        if resume and (self.run_dir / "log.json").exists():
+            data = json.loads((self.run_dir / "log.json").read_text())
+            self.rows, self.notes = data.get("rows", []), data.get("notes", [])
+        if not resume or not self._csv_path.exists():
+            with open(self._csv_path, "w", newline="") as f:
+                csv.writer(f).writerow(LOG_FIELDS)
+
+    def note(self, message: str):
+        """A decision or event in words (also printed)."""
+        self.notes.append(message)
+        if not self.quiet:
+            print(f"[d2gs] {message}", flush=True)
+
+    def row(self, **values):
+        row = {k: values.get(k) for k in LOG_FIELDS}
+        self.rows.append(row)
+        with open(self._csv_path, "a", newline="") as f:
+            csv.writer(f).writerow(["" if row[k] is None else row[k] for k in LOG_FIELDS])
+
+    def progress(self, step: int, total: int, seconds: float, loss: float, psnr: float, stage: str):
+        if self.quiet:
+            return
+        width = 24
+        done = int(width * step / max(total, 1))
+        bar = "#" * done + "-" * (width - done)
+        rate = step / seconds if seconds > 0 else float("nan")
+        msg = (f"\r[{bar}] {step}/{total} {stage:>8s} loss {loss:.4f} psnr {psnr:5.2f} dB "
+               f"{seconds:6.1f}s ({rate:.1f} it/s)")
+        sys.stdout.write(msg)
+        sys.stdout.flush()
+        if step >= total:
+            sys.stdout.write("\n")
+
+    def save(self):
+        atomic_write_text(self.run_dir / "log.json", json.dumps({"rows": self.rows, "notes": self.notes}, indent=1))
+
+
+def psnr_from_mse(mse: float) -> float:
+    return float("inf") if mse <= 0 else -10.0 * math.log10(mse)

@@ -1,0 +1,467 @@
+"""The trainer: stages, a seeded frame sampler, Adam over named blocks, hooks, checkpoints.
+
+One training step (``Trainer.step``):
+  1. pick frame k (seeded permutation per epoch, reproducible after resume),
+  2. pick the render scale of the progressive schedule (METHOD.md §7) and fetch
+     the area-downsampled target and scaled intrinsics from the cache,
+  3. render: with the blur model, the mean of n renders along the exposure's
+     SE(3) path (METHOD.md §4); without it, one sharp render at the given pose,
+  4. photometric loss and its gradient, back through renderer, blur model,
+     trajectory model and deformation to every named parameter block,
+  5. Adam on the blocks the current stage trains.
+
+Stages (METHOD.md §8): ``warmup`` trains the static set and the camera model
+on static pixels only (dynamic Gaussians are not rendered, masked pixels carry
+no loss); ``deform`` trains the dynamic set and its deformation; ``joint``
+trains everything. Stages a scene does not need are left out (no dynamic set:
+no ``deform`` stage) and the run log says so.
+
+Hooks: callables ``hook(trainer, info)`` run after every step with the step's
+record; later components (the Gauss-Newton pose refinement, densification)
+plug in here without changing the loop.
+"""
+from __future__ import annotations
+
+import json
+import time
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Optional
+
+import numpy as np
+
+from d2gs_np import blur as blur_model
+from d2gs_np import trajectory as traj_model
+from d2gs_np.data.scene import Scene
+from d2gs_np.geometry.se3 import se3_exp, se3_interpolate
+from d2gs_np.losses.photometric import photometric_bwd, photometric_fwd
+from d2gs_np.optim import adam
+from d2gs_np.render import render_bwd, render_fwd
+from d2gs_np.scene import gaussians
+from d2gs_np.scene.initialize import initialize_points
+from d2gs_np.scene.model import evaluate_bwd, evaluate_fwd
+from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint, save_checkpoint
+from d2gs_np.train.config import ExperimentConfig
+from d2gs_np.train.log import RunLog, Stopwatch, psnr_from_mse
+from d2gs_np.train.schedule import TargetCache, render_scale
+
+CHECKPOINT_NAME = "checkpoint.npz"
+FINAL_NAME = "final.npz"
+
+
+@dataclass(frozen=True)
+class Stage:
+    name: str
+    start: int  # first step (inclusive)
+    stop: int  # last step (exclusive)
+    trainable: tuple  # block-name prefixes trained in this stage
+    static_only: bool  # render only the static set and ignore masked (moving) pixels
+
+
+@dataclass(frozen=True)
+class Components:
+    """What this run models; decided from the scene and the config (METHOD.md §9)."""
+
+    dynamic: bool
+    blur: bool
+    learn_exposure: bool
+    exposure_fraction: float  # used when not learned
+
+    def left_out(self) -> list:
+        out = []
+        if not self.dynamic:
+            out += ["dynamic_set", "deformation"]
+        if not self.blur:
+            out += ["blur_model", "trajectory_model"]
+        out += ["pose_refinement"]  # Gauss-Newton endpoint refinement: a later component
+        return out
+
+
+def decide_components(scene: Scene, config: ExperimentConfig, log: Optional[RunLog] = None) -> Components:
+    """Apply METHOD.md §9: leave out what the scene does not need, and say why."""
+    tc = config.train
+    say = log.note if log is not None else (lambda m: None)
+    if tc.dynamic == "off":
+        dynamic = False
+        say("dynamic set: off (config train.dynamic = off)")
+    elif not scene.has_masks:
+        dynamic = tc.dynamic == "on"
+        if dynamic:
+            raise ValueError("train.dynamic = on needs motion masks, but the scene has none; add masks/ or use auto")
+        say("dynamic set: left out (the scene has no motion masks)")
+    elif not scene.has_moving_pixels:
+        dynamic = False
+        say("dynamic set: left out (the motion masks contain no moving pixels), and with it the deformation model")
+    else:
+        dynamic = True
+        say("dynamic set: on (motion masks mark moving pixels)")
+
+    ef = scene.exposure_fraction
+    if tc.blur == "off":
+        blur, learn = False, False
+        say("blur model: off (config train.blur = off); n = 1 sharp camera at the given poses")
+    elif tc.blur == "auto" and ef is not None and ef == 0.0:
+        blur, learn = False, False
+        say("blur model: left out (scene exposure_fraction = 0: sharp input); n = 1, no endpoint model")
+    elif config.blur.num_virtual == 1:
+        blur, learn = False, False
+        say("blur model: left out (blur.num_virtual = 1)")
+    else:
+        blur = True
+        if tc.learn_exposure == "on" or (tc.learn_exposure == "auto" and ef is None):
+            learn = True
+            say("blur model: on, exposure length learned (scene gives no exposure_fraction)")
+        else:
+            learn = False
+            if ef is None:
+                raise ValueError("train.learn_exposure = off but the scene has no exposure_fraction; use auto or on")
+            say(f"blur model: on, n = {config.blur.num_virtual} virtual views, exposure_fraction = {ef} from the scene")
+        say(f"trajectory model: {config.trajectory.kind}")
+    say("pose refinement (Gauss-Newton on reprojection residuals): not run (not part of this version)")
+    return Components(dynamic=dynamic, blur=blur, learn_exposure=learn, exposure_fraction=float(ef or 0.0))
+
+
+def validate_scene_for_training(scene: Scene):
+    if scene.num_frames < 2:
+        raise ValueError(f"training needs at least 2 frames; the scene has {scene.num_frames}")
+    for i, f in enumerate(scene.frames):
+        if f.image is None:
+            raise ValueError(f"frame {i} ({f.file_path}) has no image loaded; load the scene with load_images=True")
+        if f.image.shape != (f.height, f.width, 3):
+            raise ValueError(f"frame {i} ({f.file_path}) image has shape {f.image.shape}; expected {(f.height, f.width, 3)}")
+        if not np.all(np.isfinite(f.image)):
+            raise ValueError(f"frame {i} ({f.file_path}) image contains NaN or inf")
+
+
+def scene_extent(poses) -> float:
+    """Radius of the camera centres around their mean (3DGS's 'cameras_extent'), at least 1e-3 of unit."""
+    centres = np.array([-T[:3, :3].T @ T[:3, 3] for T in poses])
+    r = float(np.max(np.linalg.norm(centres - centres.mean(0), axis=1))) * 1.1
+    return max(r, 1.0)
+
+
+class Trainer:
+    def __init__(self, scene: Scene, config: ExperimentConfig, run_dir, hooks: tuple = (), resume: bool = False):
+        validate_scene_for_training(scene)
+        self.scene = scene
+        self.config = config
+        self.run_dir = Path(run_dir)
+        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.hooks: list = list(hooks)
+        self.log = RunLog(self.run_dir, quiet=config.train.quiet, resume=resume)
+        self.frames = scene.frames
+        self.num_frames = len(self.frames)
+        self.times = np.array([f.time for f in self.frames], dtype=np.float64)
+        self.poses_est = np.stack([f.cam_T_world for f in self.frames]).astype(np.float64)
+        self.background = np.asarray(config.train.background, dtype=np.float64)
+        self.cache = TargetCache(scene, config.schedule) if _accepts_schedule(TargetCache) else TargetCache(scene)
+        self.stopwatch = Stopwatch()
+        self.step_index = 0
+        self.extent = scene_extent(self.poses_est)
+
+        ckpt = self.run_dir / CHECKPOINT_NAME
+        if resume and ckpt.exists():
+            self._restore(ckpt)
+        else:
+            atomic_write_text(self.run_dir / "config.json", config.to_json())
+            self.components = decide_components(scene, config, self.log)
+            self._initialise()
+        self.stages = self._make_stages()
+        self.adam_config = self._make_adam_config()
+
+    # ------------------------------------------------------------------ set-up
+    def _initialise(self):
+        cfg = self.config
+        rng = np.random.default_rng(cfg.train.seed)
+        t0 = time.perf_counter()
+        s_pts, s_col, d_pts, d_col, info = initialize_points(self.scene, cfg.init, rng)
+        if not self.components.dynamic:
+            d_pts, d_col = None, None
+        self.params = gaussians.init_params(s_pts, s_col, d_pts, d_col, deform_config=cfg.deform, rng=rng)
+        self.log.note(
+            f"initialised {gaussians.num_static(self.params)} static and {gaussians.num_dynamic(self.params)} "
+            f"dynamic Gaussians in {time.perf_counter() - t0:.1f}s ({_short(info)})")
+        if self.components.blur:
+            self.params.update(traj_model.init_trajectory(cfg.trajectory, self.poses_est, self.times, rng))
+            if self.components.learn_exposure:
+                self.params["camera.exposure_logit"] = blur_model.init_exposure_logit()
+        self.adam_state = adam.adam_init(self.params)
+
+    def _make_stages(self) -> list:
+        tc = self.config.train
+        n = tc.iters
+        w = int(round(tc.warmup_fraction * n))
+        d = int(round(tc.deform_fraction * n)) if self.components.dynamic else 0
+        stages = []
+        if w > 0:
+            stages.append(Stage("warmup", 0, w, ("static.", "camera.", "posenet."), True))
+        if d > 0:
+            stages.append(Stage("deform", w, w + d, ("dynamic.",), False))
+        stages.append(Stage("joint", w + d, n, ("static.", "dynamic.", "camera.", "posenet."), False))
+        return [s for s in stages if s.stop > s.start]
+
+    def _make_adam_config(self):
+        lr = self.config.train.lr
+        n = self.config.train.iters
+        e = self.extent
+        rates = {}
+        for name in self.params:
+            kind = name.split(".", 1)[1] if "." in name else name
+            if name.startswith(("camera.xi", "posenet.")):
+                rates[name] = lr.camera
+            elif name == "camera.exposure_logit":
+                rates[name] = lr.exposure
+            elif kind == "means":
+                rates[name] = adam.exponential_decay(lr.means * e, lr.means_final * e, n)
+            elif kind == "deform_means":
+                rates[name] = adam.exponential_decay(lr.deform * e, lr.means_final * e, n)
+            elif kind.startswith("deform_"):
+                rates[name] = lr.deform_other
+            else:
+                rates[name] = getattr(lr, kind)
+        return adam.AdamConfig(lr=rates)
+
+    def stage_at(self, step: int) -> Stage:
+        for s in self.stages:
+            if s.start <= step < s.stop:
+                return s
+        return self.stages[-1]
+
+    # ------------------------------------------------------------------ one step
+    def frame_for_step(self, step: int) -> int:
+        """Seeded permutation per epoch; depends only on (seed, step), so resuming reproduces it."""
+        epoch, pos = divmod(step, self.num_frames)
+        perm = np.random.default_rng((self.config.train.seed, epoch)).permutation(self.num_frames)
+        return int(perm[pos])
+
+    def exposure_tau(self, params=None):
+        params = self.params if params is None else params
+        if not self.components.blur:
+            return 0.0
+        if self.components.learn_exposure:
+            tau, _ = blur_model.exposure_fwd(params["camera.exposure_logit"], self.num_frames)
+            return float(tau)
+        return blur_model.exposure_from_scene(self.components.exposure_fraction, self.num_frames)
+
+    def endpoints(self, frame_indices, params=None):
+        params = self.params if params is None else params
+        (xs, xe), saved = traj_model.endpoints_fwd(
+            params, self.config.trajectory, np.asarray(frame_indices), self.poses_est, self.times)
+        return xs, xe, saved
+
+    def mid_pose(self, k: int, params=None) -> np.ndarray:
+        """Optimised mid-exposure pose of frame k (geodesic midpoint of the endpoints)."""
+        params = self.params if params is None else params
+        return mid_exposure_pose(params, self.config, self.components.blur, self.poses_est, self.times, k)
+
+    def render_frame(self, k: int, scale: float, static_only: bool, params=None, blurred: bool = True):
+        """Forward of frame k at render scale; returns (out, backward closure, target, mask, K, w, h)."""
+        params = self.params if params is None else params
+        cfg = self.config
+        tgt = self.cache.get(k, scale)
+        img_params = {n: v for n, v in params.items() if n.startswith("static.")} if static_only else params
+        f = self.frames[k]
+        if self.components.blur and blurred:
+            xs, xe, tsaved = self.endpoints([k], params)
+            tau = self.exposure_tau(params)
+            out, bsaved = blur_model.blur_render_fwd(
+                img_params, f.time, tau, self.poses_est[k], xs[0], xe[0], tgt.K, tgt.width, tgt.height,
+                self.background, cfg.blur, cfg.deform, cfg.render)
+
+            def backward(v_image):
+                v_p, v_xs, v_xe, v_tau = blur_model.blur_render_bwd(bsaved, v_image)
+                v_p = dict(v_p)
+                v_p.update(traj_model.endpoints_bwd(tsaved, v_xs[None], v_xe[None]))
+                if self.components.learn_exposure:
+                    _, esaved = blur_model.exposure_fwd(params["camera.exposure_logit"], self.num_frames)
+                    v_p["camera.exposure_logit"] = blur_model.exposure_bwd(esaved, v_tau)
+                return v_p
+        else:
+            ri, esaved = evaluate_fwd(img_params, f.time, cfg.deform)
+            out, rsaved = render_fwd(ri["means"], ri["quats"], ri["scales"], ri["opacities"], ri["colors"],
+                                     self.poses_est[k], tgt.K, tgt.width, tgt.height, self.background, cfg.render)
+
+            def backward(v_image):
+                g = render_bwd(rsaved, v_image)
+                v_p, _ = evaluate_bwd(esaved, {n: g[n] for n in ("means", "quats", "scales", "opacities", "colors")})
+                return v_p
+        return out, backward, tgt
+
+    def step(self, step: int) -> dict:
+        stage = self.stage_at(step)
+        k = self.frame_for_step(step)
+        scale = (render_scale(step, self.config.train.iters, self.config.schedule)
+                 if self.config.train.progressive else 1.0)
+        out, backward, tgt = self.render_frame(k, scale, stage.static_only)
+        image = out["image"]
+        target = tgt.image
+        ignore = tgt.mask if (stage.static_only and tgt.mask is not None) else None
+        if ignore is not None:  # moving pixels carry no loss while only the static set is rendered
+            target = np.where(ignore[..., None], image, target)
+        loss, lsaved = photometric_fwd(image, target, self.config.loss.lambda_ssim)
+        v_image = photometric_bwd(lsaved, 1.0)
+        if ignore is not None:
+            v_image = np.where(ignore[..., None], 0.0, v_image)
+        grads = backward(v_image)
+        grads = {n: g for n, g in grads.items() if n.startswith(stage.trainable) and n in self.params}
+        self.params, self.adam_state = adam.adam_update(grads, self.adam_state, self.params, self.adam_config)
+        mse = float(np.mean((image - tgt.image) ** 2)) if ignore is None else float(
+            np.mean(((image - tgt.image) ** 2)[~ignore]))
+        return {"step": step, "frame": k, "stage": stage.name, "loss": float(loss), "train_psnr": psnr_from_mse(mse),
+                "scale": scale, "width": tgt.width, "height": tgt.height}
+
+    # ------------------------------------------------------------------ housekeeping
+    def prune(self):
+        thr = self.config.train.prune_opacity
+        keep_s = gaussians.sigmoid(self.params["static.opacity_logits"]) > thr
+        keep_d = (gaussians.sigmoid(self.params["dynamic.opacity_logits"]) > thr) if gaussians.has_dynamic(self.params) else None
+        removed = int((~keep_s).sum() + (0 if keep_d is None else (~keep_d).sum()))
+        if removed == 0:
+            return 0
+        self.params = gaussians.prune(self.params, keep_s, keep_d)
+        self.adam_state = adam.adam_select(self.adam_state, "static.", keep_s)
+        if keep_d is not None:
+            self.adam_state = adam.adam_select(self.adam_state, "dynamic.", keep_d)
+        return removed
+
+    def heldout_psnr(self) -> Optional[float]:
+        """PSNR of sharp renders at the optimised mid-exposure poses against the sharp frames (if the
+        scene has them), on ``eval_frames`` evenly spaced frames, at full resolution."""
+        if not self.scene.has_sharp:
+            return None
+        idx = np.unique(np.linspace(0, self.num_frames - 1, self.config.train.eval_frames).round().astype(int))
+        mses = []
+        for k in idx:
+            img = self.render_sharp(k)
+            mses.append(float(np.mean((img - self.frames[k].sharp) ** 2)))
+        return psnr_from_mse(float(np.mean(mses)))
+
+    def render_sharp(self, k: int, params=None) -> np.ndarray:
+        """Sharp render of training frame k at its optimised mid-exposure pose and time, full resolution."""
+        params = self.params if params is None else params
+        f = self.frames[k]
+        return render_at(params, self.config, f.time, self.mid_pose(k, params), f.K, f.width, f.height,
+                         self.background)
+
+    def num_gaussians(self) -> int:
+        return gaussians.num_static(self.params) + gaussians.num_dynamic(self.params)
+
+    def checkpoint(self, final: bool = False):
+        arrays = {f"params/{n}": v for n, v in self.params.items()}
+        for slot, blocks in self.adam_state.items() if isinstance(self.adam_state, dict) else []:
+            if isinstance(blocks, dict):
+                for n, v in blocks.items():
+                    arrays[f"adam/{slot}/{n}"] = v
+            else:
+                arrays[f"adam/{slot}"] = np.asarray(blocks)
+        meta = {
+            "step": self.step_index, "seconds": self.stopwatch.seconds(), "config": self.config.to_dict(),
+            "components": self.components.__dict__, "left_out": self.components.left_out(),
+            "poses_est": self.poses_est.tolist(), "times": self.times.tolist(), "final": final,
+            "scene_root": str(self.scene.root) if self.scene.root is not None else None,
+            "K": np.asarray(self.frames[0].K).tolist(), "width": int(self.frames[0].width),
+            "height": int(self.frames[0].height),
+        }
+        save_checkpoint(self.run_dir / (FINAL_NAME if final else CHECKPOINT_NAME), arrays, meta)
+        self.log.save()
+
+    def _restore(self, path):
+        arrays, meta = load_checkpoint(path)
+        self.params = {k[len("params/"):]: v for k, v in arrays.items() if k.startswith("params/")}
+        state = {}
+        for k, v in arrays.items():
+            if k.startswith("adam/"):
+                parts = k.split("/", 2)
+                if len(parts) == 3:
+                    state.setdefault(parts[1], {})[parts[2]] = v
+                else:
+                    state[parts[1]] = v.item() if v.ndim == 0 else v
+        self.adam_state = state
+        self.step_index = int(meta["step"])
+        self.stopwatch = Stopwatch(meta["seconds"])
+        self.components = Components(**meta["components"])
+        self.log.note(f"resumed from {path} at step {self.step_index} ({meta['seconds']:.1f}s of training)")
+
+    # ------------------------------------------------------------------ the loop
+    def run(self) -> dict:
+        tc = self.config.train
+        total = tc.iters
+        t_start = time.perf_counter()
+        if self.step_index == 0:
+            self.log.note(f"training {total} steps; stages: " + ", ".join(
+                f"{s.name} [{s.start}, {s.stop})" for s in self.stages))
+        last_stage = None
+        info = {"loss": float("nan"), "train_psnr": float("nan")}
+        while self.step_index < total:
+            step = self.step_index
+            stage = self.stage_at(step)
+            if stage.name != last_stage:
+                self.log.note(f"stage {stage.name} from step {step}")
+                last_stage = stage.name
+            self.stopwatch.start()
+            info = self.step(step)
+            for hook in self.hooks:
+                hook(self, info)
+            if tc.prune_every and step > 0 and step % tc.prune_every == 0 and step < int(0.9 * total):
+                self.prune()
+            self.stopwatch.pause()
+            self.step_index = step + 1
+            seconds = self.stopwatch.seconds()
+            is_last = self.step_index >= total
+            heldout = None
+            if tc.eval_every and (step % tc.eval_every == 0 or is_last):
+                heldout = self.heldout_psnr()
+            if step % tc.log_every == 0 or is_last or heldout is not None:
+                self.log.row(step=step, seconds=round(seconds, 4), stage=stage.name, loss=info["loss"],
+                             train_psnr=info["train_psnr"], heldout_psnr=heldout, scale=round(info["scale"], 4),
+                             num_gaussians=self.num_gaussians())
+                self.log.progress(self.step_index, total, seconds, info["loss"], info["train_psnr"], stage.name)
+            if tc.checkpoint_every and self.step_index % tc.checkpoint_every == 0 and not is_last:
+                self.checkpoint()
+            if tc.time_budget is not None and seconds >= tc.time_budget and not is_last:
+                self.log.note(f"time budget of {tc.time_budget:.0f}s reached at step {self.step_index}; stopping")
+                break
+        self.checkpoint(final=True)
+        wall = time.perf_counter() - t_start
+        self.log.note(f"finished at step {self.step_index}: {self.stopwatch.seconds():.1f}s of training "
+                      f"({wall:.1f}s wall including evaluation)")
+        self.log.save()
+        return {"steps": self.step_index, "train_seconds": self.stopwatch.seconds(), **info}
+
+
+def mid_exposure_pose(params, config: ExperimentConfig, blur_on: bool, poses_est, times, k: int) -> np.ndarray:
+    """Mid-exposure cam_T_world of frame k: the geodesic midpoint of the optimised exposure
+    endpoints with the blur model, the given estimate without it."""
+    if not blur_on:
+        return np.array(poses_est[k], dtype=np.float64)
+    (xs, xe), _ = traj_model.endpoints_fwd(params, config.trajectory, np.array([k]), poses_est, times)
+    Ts = se3_exp(xs[0]) @ poses_est[k]
+    Te = se3_exp(xe[0]) @ poses_est[k]
+    return se3_interpolate(Ts, Te, 0.5)
+
+
+def render_at(params, config: ExperimentConfig, t: float, cam_T_world, K, width, height, background=None):
+    """Sharp render of a parameter set at time t and pose: the image (H, W, 3)."""
+    bg = np.asarray(config.train.background if background is None else background, dtype=np.float64)
+    scene_params = {n: v for n, v in params.items() if n.startswith(("static.", "dynamic."))}
+    ri, _ = evaluate_fwd(scene_params, float(t), config.deform)
+    out, _ = render_fwd(ri["means"], ri["quats"], ri["scales"], ri["opacities"], ri["colors"],
+                        np.asarray(cam_T_world, dtype=np.float64), np.asarray(K, dtype=np.float64),
+                        int(width), int(height), bg, config.render)
+    return out["image"]
+
+
+def _short(info: dict) -> str:
+    items = []
+    for k, v in info.items():
+        if isinstance(v, (int, float, np.integer, np.floating)):
+            items.append(f"{k}={v:.3g}" if isinstance(v, (float, np.floating)) else f"{k}={v}")
+    return ", ".join(items[:6])
+
+
+def _accepts_schedule(cls) -> bool:
+    import inspect
+    try:
+        return len(inspect.signature(cls).parameters) >= 2
+    except (TypeError, ValueError):
+        return False
