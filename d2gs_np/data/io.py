@@ -1,0 +1,516 @@
+"""Read and write scene folders (``../shared/DATASET_FORMAT.md``), with validation.
+
+On disk: ``transforms.json`` (training frames, the blurry video), optional
+``transforms_test.json`` (evaluation views), 8-bit PNG images, masks (255 =
+dynamic) and sharp ground truth; poses are OpenGL/Nerfstudio camera-to-world
+matrices (x right, y up, looking down -z). In memory (``d2gs_np.data.scene``):
+``cam_T_world`` world-to-camera with OpenCV axes,
+``cam_T_world = inv(c2w @ diag(1, -1, -1, 1))``; images float64 (H, W, 3) in
+[0, 1]; masks bool (H, W).
+
+Validation happens in this order so that bad scenes fail early and cheaply:
+JSON syntax and every field of both JSON files, then the existence of every
+referenced file and its PNG header (size, bit depth, colour type -- 33 bytes
+per file), and only then the decoding of the pixels. Errors name the file and
+the frame (its index in the JSON ``frames`` list and its ``file_path``) and
+say how to fix it. Missing files raise FileNotFoundError; everything else
+ValueError.
+
+Choices the format leaves open:
+- Frames of each file are returned sorted by ``time`` (stable: frames with
+  equal times keep their file order).
+- Intrinsics of ``transforms_test.json`` default to its own top-level values,
+  then to those of ``transforms.json``; a frame may override any of them.
+- A ``file_path`` without an extension that exists only with ``.png``
+  appended (the D-NeRF/Blender habit) is accepted and stored with ``.png``.
+- JSON ``null`` for an optional field means absent. Unknown fields are
+  ignored. Nerfstudio distortion fields (k1..k4, p1, p2) must be zero and
+  ``camera_model``, if given, a pinhole one: this project has no distortion.
+- Images must be 8-bit RGB (or palette) PNGs; RGBA is rejected rather than
+  composited onto a guessed background. Masks must be 8-bit greyscale PNGs
+  and are thresholded at > 127.
+"""
+from __future__ import annotations
+
+import json
+import math
+import os
+from pathlib import Path
+
+import cv2
+import numpy as np
+
+from d2gs_np.data.scene import Frame, Scene
+from d2gs_np.geometry.camera import (
+    cam_T_world_to_opengl_c2w,
+    check_intrinsics,
+    check_rigid,
+    make_intrinsics,
+    opengl_c2w_to_cam_T_world,
+)
+
+__all__ = ["load_scene", "write_scene", "TRANSFORMS_FILE", "TRANSFORMS_TEST_FILE"]
+
+TRANSFORMS_FILE = "transforms.json"
+TRANSFORMS_TEST_FILE = "transforms_test.json"
+
+_INTRINSIC_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy")
+_DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
+_PINHOLE_MODELS = ("PINHOLE", "SIMPLE_PINHOLE", "OPENCV")
+_POSE_KEYS = (
+    ("transform_matrix", "cam_T_world"),
+    ("gt_transform_matrix", "gt_cam_T_world"),
+    ("gt_exposure_start", "gt_exposure_start"),
+    ("gt_exposure_end", "gt_exposure_end"),
+)
+_MASK_THRESHOLD = 127  # mask pixels > 127 are dynamic (255 = dynamic, 0 = static)
+_PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
+_PNG_HEADER_BYTES = 26  # signature (8) + IHDR length/type (8) + width, height (8) + depth, colour (2)
+_PNG_COLOR_NAMES = {0: "greyscale", 2: "RGB", 3: "palette", 4: "greyscale+alpha", 6: "RGBA"}
+
+
+# ------------------------------------------------------------------ small checkers
+def _is_number(x):
+    return isinstance(x, (int, float)) and not isinstance(x, bool)
+
+
+def _number(value, where, field):
+    if not _is_number(value) or not math.isfinite(value):
+        raise ValueError(f"{where}: '{field}' must be a finite number; got {value!r}")
+    return float(value)
+
+
+def _positive_int(value, where, field):
+    if not _is_number(value) or not math.isfinite(value) or value != int(value) or value <= 0:
+        raise ValueError(f"{where}: '{field}' must be a positive integer; got {value!r}")
+    return int(value)
+
+
+def _matrix4(value, where, field):
+    """Nested 4x4 list of numbers -> (4, 4) float64 (not yet checked for rigidity)."""
+    ok = (
+        isinstance(value, list)
+        and len(value) == 4
+        and all(isinstance(row, list) and len(row) == 4 and all(_is_number(x) for x in row) for row in value)
+    )
+    if not ok:
+        raise ValueError(f"{where}: '{field}' must be a 4x4 nested list of numbers (row-major); got {value!r}")
+    M = np.array(value, dtype=np.float64)
+    check_rigid(M, f"{where}: '{field}'")
+    return M
+
+
+def _frame_label(source, index, frame):
+    fp = frame.get("file_path") if isinstance(frame, dict) else None
+    return f"{source} frames[{index}]" + (f" ({fp!r})" if isinstance(fp, str) else "")
+
+
+# ------------------------------------------------------------------------ JSON
+def _read_json(path):
+    try:
+        text = path.read_text(encoding="utf-8")
+    except UnicodeDecodeError as e:
+        raise ValueError(f"{path} is not UTF-8 text ({e}); save it as UTF-8 JSON") from None
+    try:
+        data = json.loads(text)
+    except json.JSONDecodeError as e:
+        raise ValueError(
+            f"{path} is not valid JSON: {e.msg} at line {e.lineno}, column {e.colno}; fix the syntax"
+        ) from None
+    if not isinstance(data, dict):
+        raise ValueError(f"{path} must hold a JSON object with a 'frames' list; got a {type(data).__name__}")
+    frames = data.get("frames")
+    if not isinstance(frames, list):
+        raise ValueError(f"{path} must have a 'frames' list (one entry per image); it has none")
+    if len(frames) == 0:
+        raise ValueError(f"{path} has an empty 'frames' list; a scene needs at least one frame")
+    return data
+
+
+def _check_camera_model(d, where):
+    model = d.get("camera_model")
+    if model is not None and model not in _PINHOLE_MODELS:
+        raise ValueError(
+            f"{where}: camera_model {model!r} is not supported; only pinhole cameras "
+            f"({', '.join(_PINHOLE_MODELS)} with zero distortion). Undistort the images first."
+        )
+    for k in _DISTORTION_KEYS:
+        v = d.get(k)
+        if v is not None and (not _is_number(v) or v != 0):
+            raise ValueError(
+                f"{where}: distortion coefficient '{k}' = {v!r}, but this project has no lens "
+                "distortion model; undistort the images and set it to 0 (or remove it)"
+            )
+
+
+def _top_intrinsics(data):
+    return {k: data[k] for k in _INTRINSIC_KEYS if data.get(k) is not None}
+
+
+def _top_level_optional(data, where):
+    out = {}
+    v = data.get("exposure_fraction")
+    if v is not None:
+        v = _number(v, where, "exposure_fraction")
+        if not 0.0 <= v <= 1.0:
+            raise ValueError(f"{where}: 'exposure_fraction' must be in [0, 1] (a fraction of the frame interval); got {v}")
+    out["exposure_fraction"] = v
+    v = data.get("scene_scale")
+    if v is not None:
+        v = _number(v, where, "scene_scale")
+        if v <= 0:
+            raise ValueError(f"{where}: 'scene_scale' must be positive (world units); got {v}")
+    out["scene_scale"] = v
+    v = data.get("blur_subframes")
+    out["blur_subframes"] = None if v is None else _positive_int(v, where, "blur_subframes")
+    return out
+
+
+class _Spec:
+    """Validated metadata of one frame plus where its files are."""
+
+    __slots__ = ("label", "fields", "image_file", "mask_file", "sharp_file")
+
+
+def _resolve_path(root, rel, label, field):
+    if not isinstance(rel, str) or not rel.strip():
+        raise ValueError(f"{label}: '{field}' must be a non-empty string path relative to the scene folder; got {rel!r}")
+    if os.path.isabs(rel):
+        raise ValueError(f"{label}: '{field}' = {rel!r} is absolute; paths must be relative to the scene folder")
+    full = root / rel
+    if not full.exists() and not Path(rel).suffix and (root / (rel + ".png")).exists():
+        rel = rel + ".png"  # D-NeRF / Blender style path without extension
+        full = root / rel
+    return rel, full
+
+
+def _parse_frame(root, source, index, frame, defaults):
+    label = _frame_label(source, index, frame)
+    if not isinstance(frame, dict):
+        raise ValueError(f"{label} must be a JSON object; got {frame!r}")
+    for req in ("file_path", "time", "transform_matrix"):
+        if frame.get(req) is None:
+            raise ValueError(f"{label}: missing required field '{req}' (see DATASET_FORMAT.md, Frames)")
+    _check_camera_model(frame, label)
+    spec = _Spec()
+    spec.label = label
+    f = {}
+    f["file_path"], spec.image_file = _resolve_path(root, frame["file_path"], label, "file_path")
+    t = _number(frame["time"], label, "time")
+    if not 0.0 <= t <= 1.0:
+        raise ValueError(f"{label}: 'time' must be a normalised timestamp in [0, 1]; got {t}")
+    f["time"] = t
+    for key, attr in _POSE_KEYS:
+        if frame.get(key) is not None:
+            c2w = _matrix4(frame[key], label, key)
+            f[attr] = opengl_c2w_to_cam_T_world(c2w)
+    intr = dict(defaults)
+    intr.update({k: frame[k] for k in _INTRINSIC_KEYS if frame.get(k) is not None})
+    for k in _INTRINSIC_KEYS:
+        if k not in intr:
+            raise ValueError(
+                f"{label}: missing intrinsic '{k}'; give it at the top level of {source} "
+                "(shared by all frames) or in the frame"
+            )
+    f["width"] = _positive_int(intr["w"], label, "w")
+    f["height"] = _positive_int(intr["h"], label, "h")
+    fx = _number(intr["fl_x"], label, "fl_x")
+    fy = _number(intr["fl_y"], label, "fl_y")
+    if fx <= 0 or fy <= 0:
+        raise ValueError(f"{label}: focal lengths must be positive (pixels); got fl_x={fx}, fl_y={fy}")
+    f["K"] = make_intrinsics(fx, fy, _number(intr["cx"], label, "cx"), _number(intr["cy"], label, "cy"))
+    spec.mask_file = spec.sharp_file = None
+    if frame.get("mask_path") is not None:
+        f["mask_path"], spec.mask_file = _resolve_path(root, frame["mask_path"], label, "mask_path")
+    if frame.get("sharp_file_path") is not None:
+        f["sharp_file_path"], spec.sharp_file = _resolve_path(root, frame["sharp_file_path"], label, "sharp_file_path")
+    spec.fields = f
+    return spec
+
+
+def _parse_file(root, path, defaults):
+    data = _read_json(path)
+    _check_camera_model(data, path.name)
+    intr = dict(defaults)
+    intr.update(_top_intrinsics(data))
+    specs = [_parse_frame(root, path.name, i, fr, intr) for i, fr in enumerate(data["frames"])]
+    specs.sort(key=lambda s: s.fields["time"])  # stable
+    return data, specs
+
+
+# ------------------------------------------------------------------------- PNG
+def _png_header(path, label, what):
+    """Existence and PNG header check -> (width, height, bit_depth, color_type)."""
+    if not path.is_file():
+        raise FileNotFoundError(f"{label}: {what} file {path} does not exist; fix the path in the JSON or add the file")
+    with open(path, "rb") as fh:
+        head = fh.read(_PNG_HEADER_BYTES)
+    if len(head) < _PNG_HEADER_BYTES or head[:8] != _PNG_SIGNATURE or head[12:16] != b"IHDR":
+        raise ValueError(f"{label}: {what} file {path} is not a valid PNG (bad or truncated header); re-save it as PNG")
+    width = int.from_bytes(head[16:20], "big")
+    height = int.from_bytes(head[20:24], "big")
+    return width, height, head[24], head[25]
+
+
+def _check_png(path, label, what, width, height, gray):
+    w, h, depth, color = _png_header(path, label, what)
+    kind = _PNG_COLOR_NAMES.get(color, f"colour type {color}")
+    if depth != 8:
+        raise ValueError(f"{label}: {what} {path} has {depth}-bit channels; the format needs 8-bit PNG")
+    if gray and color != 0:
+        raise ValueError(f"{label}: {what} {path} is {kind}; masks must be single-channel 8-bit greyscale PNG (255 = dynamic)")
+    if not gray and color not in (2, 3):
+        fix = " (composite it onto a background and save RGB)" if color in (4, 6) else ""
+        raise ValueError(f"{label}: {what} {path} is {kind}; images must be 8-bit RGB PNG{fix}")
+    if (w, h) != (width, height):
+        raise ValueError(
+            f"{label}: {what} {path} is {w}x{h} pixels but the frame's intrinsics say w={width}, h={height}; "
+            "fix w/h (and fl_x, fl_y, cx, cy) or resize the image"
+        )
+
+
+def _decode(path, label, what, gray):
+    flags = cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR
+    arr = cv2.imread(str(path), flags)
+    if arr is None:
+        raise ValueError(f"{label}: could not decode {what} {path} (corrupt or truncated PNG); re-save or replace it")
+    if gray:
+        return arr > _MASK_THRESHOLD
+    return arr[:, :, ::-1].astype(np.float64) / 255.0  # BGR -> RGB, [0, 1]
+
+
+# --------------------------------------------------------------------- loading
+def load_scene(path, load_images=True) -> Scene:
+    """Load a scene folder (DATASET_FORMAT.md) into a validated ``Scene``.
+
+    path: the scene folder. load_images: if False, only metadata is read (file
+    existence and PNG headers are still checked); ``image``, ``mask`` and
+    ``sharp`` stay None.
+
+    Frames of ``transforms.json`` and of ``transforms_test.json`` (if present)
+    are each sorted by ``time``. Poses come back as ``cam_T_world`` (OpenCV),
+    images as float64 (H, W, 3) RGB in [0, 1] (value / 255), masks as bool
+    (H, W) (pixel > 127). Top-level ``exposure_fraction``, ``scene_scale``,
+    ``blur_subframes`` come from ``transforms.json``; absent -> None.
+    Raises FileNotFoundError for a missing folder or file, ValueError for any
+    invalid content; see the module docstring for the order of checks.
+    """
+    root = Path(path)
+    if not root.exists():
+        raise FileNotFoundError(f"scene folder {root} does not exist")
+    if not root.is_dir():
+        raise ValueError(f"scene path {root} is not a folder; pass the folder that holds {TRANSFORMS_FILE}")
+    tf = root / TRANSFORMS_FILE
+    if not tf.is_file():
+        raise FileNotFoundError(
+            f"no {TRANSFORMS_FILE} in scene folder {root}; every scene needs one (see DATASET_FORMAT.md)"
+        )
+
+    # 1. JSON contents
+    data, train = _parse_file(root, tf, {})
+    optional = _top_level_optional(data, TRANSFORMS_FILE)
+    test = []
+    tt = root / TRANSFORMS_TEST_FILE
+    if tt.exists():
+        _, test = _parse_file(root, tt, _top_intrinsics(data))
+
+    # 2. files exist, headers agree with the intrinsics
+    for spec in train + test:
+        w, h = spec.fields["width"], spec.fields["height"]
+        _check_png(spec.image_file, spec.label, "image", w, h, gray=False)
+        if spec.mask_file is not None:
+            _check_png(spec.mask_file, spec.label, "mask", w, h, gray=True)
+        if spec.sharp_file is not None:
+            _check_png(spec.sharp_file, spec.label, "sharp image", w, h, gray=False)
+
+    # 3. pixels
+    def build(spec):
+        fr = Frame(**spec.fields)
+        if load_images:
+            fr.image = _decode(spec.image_file, spec.label, "image", gray=False)
+            if spec.mask_file is not None:
+                fr.mask = _decode(spec.mask_file, spec.label, "mask", gray=True)
+            if spec.sharp_file is not None:
+                fr.sharp = _decode(spec.sharp_file, spec.label, "sharp image", gray=False)
+        return fr
+
+    return Scene(
+        frames=[build(s) for s in train],
+        test_frames=[build(s) for s in test],
+        root=root,
+        **optional,
+    )
+
+
+# --------------------------------------------------------------------- writing
+def _check_out_path(rel, where, field):
+    if not isinstance(rel, str) or not rel:
+        raise ValueError(f"{where}: {field} must be a non-empty relative path string; got {rel!r}")
+    p = Path(rel)
+    if p.is_absolute() or ".." in p.parts:
+        raise ValueError(f"{where}: {field} {rel!r} must be a relative path inside the scene folder")
+    if p.suffix.lower() != ".png":
+        raise ValueError(f"{where}: {field} {rel!r} must end in .png (images are written as PNG)")
+    return p.as_posix()
+
+
+def _check_pose_attr(T, where, attr):
+    T = np.asarray(T)
+    if T.shape != (4, 4):
+        raise ValueError(f"{where}: {attr} must have shape (4, 4); got {T.shape}")
+    check_rigid(T, f"{where}: {attr}")
+
+
+def _check_rgb(img, where, attr, w, h):
+    if img is None:
+        raise ValueError(f"{where}: {attr} is None; load the scene with load_images=True before writing it")
+    if not isinstance(img, np.ndarray) or not np.issubdtype(img.dtype, np.floating):
+        raise TypeError(f"{where}: {attr} must be a float array in [0, 1]; got {getattr(img, 'dtype', type(img))}")
+    if img.shape != (h, w, 3):
+        raise ValueError(f"{where}: {attr} must have shape (H, W, 3) = ({h}, {w}, 3); got {img.shape}")
+    if not np.all(np.isfinite(img)):
+        raise ValueError(f"{where}: {attr} contains NaN or inf")
+
+
+def _plan_frame(fr, where, used):
+    """Validate one frame and return (json dict without intrinsics, list of (rel, kind, array))."""
+    if not isinstance(fr, Frame):
+        raise TypeError(f"{where} must be a Frame; got {type(fr).__name__}")
+    w, h = fr.width, fr.height
+    if not (isinstance(w, (int, np.integer)) and isinstance(h, (int, np.integer)) and w > 0 and h > 0):
+        raise ValueError(f"{where}: width and height must be positive integers; got {w!r}, {h!r}")
+    check_intrinsics(fr.K, f"{where}: K")
+    t = float(fr.time)
+    if not (math.isfinite(t) and 0.0 <= t <= 1.0):
+        raise ValueError(f"{where}: time must be in [0, 1]; got {fr.time}")
+    rel = _check_out_path(fr.file_path, where, "file_path")
+    stem = Path(rel).stem
+    d = {"file_path": rel, "time": t}
+    writes = []
+    for key, attr in _POSE_KEYS:
+        T = getattr(fr, attr)
+        if T is None:
+            if attr == "cam_T_world":
+                raise ValueError(f"{where}: cam_T_world is None; every frame needs a pose")
+            continue
+        _check_pose_attr(T, where, attr)
+        d[key] = cam_T_world_to_opengl_c2w(np.asarray(T, dtype=np.float64)).tolist()
+    _check_rgb(fr.image, where, "image", w, h)
+    writes.append((rel, "rgb", fr.image))
+    if fr.mask is not None or fr.mask_path is not None:
+        if fr.mask is None:
+            raise ValueError(f"{where}: mask_path is set but mask is None; load with load_images=True first")
+        if not isinstance(fr.mask, np.ndarray) or fr.mask.dtype != np.bool_ or fr.mask.shape != (h, w):
+            raise ValueError(f"{where}: mask must be a bool array of shape ({h}, {w}); got "
+                             f"{getattr(fr.mask, 'dtype', type(fr.mask))} {getattr(fr.mask, 'shape', '')}")
+        mrel = _check_out_path(fr.mask_path or f"masks/{stem}.png", where, "mask_path")
+        d["mask_path"] = mrel
+        writes.append((mrel, "mask", fr.mask))
+    if fr.sharp is not None or fr.sharp_file_path is not None:
+        _check_rgb(fr.sharp, where, "sharp", w, h)
+        srel = _check_out_path(fr.sharp_file_path or f"sharp/{stem}.png", where, "sharp_file_path")
+        d["sharp_file_path"] = srel
+        writes.append((srel, "rgb", fr.sharp))
+    for r, _, _ in writes:
+        if r in used:
+            raise ValueError(f"{where}: output path {r!r} is also used by {used[r]}; give each file its own path")
+        used[r] = where
+    return d, writes
+
+
+def _intrinsics_dict(fr):
+    K = np.asarray(fr.K, dtype=np.float64)
+    return {"w": int(fr.width), "h": int(fr.height), "fl_x": float(K[0, 0]), "fl_y": float(K[1, 1]),
+            "cx": float(K[0, 2]), "cy": float(K[1, 2])}
+
+
+def _json_doc(frames, entries, extra):
+    top = _intrinsics_dict(frames[0])  # shared intrinsics: the first frame's; others override
+    doc = dict(top)
+    doc.update(extra)
+    out = []
+    for fr, d in zip(frames, entries):
+        own = _intrinsics_dict(fr)
+        d = dict(d)
+        d.update({k: v for k, v in own.items() if v != top[k]})
+        out.append(d)
+    doc["frames"] = out
+    return doc
+
+
+def write_scene(scene: Scene, path, overwrite=False) -> None:
+    """Write ``scene`` as a scene folder (DATASET_FORMAT.md).
+
+    Training frames go to ``transforms.json``, test frames (if any) to
+    ``transforms_test.json``, each image to its ``file_path`` (test frames: as
+    given, e.g. ``test/...``). Top-level intrinsics are those of the first
+    frame of each file; frames that differ carry overrides. Poses are written
+    as OpenGL camera-to-world; gt poses only where present. Images are 8-bit
+    PNG: round(clip(x, 0, 1) * 255); masks 0/255 (default path
+    ``masks/<stem>.png`` if a frame has a mask but no ``mask_path``; sharp
+    likewise ``sharp/<stem>.png``). Optional top-level fields are written only
+    when not None. Everything is validated before anything is written.
+
+    path: target folder, created if needed. If it exists and is not empty,
+    overwrite=True is required; then files are replaced and a stale
+    ``transforms_test.json`` is removed when the scene has no test frames
+    (other existing files are left alone).
+    """
+    if not isinstance(scene, Scene):
+        raise TypeError(f"scene must be a d2gs_np.data.scene.Scene; got {type(scene).__name__}")
+    if len(scene.frames) == 0:
+        raise ValueError("scene has no frames; nothing to write")
+    root = Path(path)
+    if root.exists():
+        if not root.is_dir():
+            raise ValueError(f"{root} exists and is not a folder")
+        if any(root.iterdir()) and not overwrite:
+            raise ValueError(f"scene folder {root} is not empty; pass overwrite=True to write into it")
+
+    extra = {}
+    if scene.exposure_fraction is not None:
+        v = float(scene.exposure_fraction)
+        if not (math.isfinite(v) and 0.0 <= v <= 1.0):
+            raise ValueError(f"scene.exposure_fraction must be in [0, 1]; got {scene.exposure_fraction}")
+        extra["exposure_fraction"] = v
+    if scene.scene_scale is not None:
+        v = float(scene.scene_scale)
+        if not (math.isfinite(v) and v > 0):
+            raise ValueError(f"scene.scene_scale must be positive and finite; got {scene.scene_scale}")
+        extra["scene_scale"] = v
+    if scene.blur_subframes is not None:
+        if not isinstance(scene.blur_subframes, (int, np.integer)) or scene.blur_subframes <= 0:
+            raise ValueError(f"scene.blur_subframes must be a positive integer; got {scene.blur_subframes!r}")
+        extra["blur_subframes"] = int(scene.blur_subframes)
+
+    used = {}
+    plans = {}
+    for attr in ("frames", "test_frames"):
+        frames = getattr(scene, attr)
+        plans[attr] = [_plan_frame(fr, f"scene.{attr}[{i}]", used) for i, fr in enumerate(frames)]
+
+    root.mkdir(parents=True, exist_ok=True)
+    for attr in ("frames", "test_frames"):
+        for _, writes in plans[attr]:
+            for rel, kind, arr in writes:
+                out = root / rel
+                out.parent.mkdir(parents=True, exist_ok=True)
+                if kind == "mask":
+                    px = np.where(arr, 255, 0).astype(np.uint8)
+                else:
+                    q = np.round(np.clip(np.asarray(arr, dtype=np.float64), 0.0, 1.0) * 255.0).astype(np.uint8)
+                    px = np.ascontiguousarray(q[:, :, ::-1])  # RGB -> BGR for OpenCV
+                if not cv2.imwrite(str(out), px):
+                    raise OSError(f"could not write {out}")
+
+    docs = [(TRANSFORMS_FILE, "frames", extra)]
+    if scene.test_frames:
+        docs.append((TRANSFORMS_TEST_FILE, "test_frames", {}))
+    elif (root / TRANSFORMS_TEST_FILE).exists():
+        (root / TRANSFORMS_TEST_FILE).unlink()  # stale: this scene has no test views
+    for name, attr, ext in docs:
+        frames = getattr(scene, attr)
+        doc = _json_doc(frames, [d for d, _ in plans[attr]], ext)
+        with open(root / name, "w", encoding="utf-8") as fh:
+            json.dump(doc, fh, indent=2)
+            fh.write("\n")
