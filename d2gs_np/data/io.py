@@ -74,14 +74,21 @@ def _is_number(x):
     return isinstance(x, (int, float)) and not isinstance(x, bool)
 
 
+def _finite(value):
+    try:
+        return _is_number(value) and math.isfinite(value)
+    except OverflowError:  # an int too large for a float
+        return False
+
+
 def _number(value, where, field):
-    if not _is_number(value) or not math.isfinite(value):
+    if not _finite(value):
         raise ValueError(f"{where}: '{field}' must be a finite number; got {value!r}")
     return float(value)
 
 
 def _positive_int(value, where, field):
-    if not _is_number(value) or not math.isfinite(value) or value != int(value) or value <= 0:
+    if not _finite(value) or value != int(value) or value <= 0:
         raise ValueError(f"{where}: '{field}' must be a positive integer; got {value!r}")
     return int(value)
 
@@ -95,7 +102,10 @@ def _matrix4(value, where, field):
     )
     if not ok:
         raise ValueError(f"{where}: '{field}' must be a 4x4 nested list of numbers (row-major); got {value!r}")
-    M = np.array(value, dtype=np.float64)
+    try:
+        M = np.array(value, dtype=np.float64)
+    except OverflowError:
+        raise ValueError(f"{where}: '{field}' has an entry too large for a float64") from None
     check_rigid(M, f"{where}: '{field}'")
     return M
 
