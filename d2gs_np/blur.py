@@ -1,0 +1,418 @@
+"""Blur formation model (METHOD.md §4, the paper's Eq. 5-9).
+
+Frame k has an estimated mid-exposure pose T̂_k (cam_T_world) and time t_k. The camera moves
+during the exposure from T_s = exp(xi_s) T̂_k to T_e = exp(xi_e) T̂_k (LEFT perturbations,
+xi = (rho, phi), translation first, as in d2gs_np.geometry.se3). The blurry frame is the mean
+of n sharp renders at virtual poses on the geodesic and at sub-frame times:
+
+    T(u_i) = T_s exp(u_i log(T_s^-1 T_e)),   u_i = i / (n - 1),  i = 0 .. n-1       (Eq. 9)
+    t_i    = t_k + (u_i - 1/2) tau                                                  (objects move)
+    B̂_k    = (1/n) sum_i render(G(t_i), T(u_i))                                     (Eq. 6)
+
+Choices made here (METHOD.md leaves them open or states them loosely):
+
+- n = 1 is a sharp camera at the ESTIMATED pose T̂_k and time t_k: xi_s, xi_e are ignored (their
+  gradients are zero) and so is tau. It is exactly the sharp render at T̂_k, bit for bit (this
+  is what "no blur model" means for the GaussianFlow baseline). Note that it is *not* T(1/2),
+  the geodesic midpoint of the endpoints, which differs from T̂_k once the endpoints have moved
+  asymmetrically.
+- The virtual poses are evaluated as T(u) = exp(xi_s) exp(u delta) T̂ with
+  delta = log(exp(-xi_s) exp(xi_e)). This is Eq. 9 exactly, because
+  T_s^-1 T_e = T̂^-1 exp(-xi_s) exp(xi_e) T̂ and conjugation commutes with log (it preserves the
+  rotation angle), but it never forms T̂^-1 T̂ and so with xi_s = xi_e = 0 every virtual pose is
+  T̂ to the last bit. The geodesic is the one of the rotation log with angle <= pi; at exactly
+  pi (a half turn between start and end, never a real exposure) it is ambiguous.
+- Every output (image, alpha, depth, expected_depth) is the plain mean over the n sub-frames. So
+  the blurry "expected_depth" is the mean of the sub-frame expected depths, not the blurry depth
+  divided by the blurry alpha; the sharp mid-pose depth METHOD.md §5 needs is rendered
+  separately. "radii" is the element-wise max over sub-frames (a Gaussian is visible in the
+  blurry frame when it is visible in any sub-frame).
+- Pose arithmetic is done in float64 and cast to the scene dtype for rendering (float32 scenes
+  get float32 virtual poses; every float argument must share the scene's dtype).
+
+Exposure length tau, in normalised time (the clip spans [0, 1] over N frames, so one frame
+interval is 1 / (N - 1)):
+- known from the scene: tau = exposure_fraction / (N - 1)  (``exposure_from_scene``);
+- learned: block ``camera.exposure_logit`` (1,), tau = sigmoid(logit) / (N - 1), kept inside
+  (0, 1) of the frame interval (``exposure_fwd`` / ``exposure_bwd``); initialised at fraction
+  1/2 (logit 0, ``init_exposure``), the middle of the range and a typical shutter of video
+  (a 180-degree shutter), where the sigmoid is also steepest.
+
+Endpoint derivative (hand derived, checked against finite differences in tests/test_blur.py).
+Write A = exp(xi_s), B = exp(xi_e), delta = log(A^-1 B), L(u) = A exp(u delta), so T(u) = L(u) T̂
+and a left perturbation of L(u) is the same left perturbation of T(u). Left-perturb A by eps_s
+and B by eps_e:
+    A^-1 B -> A^-1 B exp(Ad_{B^-1} (eps_e - eps_s))        =>  d delta = J_r^-1(delta) Ad_{B^-1} (eps_e - eps_s)
+    A exp(u delta + u d delta) = L(u) exp(u J_r(u delta) d delta) = exp(u Ad_{L(u)} J_r(u delta) d delta) L(u)
+so the left perturbation of T(u) is
+    eps(u) = eps_s + M(u) (eps_e - eps_s),   M(u) = u Ad_{L(u)} J_r(u delta) J_r^-1(delta) Ad_{B^-1}
+(M(0) = 0, M(1) = I), and exp(xi + d xi) = exp(J_l(xi) d xi) exp(xi) gives eps_s = J_l(xi_s) d xi_s,
+eps_e = J_l(xi_e) d xi_e. For tangent gradients g_i on T(u_i):
+    v_xi_e = J_l(xi_e)^T sum_i M_i^T g_i,   v_xi_s = J_l(xi_s)^T (sum_i g_i - sum_i M_i^T g_i).
+All these Jacobians are smooth for rotation angles below 2 pi: zero-length exposures
+(delta = 0), tiny ones and endpoints almost a half turn apart need no special branch beyond the
+series branches of d2gs_np.geometry.
+"""
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass
+
+import numpy as np
+
+from d2gs_np.geometry.se3 import (
+    check_rigid,
+    matrix_grad_to_left_tangent,
+    se3_adjoint,
+    se3_exp,
+    se3_inverse,
+    se3_left_jacobian,
+    se3_log,
+    se3_right_jacobian,
+    se3_right_jacobian_inv,
+)
+
+__all__ = [
+    "BlurConfig",
+    "EXPOSURE_BLOCK",
+    "exposure_offsets",
+    "subframe_times",
+    "virtual_poses",
+    "virtual_poses_fwd",
+    "virtual_poses_bwd",
+    "blur_render_fwd",
+    "blur_render_bwd",
+    "exposure_from_scene",
+    "init_exposure",
+    "exposure_fwd",
+    "exposure_bwd",
+]
+
+EXPOSURE_BLOCK = "camera.exposure_logit"
+_SCENE_PREFIXES = ("static.", "dynamic.")
+_RENDER_FIELDS = ("means", "quats", "scales", "opacities", "colors")
+_OUTPUT_KEYS = ("image", "alpha", "depth", "expected_depth")
+
+
+@dataclass(frozen=True)
+class BlurConfig:
+    """Blur formation settings.
+
+    num_virtual: n, number of virtual sub-frames averaged per blurry frame (>= 1; 1 = sharp
+        camera at the estimated pose, see the module docstring). METHOD.md default 8.
+    """
+
+    num_virtual: int = 8
+
+    def __post_init__(self):
+        n = self.num_virtual
+        if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
+            raise ValueError(f"BlurConfig.num_virtual must be an int >= 1; got {n!r}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Virtual poses and sub-frame times
+# ---------------------------------------------------------------------------------------------
+
+
+def _check_n(n):
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
+        raise ValueError(f"n (number of virtual poses) must be an int >= 1; got {n!r}")
+    return int(n)
+
+
+def exposure_offsets(n):
+    """u_i (n,) float64: i / (n - 1) for n >= 2; [0.5] for n = 1 (the sharp camera)."""
+    n = _check_n(n)
+    if n == 1:
+        return np.array([0.5])
+    return np.arange(n, dtype=np.float64) / (n - 1)
+
+
+def subframe_times(frame_time, tau, n):
+    """t_i = frame_time + (u_i - 1/2) tau, (n,) float64."""
+    return float(frame_time) + (exposure_offsets(n) - 0.5) * float(tau)
+
+
+def _check_tangent(x, name, dtype=None):
+    if not isinstance(x, np.ndarray) or x.dtype not in (np.float32, np.float64):
+        got = x.dtype if isinstance(x, np.ndarray) else type(x).__name__
+        raise TypeError(f"{name} must be a float32 or float64 numpy array; got {got}")
+    if dtype is not None and x.dtype != dtype:
+        raise TypeError(f"{name} must have dtype {dtype} like the other inputs; got {x.dtype}")
+    if x.shape != (6,):
+        raise ValueError(f"{name} must have shape (6,) ordered (rho, phi); got {x.shape}")
+    if not np.all(np.isfinite(x)):
+        raise ValueError(f"{name} contains NaN or inf")
+
+
+def virtual_poses_fwd(pose_est, xi_start, xi_end, n):
+    """The n virtual cam_T_world poses of one exposure, and what the backward needs.
+
+    pose_est: (4, 4) estimated mid-exposure cam_T_world T̂. xi_start, xi_end: (6,) left
+    perturbations (rho, phi) of T̂ giving T_s, T_e. n: int >= 1.
+    Returns (poses (n, 4, 4) of pose_est's dtype, saved). n = 1 returns T̂ itself (module
+    docstring). Computed in float64.
+    """
+    n = _check_n(n)
+    if not isinstance(pose_est, np.ndarray) or pose_est.dtype not in (np.float32, np.float64):
+        raise TypeError(f"pose_est must be a float32 or float64 numpy array; got "
+                        f"{getattr(pose_est, 'dtype', type(pose_est).__name__)}")
+    if pose_est.shape != (4, 4):
+        raise ValueError(f"pose_est must have shape (4, 4); got {pose_est.shape}")
+    check_rigid(pose_est, "pose_est")
+    _check_tangent(xi_start, "xi_start", pose_est.dtype)
+    _check_tangent(xi_end, "xi_end", pose_est.dtype)
+    dtype = pose_est.dtype
+    if n == 1:
+        return pose_est[None].copy(), {"n": 1, "dtype": dtype}
+    T_hat = pose_est.astype(np.float64)
+    xs, xe = xi_start.astype(np.float64), xi_end.astype(np.float64)
+    A, B = se3_exp(xs), se3_exp(xe)
+    delta = se3_log(se3_inverse(A) @ B)
+    u = exposure_offsets(n)
+    L = A @ se3_exp(u[:, None] * delta)  # (n, 4, 4)
+    poses = L @ T_hat
+    saved = {"n": n, "dtype": dtype, "xi_start": xs, "xi_end": xe, "B": B, "delta": delta, "u": u, "L": L}
+    return poses.astype(dtype), saved
+
+
+def virtual_poses_bwd(saved, v_pose_tangents):
+    """(v_xi_start (6,), v_xi_end (6,)) from left-perturbation gradients (n, 6) on the virtual poses.
+
+    v_pose_tangents[i] is dLoss/d eps_i for T(u_i) -> exp(eps_i) T(u_i), e.g.
+    ``matrix_grad_to_left_tangent(T_i, dL/dT_i)``. Derivation in the module docstring.
+    """
+    n, dtype = saved["n"], saved["dtype"]
+    g = np.asarray(v_pose_tangents, dtype=np.float64)
+    if g.shape != (n, 6):
+        raise ValueError(f"v_pose_tangents must have shape ({n}, 6) like the virtual poses; got {g.shape}")
+    if n == 1:
+        return np.zeros(6, dtype=dtype), np.zeros(6, dtype=dtype)
+    u, L, delta, B = saved["u"], saved["L"], saved["delta"], saved["B"]
+    # sum_i M_i^T g_i = Ad_{B^-1}^T J_r^-1(delta)^T sum_i u_i J_r(u_i delta)^T Ad_{L_i}^T g_i
+    J_r_u = se3_right_jacobian(u[:, None] * delta)  # (n, 6, 6)
+    w = np.einsum("nji,nj->ni", se3_adjoint(L), g)  # Ad_{L_i}^T g_i
+    w = np.einsum("nji,nj->ni", J_r_u, w) * u[:, None]
+    s = w.sum(axis=0)
+    s = se3_right_jacobian_inv(delta).T @ s
+    v_eps_end = se3_adjoint(se3_inverse(B)).T @ s
+    v_eps_start = g.sum(axis=0) - v_eps_end
+    v_xi_start = se3_left_jacobian(saved["xi_start"]).T @ v_eps_start
+    v_xi_end = se3_left_jacobian(saved["xi_end"]).T @ v_eps_end
+    return v_xi_start.astype(dtype), v_xi_end.astype(dtype)
+
+
+def virtual_poses(pose_est, xi_start, xi_end, n):
+    """(n, 4, 4) virtual cam_T_world poses T(u_i) (see virtual_poses_fwd)."""
+    return virtual_poses_fwd(pose_est, xi_start, xi_end, n)[0]
+
+
+# ---------------------------------------------------------------------------------------------
+# Blurry render
+# ---------------------------------------------------------------------------------------------
+
+
+def _resolve_renderer(renderer):
+    if renderer is None:
+        from d2gs_np import render as renderer
+    if isinstance(renderer, tuple):
+        if len(renderer) != 2 or not all(callable(f) for f in renderer):
+            raise TypeError("renderer must be a (render_fwd, render_bwd) pair of callables or a module")
+        return renderer
+    fwd, bwd = getattr(renderer, "render_fwd", None), getattr(renderer, "render_bwd", None)
+    if not (callable(fwd) and callable(bwd)):
+        raise TypeError(f"renderer must provide render_fwd and render_bwd; got {renderer!r}")
+    return fwd, bwd
+
+
+def _resolve_scene_model(scene_model):
+    if scene_model is None:
+        from d2gs_np.scene import model as scene_model
+    fwd, bwd = getattr(scene_model, "evaluate_fwd", None), getattr(scene_model, "evaluate_bwd", None)
+    if not (callable(fwd) and callable(bwd)):
+        raise TypeError(f"scene_model must provide evaluate_fwd and evaluate_bwd; got {scene_model!r}")
+    return fwd, bwd
+
+
+def _check_real(x, name, low=None):
+    if isinstance(x, np.ndarray) and x.shape == ():
+        x = x[()]
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, numbers.Real):
+        raise TypeError(f"{name} must be a real scalar; got {type(x).__name__}")
+    x = float(x)
+    if not math.isfinite(x):
+        raise ValueError(f"{name} must be finite; got {x}")
+    if low is not None and x < low:
+        raise ValueError(f"{name} must be >= {low}; got {x}")
+    return x
+
+
+def blur_render_fwd(params, frame_time, tau, pose_est, xi_start, xi_end, K, width, height, background,
+                    blur_config, deform_config, render_config=None, renderer=None, scene_model=None):
+    """Blurry render of one frame (Eq. 6), averaging n sharp sub-frame renders.
+
+    params: dict of blocks; the scene blocks ("static.*", "dynamic.*") are used, other keys
+        (e.g. "camera.*", "posenet.*") are ignored.
+    frame_time: t_k, mid-exposure normalised time. tau: exposure length >= 0 in normalised time.
+    pose_est: (4, 4) estimated cam_T_world T̂_k. xi_start, xi_end: (6,) endpoint perturbations.
+    K (3, 3), width, height, background (3,): camera and background as for the renderer.
+    blur_config: BlurConfig. deform_config: DeformConfig. render_config: RenderConfig or None.
+    renderer: object with render_fwd/render_bwd (a module such as d2gs_np.reference) or a
+        (render_fwd, render_bwd) pair; default d2gs_np.render (the Numba renderer).
+    scene_model: object with evaluate_fwd/evaluate_bwd; default d2gs_np.scene.model.
+    Every float array must share the scene's dtype.
+
+    Returns (out, saved): out has "image" (H, W, 3), "alpha", "depth", "expected_depth" (H, W)
+    (means over sub-frames), "radii" (N, 2) int32 (max over sub-frames), "poses" (n, 4, 4) and
+    "times" (n,) of the sub-frames.
+    """
+    if not isinstance(blur_config, BlurConfig):
+        raise TypeError(f"blur_config must be a BlurConfig; got {type(blur_config).__name__}")
+    if not isinstance(params, dict):
+        raise TypeError(f"params must be a dict of arrays; got {type(params).__name__}")
+    render_fwd, render_bwd = _resolve_renderer(renderer)
+    evaluate_fwd, evaluate_bwd = _resolve_scene_model(scene_model)
+    frame_time = _check_real(frame_time, "frame_time")
+    tau = _check_real(tau, "tau", low=0.0)
+    scene_params = {k: v for k, v in params.items() if k.startswith(_SCENE_PREFIXES)}
+    if "static.means" not in scene_params:
+        raise ValueError("params has no scene blocks ('static.means', ...); build them with "
+                         "d2gs_np.scene.gaussians.init_params")
+    dtype = scene_params["static.means"].dtype
+    for name, arr in (("pose_est", pose_est), ("xi_start", xi_start), ("xi_end", xi_end), ("K", K),
+                      ("background", background)):
+        if not isinstance(arr, np.ndarray) or arr.dtype != dtype:
+            got = arr.dtype if isinstance(arr, np.ndarray) else type(arr).__name__
+            raise TypeError(f"{name} must be a numpy array of the scene dtype {dtype}; got {got} "
+                            f"(cast it with .astype(np.{np.dtype(dtype).name}))")
+
+    n = blur_config.num_virtual
+    poses, pose_saved = virtual_poses_fwd(pose_est, xi_start, xi_end, n)
+    u = exposure_offsets(n)
+    times = frame_time + (u - 0.5) * tau
+    sums, radii, subs = None, None, []
+    for i in range(n):
+        inputs, eval_saved = evaluate_fwd(scene_params, float(times[i]), deform_config)
+        out_i, render_saved = render_fwd(**inputs, cam_T_world=poses[i], K=K, width=width, height=height,
+                                         background=background, config=render_config)
+        subs.append((eval_saved, render_saved))
+        if sums is None:
+            sums = {key: np.array(out_i[key], copy=True) for key in _OUTPUT_KEYS}
+            radii = np.array(out_i["radii"], copy=True)
+        else:
+            for key in _OUTPUT_KEYS:
+                sums[key] += out_i[key]
+            np.maximum(radii, out_i["radii"], out=radii)
+    out = {key: sums[key] / dtype.type(n) if n > 1 else sums[key] for key in _OUTPUT_KEYS}
+    out.update(radii=radii, poses=poses, times=times)
+    saved = {"n": n, "u": u, "poses": poses, "pose_saved": pose_saved, "subs": subs,
+             "render_bwd": render_bwd, "evaluate_bwd": evaluate_bwd, "dtype": dtype,
+             "scene_keys": list(scene_params), "shape": sums["alpha"].shape}
+    return out, saved
+
+
+def blur_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth=None, return_aux=False):
+    """Backward of blur_render_fwd.
+
+    v_image (H, W, 3); v_alpha, v_depth, v_expected_depth (H, W) or None (zero).
+    Returns (v_params, v_xi_start (6,), v_xi_end (6,), v_tau float): v_params is keyed like the
+    scene blocks of the forward's params (every block, dense). v_tau = sum_i v_t_i (u_i - 1/2)
+    (0 for n = 1). With return_aux=True a fifth element is returned: dict(v_means2d (n, N, 2),
+    the renderer's screen-space mean gradients per sub-frame (for densification), and
+    v_pose_tangents (n, 6), the left-perturbation gradients of the virtual poses).
+    """
+    n, u, dtype = saved["n"], saved["u"], saved["dtype"]
+    H, W = saved["shape"]
+    cot = {}
+    for name, v, shape in (("v_image", v_image, (H, W, 3)), ("v_alpha", v_alpha, (H, W)),
+                           ("v_depth", v_depth, (H, W)), ("v_expected_depth", v_expected_depth, (H, W))):
+        if v is None:
+            cot[name] = None
+            continue
+        if not isinstance(v, np.ndarray) or v.dtype != dtype:
+            got = v.dtype if isinstance(v, np.ndarray) else type(v).__name__
+            raise TypeError(f"{name} must be a numpy array of the scene dtype {dtype}; got {got}")
+        if v.shape != shape:
+            raise ValueError(f"{name} must have shape {shape}; got {v.shape}")
+        cot[name] = v / dtype.type(n) if n > 1 else v
+    if cot["v_image"] is None:
+        raise ValueError("v_image must be given (pass zeros for a loss without the image)")
+    render_bwd, evaluate_bwd = saved["render_bwd"], saved["evaluate_bwd"]
+    v_params = None
+    v_tau = 0.0
+    g_pose = np.zeros((n, 6))
+    v_means2d = []
+    for i, (eval_saved, render_saved) in enumerate(saved["subs"]):
+        grads = render_bwd(render_saved, cot["v_image"], cot["v_alpha"], cot["v_depth"], cot["v_expected_depth"])
+        v_p, v_t = evaluate_bwd(eval_saved, {f: grads[f] for f in _RENDER_FIELDS})
+        if v_params is None:
+            v_params = v_p
+        else:
+            for k in v_params:
+                v_params[k] += v_p[k]
+        v_tau += float(v_t) * (u[i] - 0.5)
+        g_pose[i] = matrix_grad_to_left_tangent(saved["poses"][i].astype(np.float64),
+                                                np.asarray(grads["cam_T_world"], np.float64))
+        if return_aux:
+            v_means2d.append(grads["means2d"])
+    v_xi_start, v_xi_end = virtual_poses_bwd(saved["pose_saved"], g_pose)
+    if n == 1:
+        v_tau = 0.0
+    if return_aux:
+        aux = {"v_means2d": np.stack(v_means2d), "v_pose_tangents": g_pose}
+        return v_params, v_xi_start, v_xi_end, v_tau, aux
+    return v_params, v_xi_start, v_xi_end, v_tau
+
+
+# ---------------------------------------------------------------------------------------------
+# Exposure length
+# ---------------------------------------------------------------------------------------------
+
+
+def _check_num_frames(num_frames):
+    if isinstance(num_frames, bool) or not isinstance(num_frames, numbers.Integral) or num_frames < 1:
+        raise ValueError(f"num_frames must be an int >= 1; got {num_frames!r}")
+    return int(num_frames)
+
+
+def exposure_from_scene(exposure_fraction, num_frames):
+    """tau = exposure_fraction / (N - 1) in normalised time (0 for a single frame).
+
+    exposure_fraction: exposure time as a fraction of the frame interval, in [0, 1].
+    """
+    f = _check_real(exposure_fraction, "exposure_fraction", low=0.0)
+    if f > 1.0:
+        raise ValueError(f"exposure_fraction must be in [0, 1] (a fraction of the frame interval); got {f}")
+    N = _check_num_frames(num_frames)
+    return 0.0 if N == 1 else f / (N - 1)
+
+
+def init_exposure(fraction=0.5, dtype=np.float64):
+    """{"camera.exposure_logit": (1,)} with sigmoid(logit) = fraction in (0, 1) (default 1/2)."""
+    f = _check_real(fraction, "fraction")
+    if not 0.0 < f < 1.0:
+        raise ValueError(f"fraction must be in (0, 1) (the sigmoid cannot reach 0 or 1); got {f}")
+    return {EXPOSURE_BLOCK: np.array([math.log(f) - math.log1p(-f)], dtype=dtype)}
+
+
+def exposure_fwd(params, num_frames):
+    """tau = sigmoid(params["camera.exposure_logit"][0]) / (N - 1) (0 when N = 1); (tau, saved)."""
+    if EXPOSURE_BLOCK not in params:
+        raise ValueError(f"params lacks {EXPOSURE_BLOCK!r}; create it with init_exposure()")
+    logit = params[EXPOSURE_BLOCK]
+    if not isinstance(logit, np.ndarray) or logit.shape != (1,):
+        raise ValueError(f"{EXPOSURE_BLOCK} must be an array of shape (1,); got {getattr(logit, 'shape', logit)}")
+    x = _check_real(logit[0], EXPOSURE_BLOCK)
+    N = _check_num_frames(num_frames)
+    sig = 0.5 * (1.0 + math.tanh(0.5 * x))  # sigmoid without overflow
+    scale = 0.0 if N == 1 else 1.0 / (N - 1)
+    return sig * scale, {"sig": sig, "scale": scale, "dtype": logit.dtype}
+
+
+def exposure_bwd(saved, v_tau):
+    """{"camera.exposure_logit": (1,)} gradient from the scalar v_tau."""
+    v_tau = _check_real(v_tau, "v_tau")
+    sig = saved["sig"]
+    return {EXPOSURE_BLOCK: np.array([v_tau * saved["scale"] * sig * (1.0 - sig)], dtype=saved["dtype"])}

@@ -1,0 +1,287 @@
+"""Progressive-resolution schedule (METHOD.md §7, the paper's Eq. 16) and downsampled targets.
+
+Training renders frame k at render scale r <= 1: the image size is
+``geometry.camera.scaled_size(W, H, r)``, the intrinsics are scaled to that size
+(``geometry.camera.scale_intrinsics``) and the blurry target (and its motion mask) is
+downsampled to the same size by area averaging. The scale rises from r0 (default 0.2) to 1 over
+the first ``T = ramp_fraction * total_steps`` steps (default: half of training) and stays at 1
+afterwards. Eq. 16 as printed decreases; the text means an increase, which is what is done here.
+
+Kinds of ramp, with s = step / T in [0, 1] (all give r(0) = r0, r(T) = 1 and are non-decreasing):
+
+- ``"cosine"``      r = r0 + (1 - r0) (1 - cos(pi s)) / 2          (the paper's; slow-fast-slow)
+- ``"linear"``      r = r0 + (1 - r0) s
+- ``"exponential"`` r = r0^(1 - s)   (geometric: equal *ratios* per step; slow start)
+- ``"inverse_sqrt"`` r = 1 / sqrt(1/r0^2 - (1/r0^2 - 1) s)
+      i.e. the area per rendered pixel, 1/r^2, falls linearly from 1/r0^2 to 1, so r is an
+      inverse square root of a linear function of the step. This is the slowest start of the
+      four (r(T/2) = 0.277 for r0 = 0.2, against 0.447 exponential and 0.6 cosine / linear):
+      most of the ramp runs at low, cheap resolutions and the last part sharpens quickly.
+      (The transformer "inverse square root" learning-rate rule decays without ever reaching a
+      fixed end; it cannot hit r(T) = 1 exactly, hence this definition.)
+"""
+from __future__ import annotations
+
+import math
+import numbers
+from collections import OrderedDict
+from dataclasses import dataclass
+from typing import NamedTuple, Optional
+
+import cv2
+import numpy as np
+
+from d2gs_np.geometry.camera import check_intrinsics, scale_intrinsics, scaled_size
+
+__all__ = [
+    "SCHEDULE_KINDS",
+    "ScheduleConfig",
+    "render_scale",
+    "downsample_area",
+    "downsample_mask",
+    "Target",
+    "TargetCache",
+]
+
+SCHEDULE_KINDS = ("cosine", "linear", "exponential", "inverse_sqrt")
+
+
+def _check_schedule_args(r0, kind, ramp_fraction, where):
+    if isinstance(r0, bool) or not isinstance(r0, numbers.Real) or not (0.0 < r0 <= 1.0):
+        raise ValueError(f"{where}r0 must be a real number in (0, 1]; got {r0!r}")
+    if kind not in SCHEDULE_KINDS:
+        raise ValueError(f"{where}kind must be one of {SCHEDULE_KINDS}; got {kind!r}")
+    if (isinstance(ramp_fraction, bool) or not isinstance(ramp_fraction, numbers.Real)
+            or not (0.0 <= ramp_fraction <= 1.0)):
+        raise ValueError(f"{where}ramp_fraction must be a real number in [0, 1]; got {ramp_fraction!r}")
+
+
+@dataclass(frozen=True)
+class ScheduleConfig:
+    """Progressive-resolution settings (METHOD.md §7).
+
+    r0: render scale at step 0, in (0, 1].
+    kind: one of SCHEDULE_KINDS ("cosine" is the paper's).
+    ramp_fraction: the scale reaches 1 after ramp_fraction * total_steps steps, in [0, 1]
+        (0: full resolution from the start).
+    mask_threshold: a low-resolution pixel is marked moving when the area fraction of moving
+        full-resolution pixels it covers is > mask_threshold, in [0, 1). The default 0 marks it
+        moving as soon as any moving pixel falls inside it (a conservative dilation: static-only
+        uses of the mask, such as static correspondences, never see a moving pixel).
+    """
+
+    r0: float = 0.2
+    kind: str = "cosine"
+    ramp_fraction: float = 0.5
+    mask_threshold: float = 0.0
+
+    def __post_init__(self):
+        _check_schedule_args(self.r0, self.kind, self.ramp_fraction, "ScheduleConfig.")
+        t = self.mask_threshold
+        if isinstance(t, bool) or not isinstance(t, numbers.Real) or not (0.0 <= t < 1.0):
+            raise ValueError(f"ScheduleConfig.mask_threshold must be a real number in [0, 1); got {t!r}")
+
+    def scale(self, step, total_steps):
+        """render_scale(step, total_steps) with this config's r0, kind and ramp_fraction."""
+        return render_scale(step, total_steps, r0=self.r0, kind=self.kind, ramp_fraction=self.ramp_fraction)
+
+
+def render_scale(step, total_steps, r0=0.2, kind="cosine", ramp_fraction=0.5):
+    """Render scale r(step) in [r0, 1] (see the module docstring for the four kinds).
+
+    step: int >= 0 (steps past total_steps are allowed and give 1).
+    total_steps: int >= 1. The ramp length is T = ramp_fraction * total_steps (a float);
+    T = 0 gives r = 1 for every step.
+    """
+    for name, value, low in (("step", step, 0), ("total_steps", total_steps, 1)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            raise TypeError(f"{name} must be an int; got {type(value).__name__}")
+        if value < low:
+            raise ValueError(f"{name} must be >= {low}; got {value}")
+    _check_schedule_args(r0, kind, ramp_fraction, "")
+    ramp = float(ramp_fraction) * int(total_steps)
+    if ramp <= 0.0 or step >= ramp:
+        return 1.0
+    s = step / ramp
+    r0 = float(r0)
+    if kind == "cosine":
+        r = r0 + (1.0 - r0) * 0.5 * (1.0 - math.cos(math.pi * s))
+    elif kind == "linear":
+        r = r0 + (1.0 - r0) * s
+    elif kind == "exponential":
+        r = r0 ** (1.0 - s)
+    else:  # inverse_sqrt
+        a = 1.0 / (r0 * r0)
+        r = 1.0 / math.sqrt(a - (a - 1.0) * s)
+    return min(1.0, max(r0, r))
+
+
+def _check_size(width, height):
+    for name, value in (("width", width), ("height", height)):
+        if isinstance(value, bool) or not isinstance(value, numbers.Integral):
+            raise TypeError(f"{name} must be an int; got {type(value).__name__}")
+        if value < 1:
+            raise ValueError(f"{name} must be >= 1; got {value}")
+
+
+def downsample_area(image, width, height):
+    """Area-averaged resize of ``image`` (H, W, C) or (H, W) to (height, width, ...).
+
+    Uses cv2.INTER_AREA: each output pixel is the mean of the input area it covers (weighted by
+    partial coverage for non-integer factors); for integer factors this is the exact block mean.
+    Only downsampling (width <= W, height <= H) is allowed. The same size returns a copy.
+    float32 stays float32, anything else is computed in float64. Any number of channels.
+    """
+    image = np.asarray(image)
+    if image.ndim not in (2, 3):
+        raise ValueError(f"image must have shape (H, W) or (H, W, C); got {image.shape}")
+    _check_size(width, height)
+    H, W = image.shape[:2]
+    if width > W or height > H:
+        raise ValueError(
+            f"downsample_area only shrinks images: asked for {width}x{height} from {W}x{H}; "
+            "pass width <= W and height <= H")
+    dtype = np.float32 if image.dtype == np.float32 else np.float64
+    image = np.ascontiguousarray(image, dtype=dtype)
+    if (width, height) == (W, H):
+        return image.copy()
+    if image.ndim == 2:
+        return cv2.resize(image, (width, height), interpolation=cv2.INTER_AREA)
+    # cv2 handles up to 4 channels per call robustly; resize channel groups and restack.
+    chans = [cv2.resize(np.ascontiguousarray(image[:, :, c:c + 4]), (width, height),
+                        interpolation=cv2.INTER_AREA).reshape(height, width, -1)
+             for c in range(0, image.shape[2], 4)]
+    return np.concatenate(chans, axis=2)
+
+
+def downsample_mask(mask, width, height, threshold=0.0):
+    """Boolean (height, width) motion mask from a (H, W) mask: area fraction > threshold.
+
+    With threshold 0 a low-resolution pixel is moving when any full-resolution pixel inside it is
+    moving (INTER_AREA of an exact 0/1 image is exactly 0 where no moving pixel contributes).
+    """
+    mask = np.asarray(mask)
+    if mask.ndim != 2:
+        raise ValueError(f"mask must have shape (H, W); got {mask.shape}")
+    if not (0.0 <= threshold < 1.0):
+        raise ValueError(f"threshold must be in [0, 1); got {threshold}")
+    frac = downsample_area((mask > 0).astype(np.float64), width, height)
+    return frac > threshold
+
+
+class Target(NamedTuple):
+    """A training target at one size: image (h, w, 3), mask (h, w) bool or None, K (3, 3)."""
+
+    image: np.ndarray
+    mask: Optional[np.ndarray]
+    K: np.ndarray
+    width: int
+    height: int
+
+
+class TargetCache:
+    """Per-(frame, size) cache of downsampled targets, masks and scaled intrinsics.
+
+    images: sequence of N arrays (H_k, W_k, 3) (full-resolution blurry frames).
+    masks: None, or a sequence of N arrays (H_k, W_k) (bool or 0/1; True = moving) or None each.
+    intrinsics: one (3, 3) matrix for all frames, or a sequence of N of them.
+    mask_threshold: see ScheduleConfig.mask_threshold.
+    max_entries: least-recently-used entries beyond this are dropped (a continuous schedule
+        visits many sizes; each entry holds a copy of a target image).
+
+    ``get(frame_index, scale)`` returns a ``Target`` at ``scaled_size(W_k, H_k, scale)``; the
+    second call with the same frame and size returns the *same* object. The intrinsics are
+    scaled per axis by (w / W_k, h / H_k) so pixel edges map to edges (scale_intrinsics). At
+    scale 1 the full-resolution image itself is returned (no copy).
+    """
+
+    def __init__(self, images, masks=None, intrinsics=None, mask_threshold=0.0, max_entries=256):
+        self._images = list(images)
+        n = len(self._images)
+        for k, img in enumerate(self._images):
+            if not isinstance(img, np.ndarray) or img.ndim != 3:
+                raise ValueError(f"images[{k}] must be an array of shape (H, W, C); got "
+                                 f"{getattr(img, 'shape', type(img).__name__)}")
+        if masks is None:
+            masks = [None] * n
+        self._masks = list(masks)
+        if len(self._masks) != n:
+            raise ValueError(f"masks must have one entry per image ({n}); got {len(self._masks)}")
+        for k, (img, m) in enumerate(zip(self._images, self._masks)):
+            if m is not None and np.shape(m) != img.shape[:2]:
+                raise ValueError(f"masks[{k}] must have shape {img.shape[:2]} like images[{k}]; "
+                                 f"got {np.shape(m)}")
+        if intrinsics is None:
+            raise ValueError("intrinsics must be given: one (3, 3) K or a sequence of N of them")
+        Ks = np.asarray(intrinsics, dtype=np.float64)
+        if Ks.shape == (3, 3):
+            Ks = np.broadcast_to(Ks, (n, 3, 3))
+        if Ks.shape != (n, 3, 3):
+            raise ValueError(f"intrinsics must have shape (3, 3) or ({n}, 3, 3); got {Ks.shape}")
+        for k in range(n):
+            check_intrinsics(Ks[k], name=f"intrinsics[{k}]")
+        self._Ks = Ks
+        if not (0.0 <= mask_threshold < 1.0):
+            raise ValueError(f"mask_threshold must be in [0, 1); got {mask_threshold}")
+        self._mask_threshold = float(mask_threshold)
+        if isinstance(max_entries, bool) or not isinstance(max_entries, numbers.Integral) or max_entries < 1:
+            raise ValueError(f"max_entries must be an int >= 1; got {max_entries!r}")
+        self._max_entries = int(max_entries)
+        self._cache = OrderedDict()
+
+    @classmethod
+    def from_scene(cls, scene, mask_threshold=0.0, max_entries=256):
+        """A cache over the training frames of a ``d2gs_np.data.scene.Scene`` (images loaded)."""
+        frames = scene.frames
+        for k, f in enumerate(frames):
+            if f.image is None:
+                raise ValueError(f"scene.frames[{k}].image is not loaded; load the scene with its images")
+        return cls([f.image for f in frames], [f.mask for f in frames], [f.K for f in frames],
+                   mask_threshold=mask_threshold, max_entries=max_entries)
+
+    def __len__(self):
+        return len(self._cache)
+
+    @property
+    def num_frames(self):
+        return len(self._images)
+
+    def size(self, frame_index, scale):
+        """(w, h) of frame ``frame_index`` at render scale ``scale``."""
+        H, W = self._images[self._check_index(frame_index)].shape[:2]
+        return scaled_size(W, H, scale)
+
+    def _check_index(self, frame_index):
+        if isinstance(frame_index, bool) or not isinstance(frame_index, numbers.Integral):
+            raise TypeError(f"frame_index must be an int; got {type(frame_index).__name__}")
+        if not 0 <= frame_index < len(self._images):
+            raise ValueError(f"frame_index must be in [0, {len(self._images)}); got {frame_index}")
+        return int(frame_index)
+
+    def get(self, frame_index, scale):
+        """The Target of frame ``frame_index`` at render scale ``scale`` in (0, 1]."""
+        k = self._check_index(frame_index)
+        if isinstance(scale, bool) or not isinstance(scale, numbers.Real) or not (0.0 < scale <= 1.0):
+            raise ValueError(f"scale must be a real number in (0, 1]; got {scale!r}")
+        img = self._images[k]
+        H, W = img.shape[:2]
+        w, h = scaled_size(W, H, scale)
+        key = (k, w, h)
+        hit = self._cache.get(key)
+        if hit is not None:
+            self._cache.move_to_end(key)
+            return hit
+        mask = self._masks[k]
+        if (w, h) == (W, H):
+            image = img
+            mask = None if mask is None else np.asarray(mask) > 0
+            K = self._Ks[k].copy()
+        else:
+            image = downsample_area(img, w, h)
+            mask = None if mask is None else downsample_mask(mask, w, h, self._mask_threshold)
+            K = scale_intrinsics(self._Ks[k], w / W, h / H)
+        target = Target(image=image, mask=mask, K=K, width=w, height=h)
+        self._cache[key] = target
+        while len(self._cache) > self._max_entries:
+            self._cache.popitem(last=False)
+        return target

@@ -1,0 +1,433 @@
+"""Tests of the blur formation model (d2gs_np.blur): virtual poses and their exact derivative,
+the blurry render against sharp renders, its gradients against central finite differences, and
+the exposure-length helpers.
+
+Finite differences. The blurry render averages n sharp renders, each piecewise smooth in its
+inputs (CONVENTIONS.md §8). FD test scenes are redrawn until EVERY sub-frame render (each virtual
+pose and sub-frame time) has threshold margin >= MARGIN_MIN (tests/render_fixtures), and steps
+are FD_STEP; the argument of tests/reference/test_render_reference.py then applies sub-frame by
+sub-frame: a step moves any thresholded quantity by <= ~1e-5 relative, inside the margin (see MARGIN_MIN).
+The FD loss uses the NumPy reference renderer (float64, ~1 ms per 24x24 render); one test checks
+that the default Numba renderer gives the same blurry render and gradients.
+"""
+from __future__ import annotations
+
+import numpy as np
+import pytest
+
+import render_fixtures as rf
+from d2gs_np import reference
+from d2gs_np.blur import (
+    EXPOSURE_BLOCK,
+    BlurConfig,
+    blur_render_bwd,
+    blur_render_fwd,
+    exposure_bwd,
+    exposure_from_scene,
+    exposure_fwd,
+    exposure_offsets,
+    init_exposure,
+    subframe_times,
+    virtual_poses,
+    virtual_poses_bwd,
+    virtual_poses_fwd,
+)
+from d2gs_np.geometry import matrix_grad_to_left_tangent, se3_exp, se3_interpolate, se3_inverse, se3_log
+from d2gs_np.scene.deformation import DeformConfig
+from d2gs_np.scene.gaussians import logit
+from d2gs_np.scene.model import evaluate_fwd
+
+# Central-difference step for the render-level checks (see the module docstring and
+# tests/reference/test_render_reference.py: round-off ~1e-16 |L| / h ~ 1e-7 on gradients of
+# scale 1..1e2, truncation h^2 f''' negligible).
+FD_STEP = 1e-7
+# Minimum threshold margin of every sub-frame render of an FD scene. A step of FD_STEP moves a
+# thresholded quantity by <= ~1e-5 relative (the bound argued in test_render_reference.py: <= ~1e2
+# relative per unit of any input, including pose rotation ~f * 3/sigma_px ~ 1e2 per radian), so
+# 1e-4 leaves a factor 10. The reference's 1e-3 is out of reach here: every one of the n
+# sub-frames must have the margin, and the chance that some (Gaussian, pixel) pair sits within
+# relative distance m of alpha = 1/255 grows like 2 pi m sigma_px^2 per Gaussian and render.
+MARGIN_MIN = 1e-4
+# |grad - fd| <= FD_RTOL * (scale of the gradient block): 100x the FD round-off estimate.
+FD_RTOL = 1e-5
+# Virtual poses: smooth closed forms of O(1); step 1e-6 gives truncation ~1e-12 and round-off
+# ~1e-10 on a loss of size ~10; wrong Jacobian terms are O(1e-2..1).
+POSE_FD_STEP = 1e-6
+POSE_FD_ATOL = 1e-8
+# Geodesic identities evaluated two ways in float64 (exp/log round trips of O(1) matrices).
+POSE_ATOL = 1e-12
+# Blurry render with the Numba renderer against the float64 reference (render contract: they
+# agree to ~1e-10 relative; averaging n renders and summing gradients keeps that order).
+FAST_RTOL = 1e-8
+
+W = H = 24
+DEFORM = DeformConfig(degree=1, order=1)  # K = 3 coefficients: every deformation term, fewer FD entries
+
+
+# ---------------------------------------------------------------------------------------------
+# Scenes
+# ---------------------------------------------------------------------------------------------
+
+
+def _params_from_scene(rng, scene, num_dynamic, deform_std):
+    """Scene blocks (static first, the last num_dynamic Gaussians dynamic) from render inputs."""
+    n = scene["means"].shape[0]
+    ns = n - num_dynamic
+    logits = logit(scene["opacities"])
+    params = {}
+    for prefix, sl in (("static", slice(0, ns)), ("dynamic", slice(ns, n))):
+        params[f"{prefix}.means"] = scene["means"][sl].copy()
+        params[f"{prefix}.log_scales"] = np.log(scene["scales"][sl])
+        params[f"{prefix}.quats"] = scene["quats"][sl].copy()
+        params[f"{prefix}.opacity_logits"] = logits[sl].copy()
+        params[f"{prefix}.colors"] = scene["colors"][sl].copy()
+    K = DEFORM.num_coefs
+    params["dynamic.deform_means"] = deform_std * rng.normal(size=(num_dynamic, K, 3))
+    params["dynamic.deform_quats"] = deform_std * rng.normal(size=(num_dynamic, K, 4))
+    params["dynamic.deform_colors"] = deform_std * rng.normal(size=(num_dynamic, K, 3))
+    return params
+
+
+def _subframe_margin(case):
+    """Smallest threshold margin over the sub-frame renders of a blur case."""
+    n = case["blur_config"].num_virtual
+    poses = virtual_poses(case["pose_est"], case["xi_start"], case["xi_end"], n)
+    times = subframe_times(case["frame_time"], case["tau"], n)
+    margin = np.inf
+    for T, t in zip(poses, times):
+        inputs, _ = evaluate_fwd(case["params"], float(t), DEFORM)
+        scene = dict(inputs, cam_T_world=T, K=case["K"], width=W, height=H, background=case["background"])
+        margin = min(margin, rf.threshold_margin(scene))
+    return margin
+
+
+def make_case(seed, xi_start=None, xi_end=None, tau=0.1, n=8, spread=0.01, num_gaussians=12,
+              num_dynamic=4, deform_std=0.05, margin=MARGIN_MIN, max_tries=200):
+    """A blur FD case whose every sub-frame render has threshold margin >= margin.
+
+    xi_start / xi_end: callables rng -> (6,) (None: random with rotation and translation ~ spread).
+    """
+    rng = np.random.default_rng(seed)
+    for _ in range(max_tries):
+        scene = rf.random_scene(rng, num_gaussians, W, H)
+        xs = rng.normal(size=6) * spread if xi_start is None else xi_start(rng)
+        xe = rng.normal(size=6) * spread if xi_end is None else xi_end(rng)
+        case = dict(
+            params=_params_from_scene(rng, scene, num_dynamic, deform_std),
+            frame_time=0.4, tau=tau, pose_est=scene["cam_T_world"], xi_start=np.asarray(xs, np.float64),
+            xi_end=np.asarray(xe, np.float64), K=scene["K"], width=W, height=H, background=scene["background"],
+            blur_config=BlurConfig(num_virtual=n), deform_config=DEFORM,
+        )
+        if _subframe_margin(case) >= margin:
+            return case
+    raise RuntimeError(f"no blur case with sub-frame margin >= {margin} in {max_tries} draws")
+
+
+def _render(case, renderer=reference, **overrides):
+    args = dict(case, **overrides)
+    return blur_render_fwd(**args, renderer=renderer)
+
+
+def _loss(case, cot, **overrides):
+    out, _ = _render(case, **overrides)
+    return rf.weighted_loss(out, cot)
+
+
+# ---------------------------------------------------------------------------------------------
+# Virtual poses
+# ---------------------------------------------------------------------------------------------
+
+
+def _random_pose(rng):
+    return se3_exp(rng.normal(size=6))
+
+
+def test_offsets_and_times():
+    np.testing.assert_array_equal(exposure_offsets(1), [0.5])
+    np.testing.assert_array_equal(exposure_offsets(5), [0.0, 0.25, 0.5, 0.75, 1.0])
+    np.testing.assert_allclose(subframe_times(0.3, 0.2, 3), [0.2, 0.3, 0.4], rtol=0, atol=1e-15)
+    np.testing.assert_array_equal(subframe_times(0.3, 0.2, 1), [0.3])
+
+
+def test_virtual_poses_endpoints_and_midpoint():
+    rng = np.random.default_rng(1)
+    T_hat = _random_pose(rng)
+    xs, xe = 0.3 * rng.normal(size=6), 0.3 * rng.normal(size=6)
+    T_s, T_e = se3_exp(xs) @ T_hat, se3_exp(xe) @ T_hat
+    n = 9
+    poses = virtual_poses(T_hat, xs, xe, n)
+    assert poses.shape == (n, 4, 4)
+    np.testing.assert_allclose(poses[0], T_s, atol=POSE_ATOL)  # u = 0
+    np.testing.assert_allclose(poses[-1], T_e, atol=POSE_ATOL)  # u = 1
+    mid = poses[n // 2]  # u = 0.5: equidistant along the geodesic
+    np.testing.assert_allclose(se3_log(se3_inverse(mid) @ T_s), -se3_log(se3_inverse(mid) @ T_e), atol=POSE_ATOL)
+    # every virtual pose is Eq. 9, T_s exp(u log(T_s^-1 T_e)), evaluated by the geometry module
+    np.testing.assert_allclose(poses, se3_interpolate(T_s, T_e, exposure_offsets(n)), atol=POSE_ATOL)
+
+
+def test_virtual_poses_n1_and_zero_spread_are_the_estimate():
+    rng = np.random.default_rng(2)
+    T_hat = _random_pose(rng)
+    xs, xe = rng.normal(size=6), rng.normal(size=6)
+    np.testing.assert_array_equal(virtual_poses(T_hat, xs, xe, 1), T_hat[None])  # xi ignored
+    zero = np.zeros(6)
+    np.testing.assert_array_equal(virtual_poses(T_hat, zero, zero, 8), np.broadcast_to(T_hat, (8, 4, 4)))
+    v_s, v_e = virtual_poses_bwd(virtual_poses_fwd(T_hat, xs, xe, 1)[1], rng.normal(size=(1, 6)))
+    np.testing.assert_array_equal(v_s, 0.0)
+    np.testing.assert_array_equal(v_e, 0.0)
+
+
+def _axis(rng):
+    a = rng.normal(size=3)
+    return a / np.linalg.norm(a)
+
+
+def _pose_cases():
+    rng = np.random.default_rng(3)
+    x = 0.4 * rng.normal(size=6)
+    a = _axis(rng)
+    half = 0.5 * (np.pi - 1e-3)  # start and end 1e-3 rad short of a half turn apart
+    return {
+        "generic": (0.4 * rng.normal(size=6), 0.4 * rng.normal(size=6)),
+        "zero_length": (x, x.copy()),
+        "zero": (np.zeros(6), np.zeros(6)),
+        "tiny": (x, x + 1e-9 * rng.normal(size=6)),
+        "near_pi": (np.r_[0.2 * rng.normal(size=3), -half * a], np.r_[0.2 * rng.normal(size=3), half * a]),
+        "large_endpoints": (np.r_[rng.normal(size=3), 2.5 * _axis(rng)], np.r_[rng.normal(size=3), 2.0 * _axis(rng)]),
+    }
+
+
+@pytest.mark.parametrize("name", list(_pose_cases()))
+@pytest.mark.parametrize("n", [2, 5, 8])
+def test_virtual_poses_gradient_matches_fd(name, n):
+    xs, xe = _pose_cases()[name]
+    rng = np.random.default_rng(4)
+    T_hat = _random_pose(rng)
+    if name == "near_pi":  # the relative rotation really is ~pi (not wrapped to a short way round)
+        delta = se3_log(se3_inverse(se3_exp(xs)) @ se3_exp(xe))
+        assert abs(np.linalg.norm(delta[3:]) - (np.pi - 1e-3)) < 1e-9
+    Wt = rng.normal(size=(n, 4, 4))
+    Wt[:, 3, :] = 0.0  # loss = sum_i <Wt_i, T(u_i)> over the rigid part
+
+    def loss(a, b):
+        return float(np.sum(Wt * virtual_poses(T_hat, a, b, n)))
+
+    poses, saved = virtual_poses_fwd(T_hat, xs, xe, n)
+    g = np.stack([matrix_grad_to_left_tangent(poses[i], Wt[i]) for i in range(n)])
+    v_s, v_e = virtual_poses_bwd(saved, g)
+    fd_s = rf.central_fd(lambda a: loss(a, xe), xs, POSE_FD_STEP)
+    fd_e = rf.central_fd(lambda b: loss(xs, b), xe, POSE_FD_STEP)
+    np.testing.assert_allclose(v_s, fd_s, rtol=0, atol=POSE_FD_ATOL * max(1.0, np.abs(fd_s).max()))
+    np.testing.assert_allclose(v_e, fd_e, rtol=0, atol=POSE_FD_ATOL * max(1.0, np.abs(fd_e).max()))
+    assert np.all(np.isfinite(v_s)) and np.all(np.isfinite(v_e))
+
+
+def test_virtual_poses_input_validation():
+    T = np.eye(4)
+    z = np.zeros(6)
+    with pytest.raises(ValueError, match="xi_start must have shape"):
+        virtual_poses(T, np.zeros(5), z, 4)
+    with pytest.raises(ValueError, match="n .* must be an int >= 1"):
+        virtual_poses(T, z, z, 0)
+    with pytest.raises(TypeError, match="xi_end must have dtype"):
+        virtual_poses(T, z, z.astype(np.float32), 4)
+    with pytest.raises(ValueError, match="not rigid"):
+        virtual_poses(2.0 * T, z, z, 4)
+    with pytest.raises(ValueError, match="num_virtual"):
+        BlurConfig(num_virtual=0)
+
+
+# ---------------------------------------------------------------------------------------------
+# Blurry render: forward properties
+# ---------------------------------------------------------------------------------------------
+
+
+def _sharp(case, t, T):
+    inputs, _ = evaluate_fwd(case["params"], t, DEFORM)
+    out, _ = reference.render_fwd(**inputs, cam_T_world=T, K=case["K"], width=W, height=H,
+                                  background=case["background"])
+    return out
+
+
+def test_n1_is_the_sharp_render_at_the_estimate_bitwise():
+    case = make_case(10, n=1, spread=0.05, tau=0.2, margin=0.0)
+    out, _ = _render(case)
+    sharp = _sharp(case, case["frame_time"], case["pose_est"])
+    for key in rf.OUTPUT_KEYS:
+        np.testing.assert_array_equal(out[key], sharp[key])
+
+
+def test_zero_spread_zero_tau_is_the_sharp_render():
+    case = make_case(11, n=8, xi_start=lambda r: np.zeros(6), xi_end=lambda r: np.zeros(6), tau=0.0, margin=0.0)
+    out, _ = _render(case)
+    sharp = _sharp(case, case["frame_time"], case["pose_est"])
+    for key in rf.OUTPUT_KEYS:  # the mean of 8 identical renders: equal up to the rounding of the mean
+        np.testing.assert_allclose(out[key], sharp[key], rtol=4 * np.finfo(float).eps, atol=1e-15)
+
+
+def test_blurry_render_is_the_mean_of_subframe_renders():
+    case = make_case(12, n=4, margin=0.0)
+    out, _ = _render(case)
+    poses = virtual_poses(case["pose_est"], case["xi_start"], case["xi_end"], 4)
+    times = subframe_times(case["frame_time"], case["tau"], 4)
+    subs = [_sharp(case, float(t), T) for T, t in zip(poses, times)]
+    for key in rf.OUTPUT_KEYS:
+        np.testing.assert_allclose(out[key], np.mean([s[key] for s in subs], axis=0), rtol=1e-14, atol=1e-14)
+    np.testing.assert_array_equal(out["radii"], np.max([s["radii"] for s in subs], axis=0))
+    # the blur is real: sub-frames differ from each other (camera and object motion)
+    assert np.abs(subs[0]["image"] - subs[-1]["image"]).max() > 1e-3
+
+
+def test_scene_blocks_only_and_extra_keys_ignored():
+    case = make_case(13, n=2, margin=0.0)
+    out, _ = _render(case)
+    extra = dict(case["params"], **{"camera.xi_start": np.zeros((3, 6)), EXPOSURE_BLOCK: np.zeros(1)})
+    out2, saved = _render(case, params=extra)
+    np.testing.assert_array_equal(out["image"], out2["image"])
+    v_params, *_ = blur_render_bwd(saved, np.ones((H, W, 3)))
+    assert set(v_params) == set(case["params"])
+
+
+# ---------------------------------------------------------------------------------------------
+# Blurry render: gradients against central finite differences
+# ---------------------------------------------------------------------------------------------
+
+_HALF_ROLL = 0.5 * (np.pi - 0.05)  # roll about the optical axis keeps the scene in view
+
+
+def _gradient_cases():
+    return {
+        "generic": dict(seed=20),
+        "zero_length": dict(seed=21, xi_start=lambda r: 0.01 * np.ones(6), xi_end=lambda r: 0.01 * np.ones(6)),
+        "near_pi": dict(seed=22, n=8,
+                        xi_start=lambda r: np.r_[0.01 * r.normal(size=3), 0.0, 0.0, -_HALF_ROLL],
+                        xi_end=lambda r: np.r_[0.01 * r.normal(size=3), 0.0, 0.0, _HALF_ROLL]),
+        "tiny": dict(seed=23, xi_start=lambda r: np.full(6, 0.005),
+                     xi_end=lambda r: np.full(6, 0.005) + 1e-9 * r.normal(size=6)),
+        "n2": dict(seed=24, n=2),
+        "n1": dict(seed=25, n=1),
+    }
+
+
+def _check_block(name, grad, fd, scale):
+    err = np.abs(np.asarray(grad) - np.asarray(fd)).max()
+    assert err <= FD_RTOL * max(scale, 1e-12), f"{name}: max |grad - fd| = {err:.3g}, scale {scale:.3g}"
+
+
+@pytest.mark.parametrize("name", list(_gradient_cases()))
+def test_blur_gradients_match_fd(name):
+    case = make_case(**_gradient_cases()[name])
+    rng = np.random.default_rng(100)
+    cot = rf.random_cotangents(rng, W, H)
+    out, saved = _render(case)
+    v_params, v_xs, v_xe, v_tau = blur_render_bwd(saved, **cot)
+    assert set(v_params) == set(case["params"])
+
+    # endpoints (every entry; xi are the coordinates the optimiser moves) and tau
+    for key, grad in (("xi_start", v_xs), ("xi_end", v_xe)):
+        fd = rf.central_fd(lambda x, key=key: _loss(case, cot, **{key: x}), case[key], FD_STEP)
+        _check_block(key, grad, fd, np.abs(fd).max())
+        if case["blur_config"].num_virtual == 1:
+            np.testing.assert_array_equal(grad, 0.0)
+    fd_tau = rf.central_fd_scalar(lambda h: _loss(case, cot, tau=case["tau"] + h), FD_STEP)
+    _check_block("tau", v_tau, fd_tau, abs(fd_tau) + 1.0)
+
+    # scene blocks: a random direction per block plus a few single entries
+    for key, grad in v_params.items():
+        base = case["params"][key]
+        d = rng.normal(size=base.shape)
+
+        def along(h, key=key, d=d):
+            p = dict(case["params"], **{key: case["params"][key] + h * d})
+            return _loss(case, cot, params=p)
+
+        fd_dir = rf.central_fd_scalar(along, FD_STEP)
+        _check_block(key + " (direction)", np.sum(grad * d), fd_dir, np.sum(np.abs(grad * d)))
+        for flat in rng.choice(base.size, size=min(3, base.size), replace=False):
+            idx = np.unravel_index(flat, base.shape)
+            e = np.zeros(base.shape)
+            e[idx] = 1.0
+
+            def single(h, key=key, e=e):
+                p = dict(case["params"], **{key: case["params"][key] + h * e})
+                return _loss(case, cot, params=p)
+
+            _check_block(f"{key}{idx}", grad[idx], rf.central_fd_scalar(single, FD_STEP), np.abs(grad).max())
+
+
+def test_blur_gradient_is_not_trivial():
+    """The endpoint, tau and deformation gradients are non-zero in a blurry dynamic case (so the
+    FD checks above compare real numbers)."""
+    case = make_case(20)
+    cot = rf.random_cotangents(np.random.default_rng(100), W, H)
+    _, saved = _render(case)
+    v_params, v_xs, v_xe, v_tau = blur_render_bwd(saved, **cot)
+    assert np.abs(v_xs).max() > 1e-3 and np.abs(v_xe).max() > 1e-3 and abs(v_tau) > 1e-3
+    assert np.abs(v_params["dynamic.deform_means"]).max() > 1e-3
+
+
+def test_default_numba_renderer_matches_reference():
+    case = make_case(30, n=3)
+    cot = rf.random_cotangents(np.random.default_rng(101), W, H)
+    out_ref, saved_ref = _render(case)
+    out_fast, saved_fast = blur_render_fwd(**case)  # renderer=None: d2gs_np.render
+    for key in rf.OUTPUT_KEYS:
+        np.testing.assert_allclose(out_fast[key], out_ref[key], rtol=FAST_RTOL, atol=FAST_RTOL)
+    g_ref = blur_render_bwd(saved_ref, **cot)
+    g_fast = blur_render_bwd(saved_fast, **cot)
+    for k in g_ref[0]:
+        scale = np.abs(g_ref[0][k]).max()
+        np.testing.assert_allclose(g_fast[0][k], g_ref[0][k], rtol=0, atol=FAST_RTOL * max(scale, 1.0))
+    for a, b in zip(g_fast[1:], g_ref[1:]):
+        np.testing.assert_allclose(a, b, rtol=0, atol=FAST_RTOL * max(np.abs(b).max(), 1.0))
+
+
+def test_float32_stays_float32():
+    case = make_case(31, n=3, margin=0.0)
+    case32 = dict(case)
+    for key in ("pose_est", "xi_start", "xi_end", "K", "background"):
+        case32[key] = case[key].astype(np.float32)
+    case32["params"] = {k: v.astype(np.float32) for k, v in case["params"].items()}
+    out, saved = _render(case32)
+    assert out["image"].dtype == np.float32 and out["poses"].dtype == np.float32
+    v_params, v_xs, v_xe, _ = blur_render_bwd(saved, np.ones((H, W, 3), np.float32))
+    assert all(v.dtype == np.float32 for v in v_params.values())
+    assert v_xs.dtype == np.float32 and v_xe.dtype == np.float32
+    with pytest.raises(TypeError, match="pose_est must be a numpy array of the scene dtype"):
+        _render(case32, pose_est=case["pose_est"])
+
+
+def test_return_aux():
+    case = make_case(32, n=3, margin=0.0)
+    _, saved = _render(case)
+    *_, aux = blur_render_bwd(saved, np.ones((H, W, 3)), return_aux=True)
+    assert aux["v_means2d"].shape == (3, 12, 2) and aux["v_pose_tangents"].shape == (3, 6)
+
+
+# ---------------------------------------------------------------------------------------------
+# Exposure length
+# ---------------------------------------------------------------------------------------------
+
+
+def test_exposure_from_scene():
+    assert exposure_from_scene(0.5, 11) == pytest.approx(0.05, rel=1e-15)
+    assert exposure_from_scene(1.0, 2) == 1.0
+    assert exposure_from_scene(0.7, 1) == 0.0
+    with pytest.raises(ValueError, match="exposure_fraction must be in"):
+        exposure_from_scene(1.5, 10)
+
+
+def test_learned_exposure_init_range_and_gradient():
+    params = init_exposure()
+    np.testing.assert_array_equal(params[EXPOSURE_BLOCK], [0.0])
+    tau, _ = exposure_fwd(params, 21)
+    assert tau == pytest.approx(0.5 / 20, rel=1e-15)
+    for logit_value in (-30.0, -2.0, 0.3, 4.0, 30.0):  # always inside (0, 1) of the frame interval
+        p = {EXPOSURE_BLOCK: np.array([logit_value])}
+        tau, saved = exposure_fwd(p, 21)
+        assert 0.0 <= tau * 20 <= 1.0
+        g = exposure_bwd(saved, 1.0)[EXPOSURE_BLOCK]
+        fd = rf.central_fd(lambda x: exposure_fwd({EXPOSURE_BLOCK: x}, 21)[0], p[EXPOSURE_BLOCK], 1e-6)
+        # tau ~ 0.05: FD round-off ~1e-16 * 0.05 / 1e-6 ~ 1e-11, truncation ~h^2 ~ 1e-12
+        np.testing.assert_allclose(g, fd, rtol=1e-7, atol=1e-10)
+    assert exposure_fwd(init_exposure(0.25), 5)[0] == pytest.approx(0.25 / 4, rel=1e-14)
