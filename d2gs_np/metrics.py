@@ -14,7 +14,8 @@ Images
   gaussian_weights=True, sigma=1.5)``: Gaussian window sigma 1.5 truncated at
   3.5 sigma (11 taps), 'reflect' borders, K1 = 0.01, K2 = 0.03, *sample*
   covariances (factor 121/120), and the SSIM map averaged over the interior
-  (a 5-pixel border is dropped) and over channels.
+  (a 5-pixel border is dropped) and over channels. The map comes from
+  ``d2gs_np.losses.ssim.ssim_map``, the same code as the training loss.
 - Masks are (H, W) bool arrays; a masked metric averages over the pixels where
   the mask is True (for SSIM: the True pixels of the interior).
 
@@ -39,11 +40,11 @@ Trajectories
 from __future__ import annotations
 
 import numpy as np
-from scipy.ndimage import gaussian_filter
 
 from d2gs_np.constants import TRAJECTORY_SPREAD_MIN_REL
 from d2gs_np.geometry.camera import camera_center, check_rigid
 from d2gs_np.geometry.so3 import so3_log
+from d2gs_np.losses.ssim import SSIM_WINDOW, ssim_map
 
 __all__ = [
     "psnr",
@@ -57,13 +58,8 @@ __all__ = [
     "rpe",
 ]
 
-# SSIM parameters (Wang et al. 2004 / scikit-image defaults with gaussian_weights=True).
-_SSIM_SIGMA = 1.5
-_SSIM_TRUNCATE = 3.5  # in units of sigma: radius int(3.5 * 1.5 + 0.5) = 5 -> 11 taps
-_SSIM_PAD = 5  # (win_size - 1) // 2, the border dropped before averaging the map
-_SSIM_K1 = 0.01
-_SSIM_K2 = 0.03
-_SSIM_NP = 11 * 11  # window size squared: sample-covariance factor NP / (NP - 1)
+# Border dropped before averaging the SSIM map: (win_size - 1) // 2 = 5 for the 11-tap window.
+_SSIM_PAD = (SSIM_WINDOW - 1) // 2
 
 
 # --------------------------------------------------------------------------- images
@@ -121,30 +117,6 @@ def psnr(img, ref, mask=None, data_range=1.0):
     return float(10.0 * np.log10(data_range * data_range / mse))
 
 
-def _ssim_map(img, ref):
-    """TEMPORARY: per-pixel SSIM map, (H, W, C) -> (H, W, C).
-
-    To be replaced by ``d2gs_np.losses.ssim.ssim_map`` (same semantics, used by
-    the training loss) as soon as that exists, so there is one implementation.
-    Mirrors scikit-image's structural_similarity with gaussian_weights=True.
-    """
-    sigma = (_SSIM_SIGMA, _SSIM_SIGMA, 0.0)  # no smoothing across channels
-
-    def filt(x):
-        return gaussian_filter(x, sigma=sigma, truncate=_SSIM_TRUNCATE, mode="reflect")
-
-    cov_norm = _SSIM_NP / (_SSIM_NP - 1.0)
-    ux, uy = filt(img), filt(ref)
-    vx = cov_norm * (filt(img * img) - ux * ux)
-    vy = cov_norm * (filt(ref * ref) - uy * uy)
-    vxy = cov_norm * (filt(img * ref) - ux * uy)
-    c1 = _SSIM_K1**2  # data range 1
-    c2 = _SSIM_K2**2
-    num = (2.0 * ux * uy + c1) * (2.0 * vxy + c2)
-    den = (ux * ux + uy * uy + c1) * (vx + vy + c2)
-    return num / den
-
-
 def ssim(img, ref, mask=None):
     """Structural similarity (Gaussian window 11, sigma 1.5, data range 1).
 
@@ -158,9 +130,11 @@ def ssim(img, ref, mask=None):
     img, ref = _check_image_pair(img, ref)
     mask = _check_mask(mask, img.shape)
     h, w = img.shape[:2]
-    if min(h, w) < 2 * _SSIM_PAD + 1:
-        raise ValueError(f"ssim needs images of at least 11x11 pixels (the window size); got {h}x{w}")
-    smap = _ssim_map(img, ref)
+    if min(h, w) < SSIM_WINDOW:
+        raise ValueError(
+            f"ssim needs images of at least {SSIM_WINDOW}x{SSIM_WINDOW} pixels (the window size); got {h}x{w}"
+        )
+    smap = ssim_map(img, ref)  # the training loss's implementation (d2gs_np.losses.ssim)
     interior = (slice(_SSIM_PAD, h - _SSIM_PAD), slice(_SSIM_PAD, w - _SSIM_PAD))
     smap = smap[interior]
     if mask is None:
