@@ -47,6 +47,7 @@ REGIMES = {
     "skew_log_branch": math.acos(LOG_SYMMETRIC_BRANCH_COS + _SIDE),
     "symmetric_log_branch": math.acos(LOG_SYMMETRIC_BRANCH_COS - _SIDE),
     "random": None,
+    "pi_minus_1e-4": math.pi - 1e-4,
     "pi_minus_1e-9": math.pi - 1e-9,
     "pi": math.pi,
 }

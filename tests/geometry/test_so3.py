@@ -92,6 +92,7 @@ REGIMES = {
     "skew_log_branch": math.acos(LOG_SYMMETRIC_BRANCH_COS + _SIDE),
     "symmetric_log_branch": math.acos(LOG_SYMMETRIC_BRANCH_COS - _SIDE),
     "random": None,  # uniform in (0, pi), one angle per sample
+    "pi_minus_1e-4": math.pi - 1e-4,
     "pi_minus_1e-9": math.pi - 1e-9,
     "pi": math.pi,
 }
