@@ -13,20 +13,27 @@ data_range=1.0, gaussian_weights=True, sigma=1.5)`` (scikit-image 0.26):
 - the value is the mean of S over the interior (a 5-pixel border, (win - 1) // 2, is cropped),
   averaged over channels (equal weights, so the plain mean over interior pixels and channels).
 
-The filter is written as an explicit symmetric padding followed by a separable 11-tap
-correlation, and its adjoint ``_blur_adjoint`` as the transpose of those two steps (scatter
-through the taps, then fold the padded border back onto the pixels it copied). For this
-padding the two coincide: in 1-D the operator is F[i, j] = sum over the mirror images j' of j
-(j, -1 - j, 2n - 1 - j) of w(j' - i), and with a symmetric kernel each term is symmetric in
-(i, j), so F = F^T (it would not be for 'nearest' or 'constant' padding). The tests check both
-the transpose identity and F = F^T. Only the gradient w.r.t. ``img`` is returned (``ref`` is
-the target).
+The filter and its adjoint. The backward needs G^T, the transpose of the padded filter. In 1-D
+the filter with 'reflect' padding (valid for n >= radius, guaranteed by n >= 11) is the matrix
+
+    F[i, j] = sum over the mirror images j' of j in {j, -1 - j, 2n - 1 - j} of w(j' - i),
+
+and with a symmetric kernel, w(-1 - j - i) and w(2n - 1 - j - i) are symmetric in (i, j) like
+w(j - i); so F = F^T and the 2-D separable filter is self-adjoint: ``_blur_adjoint`` is
+``_blur``. (This is a property of the half-sample symmetric padding: with 'nearest' or
+'constant' padding F is not symmetric.) The tests build the dense F for several n and check
+F = F^T, and check the whole backward, border pixels included, against central differences.
+The filter itself is ``scipy.ndimage.correlate1d`` along H then W with scipy's own kernel,
+i.e. exactly the call skimage makes through ``gaussian_filter``.
+
+Only the gradient w.r.t. ``img`` is returned (``ref`` is the target).
 
 Images are (H, W, C) float64 or float32 (kept: float32 in, float32 out), H, W >= 11.
 """
 from __future__ import annotations
 
 import numpy as np
+from scipy.ndimage import correlate1d
 
 from d2gs_np.constants import SSIM_C1, SSIM_C2
 
@@ -50,41 +57,16 @@ def _kernel():
 _KERNEL64 = _kernel()
 
 
-def _correlate_axis0(x, w):
-    """Symmetric pad by r along axis 0, then the 'valid' correlation with w (2r+1 taps)."""
-    n = x.shape[0]
-    pad = [(_RADIUS, _RADIUS)] + [(0, 0)] * (x.ndim - 1)
-    xp = np.pad(x, pad, mode="symmetric")  # numpy 'symmetric' == scipy.ndimage 'reflect'
-    out = w[0] * xp[0:n]
-    for k in range(1, w.shape[0]):
-        out = out + w[k] * xp[k:k + n]
-    return out
-
-
-def _correlate_axis0_adjoint(v, w):
-    """Adjoint of ``_correlate_axis0``: scatter through the taps, then fold the padding back."""
-    n, r = v.shape[0], _RADIUS
-    v_xp = np.zeros((n + 2 * r,) + v.shape[1:], dtype=v.dtype)
-    for k in range(w.shape[0]):
-        v_xp[k:k + n] += w[k] * v
-    v_x = v_xp[r:r + n].copy()
-    v_x[:r] += v_xp[:r][::-1]  # padded entry j < r was a copy of x[r - 1 - j]
-    v_x[n - r:] += v_xp[r + n:][::-1]  # padded entry r + n + m was a copy of x[n - 1 - m]
-    return v_x
-
-
 def _blur(x):
-    """Gaussian filter of (H, W, ...) arrays along axes 0 and 1 (scipy's reflect semantics)."""
+    """Gaussian filter along axes 1 and 2 of a (S, H, W, C) stack (scipy's reflect semantics)."""
     w = _KERNEL64.astype(x.dtype)
-    y = _correlate_axis0(x, w)
-    return _correlate_axis0(y.swapaxes(0, 1), w).swapaxes(0, 1)
+    y = correlate1d(x, w, axis=1, mode="reflect")
+    return correlate1d(y, w, axis=2, mode="reflect")
 
 
 def _blur_adjoint(v):
-    """Exact adjoint (transpose) of ``_blur``."""
-    w = _KERNEL64.astype(v.dtype)
-    y = _correlate_axis0_adjoint(v.swapaxes(0, 1), w).swapaxes(0, 1)
-    return _correlate_axis0_adjoint(y, w)
+    """Exact adjoint of ``_blur``: the filter itself, which is symmetric (module docstring)."""
+    return _blur(v)
 
 
 def _check_images(img, ref):
@@ -113,8 +95,8 @@ def _check_images(img, ref):
 
 def _ssim_parts(img, ref):
     """Local statistics and the SSIM map S (H, W, C), with everything the backward needs."""
-    stats = _blur(np.stack([img, ref, img * img, ref * ref, img * ref], axis=-1))  # (H, W, C, 5)
-    ux, uy, uxx, uyy, uxy = (stats[..., i] for i in range(5))
+    stats = _blur(np.stack([img, ref, img * img, ref * ref, img * ref]))  # (5, H, W, C)
+    ux, uy, uxx, uyy, uxy = stats
     vx = _COV_NORM * (uxx - ux * ux)
     vy = _COV_NORM * (uyy - uy * uy)
     vxy = _COV_NORM * (uxy - ux * uy)
@@ -198,5 +180,5 @@ def ssim_bwd(saved, v_value=1.0):
     v_uxy = cn * v_vxy
     v_ux = v_ux - 2 * cn * ux * v_vx - cn * uy * v_vxy
     # ux = G img, uxx = G (img^2), uxy = G (img ref)
-    back = _blur_adjoint(np.stack([v_ux, v_uxx, v_uxy], axis=-1))
-    return back[..., 0] + 2 * img * back[..., 1] + ref * back[..., 2]
+    back = _blur_adjoint(np.stack([v_ux, v_uxx, v_uxy]))  # (3, H, W, C)
+    return back[0] + 2 * img * back[1] + ref * back[2]
