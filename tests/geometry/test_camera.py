@@ -150,8 +150,11 @@ def test_scale_intrinsics_keeps_zero_skew_and_last_row():
 
 def test_scaled_size():
     assert scaled_size(64, 40, 0.5) == (32, 20)
-    assert scaled_size(65, 41, 0.5) == (32, 20)  # Python rounds halves to even
-    assert scaled_size(64, 40, 1e-3) == (1, 1)
+    assert scaled_size(64, 40, 1.0) == (64, 40)
+    assert scaled_size(64, 40, 1e-3) == (1, 1)  # never empty
+    for r in np.linspace(0.2, 1.0, 17):  # nearest integer size (how halves round is not specified)
+        w, h = scaled_size(65, 41, r)
+        assert abs(w - 65 * r) <= 0.5 and abs(h - 41 * r) <= 0.5
 
 
 @pytest.mark.parametrize("fx, fy", [(0.0, 100.0), (100.0, -1.0), (-5.0, -5.0), (np.nan, 100.0)])
