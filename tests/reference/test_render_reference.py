@@ -605,9 +605,10 @@ def test_opacity_one_caps_alpha_and_blocks_the_gradient():
 
 def test_colors_outside_unit_range_pass_through():
     scene = _axis_scene([(4.0, 0.4, 0.8, (-0.5, 2.0, 10.0))], 12, 12)
-    out, _ = render_fwd(**scene)
+    out, saved = render_fwd(**scene)
     _assert_outputs_close(out, _axis_expected(scene))
     assert out["image"].min() < 0 and out["image"].max() > 5
+    _assert_finite_grads(render_bwd(saved, **_random_cot(scene)))
 
 
 def test_gaussian_covering_the_whole_image():
