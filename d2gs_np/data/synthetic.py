@@ -1,0 +1,712 @@
+"""Synthetic blurry dynamic scenes with full ground truth, by analytic ray casting.
+
+The ground truth is NOT a Gaussian scene: every image is ray cast in
+vectorised NumPy against an analytic world, so a Gaussian model fitted to it
+is an approximation, as with real footage.
+
+World (world units ~ metres; y is UP, the camera looks roughly along -z):
+- a closed room ``[-3, 3] x [0, 3.2] x [-2.5, 6]`` (floor, ceiling, four
+  walls; every ray hits something, there is no sky at infinity), with a
+  static textured box standing on the floor;
+- procedural textures with structure at several scales: soft-edged checkers,
+  stripes, colour gradients and smooth noise (sums of random plane waves).
+  Edges are softened over ~1-2 pixels at the default resolution, so blur is
+  visible and matters, but a few thousand Gaussians can fit them;
+- flat Lambertian shading with one fixed directional light (view
+  independent; no shadows, so nothing outside a mover changes with time);
+- moving objects (``moving_objects=True``): two textured, spinning spheres on
+  smooth (C-infinity) curves of normalised time t.
+
+Camera: ``camera_pose(world, t)`` is a C-infinity function of t: an arc
+around the scene centre, low-frequency sway (sums of sines, 0.5-2.5 cycles
+per clip), a faster smooth shake in position and orientation (5-9 cycles per
+clip), looking at a slowly swaying target with a slowly varying roll.
+
+Frames (METHOD.md §4): mid-exposure times ``t_k = k / (N - 1)``; exposure
+length in normalised time ``tau = exposure_fraction / (N - 1)``. The blurry
+frame k is the mean of S sharp sub-frames at times
+``t_k + (u_i - 0.5) tau`` with ``u_i = i / (S - 1)`` (evenly spaced,
+endpoints included, the same spacing as the model's virtual poses, Eq. 9),
+each rendered with BOTH the camera and the objects at that time, each with
+``supersample x supersample`` samples per pixel (box-filter anti-aliasing).
+The true exposure start / end poses are ``camera_pose(t_k -+ tau / 2)``: the
+true camera moves along its curved path inside the exposure, not along the
+model's geodesic. With exposure 0 the frame is rendered once (blurry == sharp).
+
+Motion mask of frame k: pixels of which ANY sample of ANY sub-frame sees a
+moving object. Estimated pose: ``exp(delta) @ T_true`` (left perturbation,
+se(3) tangent (rho, phi)), with each component of phi ~ N(0, rot_noise_deg in
+radians) and each component of rho ~ N(0, trans_noise_fraction *
+scene_scale). Test views: sharp renders at a subset of training times from
+the true camera moved by ``+-test_offset_fraction * scene_scale`` along its
+own x axis (alternating sides).
+
+Poses returned are ``cam_T_world`` (world -> camera, OpenCV axes); pixel
+(i, j) has its centre at (j + 0.5, i + 0.5) (CONVENTIONS.md §2).
+"""
+from __future__ import annotations
+
+import dataclasses
+import json
+import numbers
+from dataclasses import dataclass
+from pathlib import Path
+
+import numpy as np
+
+from d2gs_np.data.scene import Frame, Scene
+from d2gs_np.geometry.camera import check_intrinsics, look_at, make_intrinsics
+from d2gs_np.geometry.se3 import check_rigid, se3_exp
+from d2gs_np.geometry.so3 import so3_exp
+
+__all__ = [
+    "SyntheticConfig",
+    "PRESETS",
+    "SCENE_SCALE",
+    "SyntheticWorld",
+    "build_world",
+    "camera_pose",
+    "object_states",
+    "frame_times",
+    "exposure_length",
+    "intrinsics",
+    "render_view",
+    "depth_map",
+    "frame_depth_map",
+    "perturb_poses",
+    "generate",
+    "make_scene",
+    "write_synthetic_scene",
+]
+
+# Rough scene extent (world units): the camera's distance to the scene centre.
+# Pose noise and test-view offsets are fractions of it.
+SCENE_SCALE = 4.0
+
+
+# ============================================================================ config
+@dataclass(frozen=True)
+class SyntheticConfig:
+    """Generator settings. Validated on construction (ValueError / TypeError)."""
+
+    width: int = 240  # image width in pixels
+    height: int = 135  # image height in pixels
+    num_frames: int = 24  # N training frames, t_k = k / (N - 1)
+    exposure_fraction: float = 0.7  # exposure / frame interval, in [0, 1]; 0 = sharp video
+    subframes: int = 16  # S sharp sub-frames averaged per blurry frame (>= 2 if exposure > 0)
+    supersample: int = 2  # samples per pixel per axis (2 -> 2x2 anti-aliasing)
+    moving_objects: bool = True  # two moving spheres on/off
+    rot_noise_deg: float = 0.5  # std (degrees) of each rotation component of the pose noise
+    trans_noise_fraction: float = 0.005  # std of each translation component / SCENE_SCALE
+    num_test_views: int = 4  # sharp views from a sideways-offset camera
+    test_offset_fraction: float = 0.15  # test camera offset along its x axis / SCENE_SCALE
+    fov_x_deg: float = 60.0  # horizontal field of view (square pixels, centred principal point)
+    seed: int = 0  # seeds textures, paths' phases, pose noise
+
+    def __post_init__(self):
+        ints = ("width", "height", "num_frames", "subframes", "supersample", "num_test_views", "seed")
+        for name in ints:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+                raise TypeError(f"SyntheticConfig.{name} must be an int; got {type(v).__name__} {v!r}")
+        floats = ("exposure_fraction", "rot_noise_deg", "trans_noise_fraction", "test_offset_fraction", "fov_x_deg")
+        for name in floats:
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Real):
+                raise TypeError(f"SyntheticConfig.{name} must be a real number; got {type(v).__name__} {v!r}")
+            if not np.isfinite(v):
+                raise ValueError(f"SyntheticConfig.{name} must be finite; got {v}")
+        if not isinstance(self.moving_objects, bool):
+            raise TypeError(f"SyntheticConfig.moving_objects must be a bool; got {self.moving_objects!r}")
+        if self.width < 1 or self.height < 1:
+            raise ValueError(f"SyntheticConfig width and height must be >= 1; got {self.width}x{self.height}")
+        if self.num_frames < 2:
+            raise ValueError(f"SyntheticConfig.num_frames must be >= 2 (times are k / (N - 1)); got {self.num_frames}")
+        if not 0.0 <= self.exposure_fraction <= 1.0:
+            raise ValueError(f"SyntheticConfig.exposure_fraction must be in [0, 1]; got {self.exposure_fraction}")
+        if self.subframes < 1:
+            raise ValueError(f"SyntheticConfig.subframes must be >= 1; got {self.subframes}")
+        if self.exposure_fraction > 0 and self.subframes < 2:
+            raise ValueError(
+                f"SyntheticConfig.subframes must be >= 2 when exposure_fraction > 0 (got subframes="
+                f"{self.subframes}, exposure_fraction={self.exposure_fraction}); use >= 16 for smooth blur, "
+                "or set exposure_fraction=0 for a sharp video"
+            )
+        if self.supersample < 1:
+            raise ValueError(f"SyntheticConfig.supersample must be >= 1; got {self.supersample}")
+        if self.rot_noise_deg < 0 or self.trans_noise_fraction < 0:
+            raise ValueError(
+                f"SyntheticConfig pose noise must be >= 0; got rot_noise_deg={self.rot_noise_deg}, "
+                f"trans_noise_fraction={self.trans_noise_fraction}"
+            )
+        if not 0 <= self.num_test_views <= self.num_frames:
+            raise ValueError(
+                f"SyntheticConfig.num_test_views must be in [0, num_frames={self.num_frames}]; got {self.num_test_views}"
+            )
+        if self.test_offset_fraction < 0:
+            raise ValueError(f"SyntheticConfig.test_offset_fraction must be >= 0; got {self.test_offset_fraction}")
+        if not 10.0 <= self.fov_x_deg <= 120.0:
+            raise ValueError(f"SyntheticConfig.fov_x_deg must be in [10, 120] degrees; got {self.fov_x_deg}")
+        if self.seed < 0:
+            raise ValueError(f"SyntheticConfig.seed must be >= 0; got {self.seed}")
+
+
+PRESETS = {
+    # no moving objects; blurry; noisy poses
+    "static": SyntheticConfig(moving_objects=False),
+    # moving objects; exposure 0 (rendered once per frame); true poses given as the estimates
+    "sharp": SyntheticConfig(exposure_fraction=0.0, subframes=1, rot_noise_deg=0.0, trans_noise_fraction=0.0),
+    # moving objects; blurry (exposure 0.7 of the frame interval, ~2-5 px of blur); noisy poses
+    "dynamic": SyntheticConfig(),
+}
+
+
+def _resolve_config(preset, seed, overrides):
+    if isinstance(preset, SyntheticConfig):
+        base = preset
+    elif preset in PRESETS:
+        base = PRESETS[preset]
+    else:
+        raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)} or pass a SyntheticConfig")
+    fields = {f.name for f in dataclasses.fields(SyntheticConfig)}
+    unknown = sorted(set(overrides) - fields)
+    if unknown:
+        raise TypeError(f"unknown SyntheticConfig override(s) {unknown}; valid fields: {sorted(fields)}")
+    if seed is not None:
+        overrides = dict(overrides, seed=seed)
+    return dataclasses.replace(base, **overrides)
+
+
+# ============================================================================= world
+# Room and static box bounds (world units, y up).
+_ROOM_LO = np.array([-3.0, 0.0, -2.5])
+_ROOM_HI = np.array([3.0, 3.2, 6.0])
+_BOX_LO = np.array([0.9, 0.0, -1.6])
+_BOX_HI = np.array([1.7, 0.8, -0.8])
+_LIGHT = np.array([0.35, 0.85, 0.45]) / np.linalg.norm([0.35, 0.85, 0.45])
+_AMBIENT = 0.45  # shade = ambient + (1 - ambient) * max(0, n . light)
+_SCENE_CENTER = np.array([0.0, 0.9, -1.0])  # the camera looks at (a sway around) this point
+# Surface ids: room faces 0..5 = 2 * axis + (1 if the face is at the upper bound), box faces 6..11
+# likewise, spheres 12, 13.
+_N_ROOM, _BOX0, _SPHERE0 = 6, 6, 12
+
+
+@dataclass(frozen=True, eq=False)
+class SyntheticWorld:
+    """Everything seeded that defines the analytic world and the true motions.
+
+    Sum-of-sines blocks are arrays (n_terms, 3, 3) of rows (amplitude, cycles per clip, phase)
+    per axis: value(t) = sum_n a sin(2 pi f t + p). Build it with ``build_world(config)``.
+    """
+
+    moving_objects: bool
+    noise_waves: dict  # texture name -> (n, 4) rows (kx, ky [cycles / unit], phase [cycles], amplitude)
+    colors: dict  # texture name -> (m, 3) palette
+    cam_arc: tuple  # (radius, theta_mid, theta_span, height)
+    cam_sway: np.ndarray  # eye position sway, sum-of-sines (n, 3 [a f p], 3 axes)
+    cam_shake: np.ndarray  # eye position shake
+    target_sway: np.ndarray  # look-at target sway
+    rot_shake: np.ndarray  # camera-frame rotation vector (shake + slow roll)
+    sphere_radius: np.ndarray  # (2,)
+    sphere_params: np.ndarray  # (2, 8) path phases / amplitudes (see object_states)
+
+
+def _sines(rng, amps, freqs, freq_jitter=0.15):
+    """(n, 3, 3) sum-of-sines block: amplitude (n, 3), cycles per clip (n, 3), random phase."""
+    amps = np.broadcast_to(np.asarray(amps, dtype=np.float64), (len(freqs), 3))
+    f = np.asarray(freqs, dtype=np.float64)[:, None] * (1.0 + freq_jitter * rng.uniform(-1, 1, (len(freqs), 3)))
+    p = rng.uniform(0.0, 2.0 * np.pi, (len(freqs), 3))
+    return np.stack([amps, f, p], axis=1)
+
+
+def _eval_sines(block, t):
+    """block (n, 3, 3), t (M,) -> (M, 3)."""
+    a, f, p = block[:, 0], block[:, 1], block[:, 2]
+    return np.einsum("nd,mnd->md", a, np.sin(2.0 * np.pi * f[None] * t[:, None, None] + p[None]))
+
+
+def build_world(config: SyntheticConfig) -> SyntheticWorld:
+    """The seeded analytic world of ``config`` (depends only on seed and moving_objects)."""
+    if not isinstance(config, SyntheticConfig):
+        raise TypeError(f"config must be a SyntheticConfig; got {type(config).__name__}")
+    rng = np.random.default_rng(np.random.SeedSequence([config.seed, 1]))
+
+    def waves(n, lam_lo, lam_hi):
+        lam = rng.uniform(lam_lo, lam_hi, n)
+        ang = rng.uniform(0.0, np.pi, n)
+        k = 1.0 / lam  # cycles per world unit
+        return np.stack([k * np.cos(ang), k * np.sin(ang), rng.uniform(0, 1, n), np.full(n, 1.1 / np.sqrt(n))], 1)
+
+    def jitter(c, amount=0.06):
+        return np.clip(np.asarray(c, dtype=np.float64) + rng.uniform(-amount, amount, np.shape(c)), 0.0, 1.0)
+
+    noise_waves = {
+        "floor": waves(4, 1.0, 3.0),
+        "back": waves(4, 0.8, 2.5),
+        "right": waves(4, 0.6, 2.0),
+        "plain": waves(3, 1.5, 4.0),
+        "box": waves(3, 0.5, 1.5),
+    }
+    colors = {
+        "floor": jitter([[0.86, 0.78, 0.62], [0.36, 0.23, 0.16]]),
+        "back": jitter([[0.18, 0.32, 0.62], [0.22, 0.62, 0.55], [0.93, 0.92, 0.85], [0.95, 0.55, 0.15],
+                        [0.95, 0.95, 0.9], [0.1, 0.1, 0.12]]),
+        "left": jitter([[0.25, 0.55, 0.25], [0.92, 0.93, 0.86], [0.55, 0.75, 0.45]]),
+        "right": jitter([[0.7, 0.2, 0.25], [0.95, 0.7, 0.72], [0.45, 0.1, 0.15]]),
+        "plain": jitter([[0.78, 0.78, 0.76], [0.6, 0.6, 0.62]]),
+        "box": jitter([[0.95, 0.8, 0.2], [0.45, 0.2, 0.6]]),
+        "sphere0": jitter([[0.9, 0.15, 0.1], [0.97, 0.95, 0.9]]),
+        "sphere1": jitter([[0.15, 0.3, 0.9], [0.98, 0.85, 0.2]]),
+    }
+    cam_arc = (4.3, rng.uniform(-0.05, 0.05), 0.4, 1.55)
+    cam_sway = _sines(rng, [[0.06, 0.05, 0.06], [0.03, 0.03, 0.03]], [0.8, 1.7])
+    cam_shake = _sines(rng, [[0.006, 0.006, 0.004], [0.004, 0.004, 0.003]], [5.5, 8.5])
+    target_sway = _sines(rng, [[0.12, 0.06, 0.0]], [0.9])
+    # camera-frame rotation vector (x: tilt, y: pan, z: roll): a fast shake of ~0.5 deg plus a slow roll
+    rot_shake = np.concatenate([
+        _sines(rng, [[0.009, 0.009, 0.005], [0.006, 0.006, 0.004]], [6.0, 9.0]),
+        _sines(rng, [[0.0, 0.0, 0.03]], [0.6]),
+    ])
+    sphere_radius = np.array([0.35, 0.25])
+    sphere_params = rng.uniform(-0.3, 0.3, (2, 8))
+    return SyntheticWorld(
+        moving_objects=config.moving_objects, noise_waves=noise_waves, colors=colors, cam_arc=cam_arc,
+        cam_sway=cam_sway, cam_shake=cam_shake, target_sway=target_sway, rot_shake=rot_shake,
+        sphere_radius=sphere_radius, sphere_params=sphere_params,
+    )
+
+
+def _as_times(t, name="t"):
+    arr = np.asarray(t, dtype=np.float64)
+    if arr.ndim > 1:
+        raise ValueError(f"{name} must be a scalar or a 1-D array of times; got shape {arr.shape}")
+    if not np.all(np.isfinite(arr)):
+        raise ValueError(f"{name} contains NaN or inf")
+    return arr
+
+
+def camera_pose(world: SyntheticWorld, t):
+    """True camera ``cam_T_world`` at time(s) t: scalar -> (4, 4), (M,) -> (M, 4, 4).
+
+    C-infinity in t (sums of sines, an arc, look-at, a rotation exponential), defined for all
+    real t (exposures of the first and last frames reach slightly outside [0, 1]).
+    """
+    t = _as_times(t)
+    tt = np.atleast_1d(t)
+    radius, theta_mid, theta_span, height = world.cam_arc
+    theta = theta_mid + theta_span * (tt - 0.5)
+    eye = np.stack([
+        _SCENE_CENTER[0] + radius * np.sin(theta),
+        np.full_like(tt, height),
+        _SCENE_CENTER[2] + radius * np.cos(theta),
+    ], axis=1)
+    eye = eye + _eval_sines(world.cam_sway, tt) + _eval_sines(world.cam_shake, tt)
+    target = _SCENE_CENTER + _eval_sines(world.target_sway, tt)
+    R_shake = so3_exp(_eval_sines(world.rot_shake, tt))  # rotation about the camera centre
+    poses = np.empty((len(tt), 4, 4))
+    for m in range(len(tt)):
+        T = look_at(eye[m], target[m], up=(0.0, 1.0, 0.0))
+        poses[m] = T
+        poses[m, :3, :3] = R_shake[m] @ T[:3, :3]
+        poses[m, :3, 3] = R_shake[m] @ T[:3, 3]
+    return poses[0] if t.ndim == 0 else poses
+
+
+def object_states(world: SyntheticWorld, t):
+    """Moving spheres at time t (scalar): (centres (n, 3), rotations (n, 3, 3), radii (n,)).
+
+    n = 0 when the world has no moving objects. Sphere 0 travels left to right in hops with a
+    rolling spin; sphere 1 circles above the floor, spinning about a tilted axis. All smooth in t.
+    """
+    t = float(t)
+    if not world.moving_objects:
+        return np.zeros((0, 3)), np.zeros((0, 3, 3)), np.zeros(0)
+    a, b = world.sphere_params
+    c0 = np.array([
+        -1.5 + 2.6 * t + 0.15 * np.sin(2 * np.pi * t + a[0]),
+        0.4 + 0.35 * np.sin(np.pi * 1.5 * t + a[1]) ** 2,
+        -0.15 + 0.3 * np.sin(np.pi * t + a[2]),
+    ])
+    ang1 = 2 * np.pi * t + b[0]
+    c1 = np.array([-0.5 + 0.55 * np.cos(ang1), 1.55 + 0.35 * np.sin(ang1), -1.3 + 0.25 * np.sin(ang1 + b[1])])
+    axis1 = np.array([0.3, 1.0, 0.2 + b[2]])
+    R0 = so3_exp(np.array([0.0, 0.0, -(4.0 + a[3]) * t]))
+    R1 = so3_exp((5.0 + b[3]) * t * axis1 / np.linalg.norm(axis1))
+    return np.stack([c0, c1]), np.stack([R0, R1]), world.sphere_radius.copy()
+
+
+# ========================================================================= textures
+# Textures use a C1 periodic wave instead of np.sin: on this project's machines float64 np.sin
+# costs ~20x an add per element and textures are evaluated for every sample of every sub-frame.
+def _wave(x):
+    """C1 periodic wave of period 1 in [-1, 1], a close stand-in for sin(2 pi x) (max gap 0.02).
+
+    A triangle wave y(x) (zeros at x = 0, 1/2, peaks at 1/4, 3/4) passed through the cubic
+    1.5 y - 0.5 y^3, whose slope vanishes at y = +-1, so the result has a continuous derivative.
+    """
+    y = x - 0.25
+    y -= np.floor(y)  # in [0, 1)
+    y -= 0.5
+    np.abs(y, out=y)
+    y *= -4.0
+    y += 1.0  # triangle: +1 at x = 1/4, -1 at x = 3/4
+    return y * (1.5 - 0.5 * y * y)
+
+
+def _soft(x, softness):
+    """Smooth step of x (around 0) to [0, 1]; transition half-width ~ softness."""
+    return 0.5 + 0.5 * np.tanh(x / softness)
+
+
+def _checker(u, v, period, softness=0.25):
+    """Soft checker with squares of side ``period`` (world units)."""
+    return _soft(_wave(u / (2.0 * period)) * _wave(v / (2.0 * period)), softness)
+
+
+def _stripes(u, v, period, angle, softness=0.3):
+    return _soft(_wave((u * np.cos(angle) + v * np.sin(angle)) / period), softness)
+
+
+def _noise(u, v, waves):
+    """Smooth noise in ~[0, 1] from random plane waves (rows kx, ky, phase, amplitude; k in cycles/unit)."""
+    s = np.zeros_like(u)
+    for kx, ky, ph, amp in waves:
+        s += amp * _wave(kx * u + ky * v + ph)
+    return 0.5 + 0.5 * np.tanh(s)
+
+
+def _smoothstep(x, half_width):
+    """C1 cubic step from 0 (x <= -half_width) to 1 (x >= half_width): exactly 0 / 1 outside."""
+    s = np.clip(0.5 + 0.5 * x / half_width, 0.0, 1.0)
+    return s * s * (3.0 - 2.0 * s)
+
+
+def _band(x, lo, hi, half_width):
+    """1 inside [lo, hi], 0 outside [lo - half_width, hi + half_width], C1 in between."""
+    return _smoothstep(x - lo, half_width) * _smoothstep(hi - x, half_width)
+
+
+def _mix(c0, c1, w):
+    """Channel-first colour blend: c0, c1 colours (3,) or fields (3, M); w (M,) -> (3, M)."""
+    c0 = np.asarray(c0, dtype=np.float64)
+    c1 = np.asarray(c1, dtype=np.float64)
+    c0 = c0[:, None] if c0.ndim == 1 else c0
+    c1 = c1[:, None] if c1.ndim == 1 else c1
+    return c0 + (c1 - c0) * w
+
+
+def _texture(world, surf, x, y, z, normal, states):
+    """Albedo (3, M), channel first, of surface ``surf`` at world points (x, y, z), each (M,)."""
+    C, W = world.colors, world.noise_waves
+    if surf == 2:  # floor (y = lo)
+        c = _mix(C["floor"][0], C["floor"][1], _checker(x, z, 0.5))
+        return c * (0.8 + 0.3 * _noise(x, z, W["floor"]))
+    if surf == 4:  # back wall (z = lo)
+        c = _mix(C["back"][0], C["back"][1], np.clip((x + 3.0) / 6.0, 0.0, 1.0))
+        c = _mix(c, C["back"][3], _soft(_noise(x, y, W["back"]) - 0.72, 0.04))
+        # stripes and a checker poster only where their compact bands are non-zero (cost)
+        i = np.flatnonzero(np.abs(y - 2.05) < 0.45 + 0.05)
+        band = _band(y[i], 1.6, 2.5, 0.05)
+        c[:, i] = _mix(c[:, i], C["back"][2], 0.75 * _stripes(x[i], y[i], 0.35, np.pi / 3) * band)
+        i = np.flatnonzero((np.abs(x + 1.6) < 0.6 + 0.04) & (np.abs(y - 0.85) < 0.5 + 0.04))
+        poster = _band(x[i], -2.2, -1.0, 0.04) * _band(y[i], 0.35, 1.35, 0.04)
+        checker = _mix(C["back"][4], C["back"][5], _checker(x[i] + 2.2, y[i] - 0.35, 0.2))
+        c[:, i] = _mix(c[:, i], checker, poster)
+        return c
+    if surf == 0:  # left wall (x = lo)
+        c = _mix(C["left"][0], C["left"][1], _stripes(z, y, 0.4, 0.0, 0.35))
+        return _mix(c, C["left"][2], np.clip(y / 3.2, 0.0, 1.0) * 0.6)
+    if surf == 1:  # right wall (x = hi)
+        c = _mix(C["right"][0], C["right"][1], _noise(z, y, W["right"]))
+        return _mix(c, C["right"][2], 0.5 * _checker(z, y, 0.3))
+    if surf in (3, 5):  # ceiling, front wall (behind the camera)
+        return _mix(C["plain"][0], C["plain"][1], _noise(x, z if surf == 3 else y, W["plain"]))
+    if _BOX0 <= surf < _SPHERE0:  # static box: checker on the two in-face coordinates
+        axis = (surf - _BOX0) // 2
+        u, v = [c for a, c in enumerate((x, y, z)) if a != axis]
+        c = _mix(C["box"][0], C["box"][1], _checker(u + 0.05, v + 0.05, 0.2))
+        return c * (0.85 + 0.25 * _noise(u, v, W["box"]))
+    # moving spheres: longitude/latitude soft checker (0) or stripes (1), in the rotating frame
+    k = surf - _SPHERE0
+    centers, rots, radii = states
+    local = normal @ rots[k]  # n in the sphere's own frame: R^T n, row-wise
+    lon = np.arctan2(local[:, 2], local[:, 0]) / (2.0 * np.pi)  # in cycles
+    lat = np.arcsin(np.clip(local[:, 1], -1.0, 1.0)) / (2.0 * np.pi)
+    col = C[f"sphere{k}"]
+    if k == 0:
+        w = _soft(_wave(4.0 * lon) * _wave(4.0 * lat), 0.25)
+    else:
+        w = np.clip(_soft(_wave(5.0 * lat), 0.3) + 0.6 * _soft(_wave(3.0 * lon), 0.3) - 0.3, 0.0, 1.0)
+    return _mix(col[0], col[1], w)
+
+
+# ======================================================================== ray casting
+def _cast(world, origin, dirs, t, states=None):
+    """Cast rays origin (3,) + s * d for d in dirs = (dx, dy, dz), each (R,), at time t.
+
+    Returns (rgb (3, R) channel first, ray parameter s of the first hit (R,), hit-a-mover (R,) bool).
+    With d = R^T (x, y, 1) (camera z component 1) the ray parameter is the camera depth.
+    Structure of arrays and no BLAS: (R, 3) @ (3, 3) products were the bottleneck.
+    """
+    if states is None:
+        states = object_states(world, t)
+    dx, dy, dz = dirs
+    with np.errstate(divide="ignore", invalid="ignore"):
+        inv = [1.0 / dx, 1.0 / dy, 1.0 / dz]
+        # room: exit through the nearest wall (the origin is inside)
+        t_exit = [(np.where(d > 0, hi, lo) - o) * iv for d, iv, lo, hi, o in zip(dirs, inv, _ROOM_LO, _ROOM_HI, origin)]
+        depth = np.minimum(np.minimum(t_exit[0], t_exit[1]), t_exit[2])
+        surf = np.where(t_exit[0] == depth, 0 + (dx > 0), np.where(t_exit[1] == depth, 2 + (dy > 0), 4 + (dz > 0)))
+        # static box: slab test
+        tmin, tmax = [], []
+        for iv, lo, hi, o in zip(inv, _BOX_LO, _BOX_HI, origin):
+            t1, t2 = (lo - o) * iv, (hi - o) * iv
+            tmin.append(np.minimum(t1, t2))
+            tmax.append(np.maximum(t1, t2))
+        t_near = np.maximum(np.maximum(tmin[0], tmin[1]), tmin[2])
+        t_far = np.minimum(np.minimum(tmax[0], tmax[1]), tmax[2])
+        hit = (t_near <= t_far) & (t_near > 0) & (t_near < depth)
+        if np.any(hit):
+            box_surf = np.where(tmin[0] == t_near, _BOX0 + (dx < 0),
+                                np.where(tmin[1] == t_near, _BOX0 + 2 + (dy < 0), _BOX0 + 4 + (dz < 0)))
+            depth = np.where(hit, t_near, depth)
+            surf = np.where(hit, box_surf, surf)
+    # spheres (camera always outside them): nearest root of |o + s d - c|^2 = r^2
+    centers, _, radii = states
+    aa = dx * dx + dy * dy + dz * dz
+    for k in range(len(radii)):
+        oc = origin - centers[k]
+        b = dx * oc[0] + dy * oc[1] + dz * oc[2]
+        disc = b * b - aa * (oc @ oc - radii[k] ** 2)
+        hit = disc >= 0
+        if not np.any(hit):
+            continue
+        s = (-b - np.sqrt(np.maximum(disc, 0.0))) / aa
+        hit &= (s > 0) & (s < depth)
+        depth = np.where(hit, s, depth)
+        surf = np.where(hit, _SPHERE0 + k, surf)
+    rgb = np.empty((3, len(depth)))  # channel first: blends broadcast along the contiguous axis
+    present = np.flatnonzero(np.bincount(surf, minlength=_SPHERE0 + 2))
+    for sid in present:
+        sel = np.flatnonzero(surf == sid)
+        ds = depth[sel]
+        x, y, z = (o + ds * d[sel] for o, d in zip(origin, dirs))
+        if sid < _SPHERE0:
+            n = np.zeros(3)
+            if sid < _N_ROOM:
+                n[sid // 2] = 1.0 if sid % 2 == 0 else -1.0  # inward room normal
+            else:
+                n[(sid - _BOX0) // 2] = 1.0 if (sid - _BOX0) % 2 == 1 else -1.0  # outward box normal
+            normal = None
+            shade = _AMBIENT + (1.0 - _AMBIENT) * max(float(n @ _LIGHT), 0.0)
+        else:
+            k = sid - _SPHERE0
+            normal = np.stack([x - centers[k, 0], y - centers[k, 1], z - centers[k, 2]], axis=1) / radii[k]
+            shade = _AMBIENT + (1.0 - _AMBIENT) * np.maximum(normal @ _LIGHT, 0.0)
+        rgb[:, sel] = _texture(world, int(sid), x, y, z, normal, states) * shade
+    np.clip(rgb, 0.0, 1.0, out=rgb)
+    return rgb, depth, surf >= _SPHERE0
+
+
+_GRID_CACHE = {}
+
+
+def _camera_grid(K, width, height, supersample):
+    """Normalised camera-plane coordinates (x, y), each (H*s*W*s,), row-major over the fine grid."""
+    key = (width, height, supersample, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
+    grid = _GRID_CACHE.get(key)
+    if grid is None:
+        s = supersample
+        xs = ((np.arange(width * s) + 0.5) / s - K[0, 2]) / K[0, 0]  # sub-sample centres, continuous coords
+        ys = ((np.arange(height * s) + 0.5) / s - K[1, 2]) / K[1, 1]
+        X, Y = np.meshgrid(xs, ys)
+        grid = (X.ravel(), Y.ravel())
+        if len(_GRID_CACHE) > 16:
+            _GRID_CACHE.clear()
+        _GRID_CACHE[key] = grid
+    return grid
+
+
+def _pixel_rays(cam_T_world, K, width, height, supersample):
+    """World origin (3,) and ray directions (dx, dy, dz) = R^T (x, y, 1), each (H*s*W*s,)."""
+    X, Y = _camera_grid(K, width, height, supersample)
+    Rm, tv = cam_T_world[:3, :3], cam_T_world[:3, 3]
+    dirs = tuple(X * Rm[0, a] + Y * Rm[1, a] + Rm[2, a] for a in range(3))  # sum_i d_cam_i R[i, a]
+    return -Rm.T @ tv, dirs
+
+
+def _check_view(cam_T_world, K, width, height):
+    T = np.asarray(cam_T_world, dtype=np.float64)
+    if T.shape != (4, 4):
+        raise ValueError(f"cam_T_world must have shape (4, 4); got {T.shape}")
+    check_rigid(T, "cam_T_world")
+    K = np.asarray(K, dtype=np.float64)
+    check_intrinsics(K)
+    for name, v in (("width", width), ("height", height)):
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+            raise ValueError(f"{name} must be a positive int; got {v!r}")
+    return T, K
+
+
+def render_view(world: SyntheticWorld, cam_T_world, t, K, width, height, supersample=2):
+    """Sharp ray-cast image at pose ``cam_T_world`` (4, 4) and time t (objects at t).
+
+    Returns (rgb (H, W, 3) float64 in [0, 1], dynamic (H, W) bool). Each pixel is the mean of
+    supersample^2 rays through (j + (a + 0.5)/s, i + (b + 0.5)/s); ``dynamic`` is True where any
+    of them hits a moving object.
+    """
+    T, K = _check_view(cam_T_world, K, width, height)
+    if isinstance(supersample, bool) or not isinstance(supersample, numbers.Integral) or supersample < 1:
+        raise ValueError(f"supersample must be a positive int; got {supersample!r}")
+    origin, dirs = _pixel_rays(T, K, width, height, supersample)
+    rgb, _, dyn = _cast(world, origin, dirs, float(t))
+    s = supersample
+    rgb = np.ascontiguousarray(rgb.reshape(3, height, s, width, s).mean(axis=(2, 4)).transpose(1, 2, 0))
+    dyn = dyn.reshape(height, s, width, s).any(axis=(1, 3))
+    return rgb, dyn
+
+
+def depth_map(world: SyntheticWorld, cam_T_world, t, K, width, height):
+    """True depth (camera z, (H, W) float64) of the first surface hit through each pixel centre at time t."""
+    T, K = _check_view(cam_T_world, K, width, height)
+    origin, dirs = _pixel_rays(T, K, width, height, 1)
+    _, depth, _ = _cast(world, origin, dirs, float(t))
+    return depth.reshape(height, width)
+
+
+# ============================================================================ frames
+def frame_times(config: SyntheticConfig):
+    """Mid-exposure times t_k = k / (N - 1), (N,)."""
+    return np.arange(config.num_frames) / (config.num_frames - 1)
+
+
+def exposure_length(config: SyntheticConfig):
+    """Exposure length tau in normalised time: exposure_fraction / (N - 1)."""
+    return config.exposure_fraction / (config.num_frames - 1)
+
+
+def intrinsics(config: SyntheticConfig):
+    """(3, 3) K: square pixels, horizontal fov ``fov_x_deg``, principal point at the image centre."""
+    f = 0.5 * config.width / np.tan(0.5 * np.deg2rad(config.fov_x_deg))
+    return make_intrinsics(f, f, 0.5 * config.width, 0.5 * config.height)
+
+
+def frame_depth_map(config: SyntheticConfig, k, world=None):
+    """True depth map (H, W) of training frame k: true mid-exposure pose, time t_k, pixel centres."""
+    if not 0 <= k < config.num_frames:
+        raise ValueError(f"frame index k must be in [0, {config.num_frames}); got {k}")
+    world = build_world(config) if world is None else world
+    t = frame_times(config)[k]
+    return depth_map(world, camera_pose(world, t), t, intrinsics(config), config.width, config.height)
+
+
+def perturb_poses(poses, rot_std_deg, trans_std, rng):
+    """Left-perturbed poses exp(delta) @ T with delta = (rho, phi) ~ N(0, diag(trans_std^2 I, rot_std^2 I)).
+
+    poses (M, 4, 4); rot_std_deg in degrees (per component of phi), trans_std in world units (per
+    component of rho). Returns (perturbed (M, 4, 4), delta (M, 6)). Zero stds return exact copies.
+    """
+    poses = np.asarray(poses, dtype=np.float64)
+    if poses.ndim != 3 or poses.shape[1:] != (4, 4):
+        raise ValueError(f"poses must have shape (M, 4, 4); got {poses.shape}")
+    if rot_std_deg < 0 or trans_std < 0:
+        raise ValueError(f"noise stds must be >= 0; got rot_std_deg={rot_std_deg}, trans_std={trans_std}")
+    M = poses.shape[0]
+    delta = np.concatenate([
+        rng.normal(0.0, 1.0, (M, 3)) * trans_std,
+        rng.normal(0.0, 1.0, (M, 3)) * np.deg2rad(rot_std_deg),
+    ], axis=1)
+    if rot_std_deg == 0 and trans_std == 0:
+        return poses.copy(), delta
+    return se3_exp(delta) @ poses, delta
+
+
+def _test_pose(T, offset):
+    """The camera T moved by ``offset`` (world units) along its own x axis."""
+    out = T.copy()
+    out[0, 3] -= offset  # p_cam' = R (p - c - offset x_axis) = p_cam - offset e_x
+    return out
+
+
+def generate(config: SyntheticConfig) -> Scene:
+    """Render the scene described by ``config`` (see the module docstring). In memory, float64 images."""
+    if not isinstance(config, SyntheticConfig):
+        raise TypeError(f"config must be a SyntheticConfig; got {type(config).__name__}")
+    world = build_world(config)
+    K = intrinsics(config)
+    W, H, ss = config.width, config.height, config.supersample
+    times = frame_times(config)
+    tau = exposure_length(config)
+    blurred = tau > 0
+    S = config.subframes if blurred else 1
+    u = np.linspace(0.0, 1.0, S) if S > 1 else np.array([0.5])
+
+    gt = camera_pose(world, times)
+    noise_rng = np.random.default_rng(np.random.SeedSequence([config.seed, 2]))
+    est, _ = perturb_poses(gt, config.rot_noise_deg, config.trans_noise_fraction * SCENE_SCALE, noise_rng)
+    start = camera_pose(world, times - 0.5 * tau)
+    end = camera_pose(world, times + 0.5 * tau)
+
+    frames = []
+    for k, tk in enumerate(times):
+        sharp, mask = render_view(world, gt[k], tk, K, W, H, ss)
+        if blurred:
+            acc = np.zeros((H, W, 3))
+            mask = np.zeros((H, W), dtype=bool)
+            ts = tk + (u - 0.5) * tau
+            sub_poses = camera_pose(world, ts)
+            for i in range(S):
+                img, dyn = render_view(world, sub_poses[i], ts[i], K, W, H, ss)
+                acc += img
+                mask |= dyn
+            blurry = acc / S
+        else:
+            blurry = sharp.copy()
+        name = f"{k:04d}.png"
+        frames.append(Frame(
+            file_path=f"images/{name}", time=float(tk), cam_T_world=est[k], K=K.copy(), width=W, height=H,
+            image=blurry, mask=mask, mask_path=f"masks/{name}", sharp=sharp, sharp_file_path=f"sharp/{name}",
+            gt_cam_T_world=gt[k], gt_exposure_start=start[k], gt_exposure_end=end[k],
+        ))
+
+    test_frames = []
+    if config.num_test_views > 0:
+        idx = np.unique(np.round(np.linspace(0, config.num_frames - 1, config.num_test_views)).astype(int))
+        for j, k in enumerate(idx):
+            sign = 1.0 if j % 2 == 0 else -1.0
+            T = _test_pose(gt[k], sign * config.test_offset_fraction * SCENE_SCALE)
+            img, _ = render_view(world, T, times[k], K, W, H, ss)
+            test_frames.append(Frame(
+                file_path=f"test/{j:04d}.png", time=float(times[k]), cam_T_world=T, K=K.copy(), width=W,
+                height=H, image=img, gt_cam_T_world=T.copy(),
+            ))
+    return Scene(
+        frames=frames, test_frames=test_frames, exposure_fraction=float(config.exposure_fraction),
+        scene_scale=SCENE_SCALE, blur_subframes=int(S),
+    )
+
+
+def make_scene(preset="dynamic", seed=0, **overrides) -> Scene:
+    """In-memory synthetic scene: ``PRESETS[preset]`` with ``seed`` and field ``overrides``.
+
+    preset: "static", "sharp", "dynamic" (default) or a SyntheticConfig. Deterministic for a seed.
+    """
+    return generate(_resolve_config(preset, seed, overrides))
+
+
+def write_synthetic_scene(out_dir, preset="dynamic", seed=0, overwrite=False, **overrides) -> Path:
+    """Generate and write a scene folder (DATASET_FORMAT.md) with ``d2gs_np.data.io.write_scene``.
+
+    Also writes ``synthetic_config.json`` (the generator settings, for provenance; loaders
+    ignore it). Returns the folder path.
+    """
+    from d2gs_np.data.io import write_scene  # data.io imports cv2; keep it out of make_scene's path
+
+    config = _resolve_config(preset, seed, overrides)
+    scene = generate(config)
+    out = Path(out_dir)
+    write_scene(scene, out, overwrite=overwrite)
+    with open(out / "synthetic_config.json", "w", encoding="utf-8") as fh:
+        json.dump(dataclasses.asdict(config), fh, indent=2)
+        fh.write("\n")
+    return out
