@@ -132,7 +132,7 @@ def so3_log(R):
     chosen to agree with the (tiny) skew part when it is non-zero, else the
     largest axis component is made positive.
     """
-    R = np.asarray(R)
+    R = np.asarray(R, dtype=float_dtype(R))
     if R.shape[-2:] != (3, 3):
         raise ValueError(f"R must have shape (..., 3, 3); got {R.shape}")
     s = vee(R)  # sin(theta) * axis
@@ -146,7 +146,7 @@ def so3_log(R):
     # Near-pi branch: (R + R^T)/2 - c I = (1 - c) a a^T; pick the best-conditioned column.
     sym = 0.5 * (R + np.swapaxes(R, -1, -2))
     one_minus_c = np.maximum(1.0 - c, 1.0)  # only used where c < -0.5, so 1 - c > 1.5
-    aat = (sym - c[..., None, None] * np.eye(3)) / one_minus_c[..., None, None]
+    aat = (sym - c[..., None, None] * np.eye(3, dtype=R.dtype)) / one_minus_c[..., None, None]
     diag = np.diagonal(aat, axis1=-2, axis2=-1)
     k = np.argmax(diag, axis=-1)
     col = np.take_along_axis(aat, k[..., None, None], axis=-1)[..., 0]
@@ -165,7 +165,7 @@ def left_jacobian(phi):
     phi = _as_vec3(phi, "phi")
     theta2 = np.sum(phi * phi, axis=-1)
     K = hat(phi)
-    return np.eye(3) + coef_b(theta2)[..., None, None] * K + coef_c(theta2)[..., None, None] * (K @ K)
+    return np.eye(3, dtype=phi.dtype) + coef_b(theta2)[..., None, None] * K + coef_c(theta2)[..., None, None] * (K @ K)
 
 
 def left_jacobian_inv(phi):
@@ -173,7 +173,7 @@ def left_jacobian_inv(phi):
     phi = _as_vec3(phi, "phi")
     theta2 = np.sum(phi * phi, axis=-1)
     K = hat(phi)
-    return np.eye(3) - 0.5 * K + coef_d(theta2)[..., None, None] * (K @ K)
+    return np.eye(3, dtype=phi.dtype) - 0.5 * K + coef_d(theta2)[..., None, None] * (K @ K)
 
 
 def right_jacobian(phi):

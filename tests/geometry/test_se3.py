@@ -182,6 +182,14 @@ def test_float32_exp_stays_float32():
     np.testing.assert_allclose(T, se3_exp(xi.astype(np.float64)), rtol=0, atol=1e-6)
 
 
+def test_float32_log_stays_float32():
+    xi = np.array([[0.1, -0.4, 2.0, 0.3, -0.2, 0.5], [1.0, 0.0, 0.0, 0.0, 3.0, 0.1]])
+    T32 = se3_exp(xi).astype(np.float32)
+    out = se3_log(T32)
+    assert out.dtype == np.float32
+    np.testing.assert_allclose(out, xi, rtol=0, atol=1e-5)  # ~1e-7 relative per entry, |xi| ~ 3
+
+
 # --- Jacobians -------------------------------------------------------------------------------------
 
 

@@ -279,6 +279,15 @@ def test_float32_exp_stays_float32():
     np.testing.assert_allclose(R, so3_exp(phi.astype(np.float64)), rtol=0, atol=1e-6)
 
 
+def test_float32_log_stays_float32():
+    """so3_log keeps float32 on both branches (the second row takes the near-pi branch)."""
+    phi = np.array([[0.3, -0.2, 0.5], [0.0, 3.0, 0.1], [1e-3, 0.0, 0.0]], dtype=np.float64)
+    R32 = so3_exp(phi).astype(np.float32)
+    out = so3_log(R32)
+    assert out.dtype == np.float32
+    np.testing.assert_allclose(out, phi, rtol=0, atol=1e-5)  # float32 matrix entries: ~6e-8 each
+
+
 # --- Jacobians against finite differences on the manifold ---------------------------------------
 
 
