@@ -1,0 +1,352 @@
+"""Initial point clouds for the static and dynamic Gaussian sets (METHOD.md §8, §9).
+
+Static points
+1. SIFT features per frame on static pixels (motion masks dilated, ``d2gs_np.features``),
+   matched between frame pairs (k, k + s) for s in ``frame_skips`` (each clamped to N - 1).
+   The defaults skip frames: triangulation needs parallax more than it needs easy matches.
+2. Each verified match is triangulated with the GIVEN (estimated) mid-exposure poses:
+   ``cv2.triangulatePoints`` with P = K [R | t] from ``cam_T_world``, in this project's
+   continuous pixel coordinates (centres at +0.5; K is in the same convention, so the pair is
+   consistent). Kept if: finite, positive depth in both views, reprojection error (max of the
+   two views) <= ``max_reprojection_error_px``, and triangulation angle >= ``min_parallax_deg``.
+   Colour: mean of the bilinearly sampled (blurry) image colours at the two observations.
+   At most ``max_static_points`` are kept (a seeded random subset).
+3. Random fill: ``random_fill_points`` points, each on the ray through a random static pixel
+   (uniform in the pixel) of a random frame, at a depth uniform in [near, far], where
+   near / far = (1 -/+ ``fill_depth_margin``) times the ``fill_depth_percentiles`` of the
+   triangulated points' depths in their first view. Colour: the image colour at that pixel.
+   Untextured regions thereby get Gaussians; wrong ones fade or are pruned during training.
+   If nothing could be triangulated, near / far fall back to ``fallback_depth_range`` times
+   ``scene.scene_scale`` (an error if the scene has no scale).
+
+Returned static points are ordered: triangulated first, then fill
+(``info["num_static_triangulated"]`` of the former).
+
+Dynamic points (only if some frame has a motion mask with a True pixel; otherwise None, §9)
+- ``dynamic_points`` pixels drawn uniformly from all masked pixels of all frames (a uniform
+  position inside each drawn pixel), colour from that frame's image.
+- Depth: ``dynamic_depth_factor`` (< 1) times the median depth of the triangulated static
+  points that project into that frame (the whole set's median if none does), times a
+  uniform jitter in [1 - j, 1 + j] with j = ``dynamic_depth_jitter``. Choice: movers are usually
+  in front of the background they occlude, and a per-frame static depth is the only depth
+  evidence available before training; the jitter gives the set some thickness. The
+  deformation model moves these points over time, so their exact placement matters less.
+
+``info`` (for the run log) holds counts, reprojection statistics and the depth range, plus
+per-point provenance arrays (``static_source_frames``, ``dynamic_source_frames``,
+``dynamic_source_pixels``).
+"""
+from __future__ import annotations
+
+import numbers
+from dataclasses import dataclass, field
+
+import cv2
+import numpy as np
+
+from d2gs_np.constants import PIXEL_CENTER_OFFSET
+from d2gs_np.features import FeatureConfig, detect_features, match_keypoints, static_detector_mask
+from d2gs_np.geometry.camera import camera_center, check_intrinsics, project_points
+from d2gs_np.geometry.se3 import check_rigid
+
+__all__ = ["InitConfig", "initialize_points", "triangulate_matches", "sample_image_bilinear"]
+
+# Homogeneous triangulation results with |w| below this (relative to the largest coordinate)
+# are points at infinity: dividing by w would give meaningless, huge positions.
+_W_MIN_REL = 1e-12
+
+
+@dataclass(frozen=True)
+class InitConfig:
+    """Settings of the initial point clouds. Validated on construction."""
+
+    features: FeatureConfig = field(default_factory=FeatureConfig)
+    # pair frame k with k + s for each s (clamped to N - 1). Wide baselines: with independent
+    # per-frame pose noise, consecutive frames triangulate poorly (measured on the synthetic
+    # "dynamic" scene: median depth error 14% for (1, 2, 4) vs 8% for (2, 4, 8) at 1 deg parallax)
+    frame_skips: tuple = (2, 4, 8)
+    max_static_points: int = 20000  # triangulated points kept (seeded random subset beyond)
+    random_fill_points: int = 2000  # extra static points at random depths in the view frusta
+    dynamic_points: int = 2000  # points seeded inside the motion masks
+    max_reprojection_error_px: float = 2.0  # max over both views
+    min_parallax_deg: float = 2.0  # min angle between the two viewing rays of a triangulated point
+    fill_depth_percentiles: tuple = (5.0, 95.0)  # of triangulated depths -> fill depth range
+    fill_depth_margin: float = 0.2  # near = (1 - m) p_lo, far = (1 + m) p_hi
+    fallback_depth_range: tuple = (0.25, 2.0)  # x scene_scale, when nothing was triangulated
+    dynamic_depth_factor: float = 0.8  # dynamic depth = factor x frame's median static depth
+    dynamic_depth_jitter: float = 0.05  # relative half-width of the uniform depth jitter
+
+    def __post_init__(self):
+        if not isinstance(self.features, FeatureConfig):
+            raise TypeError(f"InitConfig.features must be a FeatureConfig; got {type(self.features).__name__}")
+        skips = self.frame_skips
+        if (not isinstance(skips, tuple) or len(skips) == 0
+                or not all(isinstance(s, numbers.Integral) and not isinstance(s, bool) and s >= 1 for s in skips)):
+            raise ValueError(f"InitConfig.frame_skips must be a non-empty tuple of ints >= 1; got {skips!r}")
+        for name in ("max_static_points", "random_fill_points", "dynamic_points"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 0:
+                raise ValueError(f"InitConfig.{name} must be an int >= 0; got {v!r}")
+        for name in ("max_reprojection_error_px", "min_parallax_deg", "fill_depth_margin",
+                     "dynamic_depth_factor", "dynamic_depth_jitter"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v):
+                raise TypeError(f"InitConfig.{name} must be a finite real number; got {v!r}")
+        if self.max_reprojection_error_px <= 0:
+            raise ValueError(f"InitConfig.max_reprojection_error_px must be > 0; got {self.max_reprojection_error_px}")
+        if not 0.0 <= self.min_parallax_deg < 90.0:
+            raise ValueError(f"InitConfig.min_parallax_deg must be in [0, 90); got {self.min_parallax_deg}")
+        lo, hi = _pair(self.fill_depth_percentiles, "fill_depth_percentiles")
+        if not 0.0 <= lo <= hi <= 100.0:
+            raise ValueError(f"InitConfig.fill_depth_percentiles must satisfy 0 <= lo <= hi <= 100; got {(lo, hi)}")
+        if not 0.0 <= self.fill_depth_margin < 1.0:
+            raise ValueError(f"InitConfig.fill_depth_margin must be in [0, 1); got {self.fill_depth_margin}")
+        lo, hi = _pair(self.fallback_depth_range, "fallback_depth_range")
+        if not 0.0 < lo < hi:
+            raise ValueError(f"InitConfig.fallback_depth_range must satisfy 0 < near < far; got {(lo, hi)}")
+        if not 0.0 < self.dynamic_depth_factor <= 1.0:
+            raise ValueError(f"InitConfig.dynamic_depth_factor must be in (0, 1]; got {self.dynamic_depth_factor}")
+        if not 0.0 <= self.dynamic_depth_jitter < 1.0:
+            raise ValueError(f"InitConfig.dynamic_depth_jitter must be in [0, 1); got {self.dynamic_depth_jitter}")
+
+
+def _pair(v, name):
+    if not isinstance(v, tuple) or len(v) != 2 or not all(isinstance(x, numbers.Real) for x in v):
+        raise ValueError(f"InitConfig.{name} must be a tuple of two numbers; got {v!r}")
+    return float(v[0]), float(v[1])
+
+
+def sample_image_bilinear(image, pts):
+    """Bilinear samples of image (H, W, C) at continuous pixel coords pts (M, 2) -> (M, C).
+
+    Our convention: pixel (i, j) has its centre at (j + 0.5, i + 0.5); samples beyond the
+    outermost centres take the border value (clamped).
+    """
+    image = np.asarray(image, dtype=np.float64)
+    H, W = image.shape[:2]
+    x = np.clip(pts[:, 0] - PIXEL_CENTER_OFFSET, 0.0, W - 1.0)
+    y = np.clip(pts[:, 1] - PIXEL_CENTER_OFFSET, 0.0, H - 1.0)
+    x0 = np.minimum(np.floor(x).astype(np.int64), W - 2) if W > 1 else np.zeros(len(x), dtype=np.int64)
+    y0 = np.minimum(np.floor(y).astype(np.int64), H - 2) if H > 1 else np.zeros(len(y), dtype=np.int64)
+    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
+    fx, fy = (x - x0)[:, None], (y - y0)[:, None]
+    top = image[y0, x0] * (1 - fx) + image[y0, x1] * fx
+    bottom = image[y1, x0] * (1 - fx) + image[y1, x1] * fx
+    return top * (1 - fy) + bottom * fy
+
+
+def triangulate_matches(pts0, pts1, cam_T_world0, cam_T_world1, K0, K1):
+    """Linear (DLT) triangulation of correspondences with known poses.
+
+    pts0, pts1 (M, 2): pixel coords in our convention. cam_T_world0/1 (4, 4), K0/K1 (3, 3).
+    Returns (points (M, 3) world, depth0 (M,), depth1 (M,), reproj_err (M,) = max over the two
+    views in pixels, parallax_deg (M,), finite (M,) bool). Rows with finite False (points at
+    infinity) have NaN entries.
+    """
+    pts0 = np.asarray(pts0, dtype=np.float64)
+    pts1 = np.asarray(pts1, dtype=np.float64)
+    if pts0.ndim != 2 or pts0.shape[1] != 2 or pts1.shape != pts0.shape:
+        raise ValueError(f"pts0 and pts1 must both have shape (M, 2); got {pts0.shape} and {pts1.shape}")
+    M = pts0.shape[0]
+    if M == 0:
+        z = np.zeros(0)
+        return np.zeros((0, 3)), z, z.copy(), z.copy(), z.copy(), np.zeros(0, dtype=bool)
+    P0 = K0 @ np.asarray(cam_T_world0, dtype=np.float64)[:3, :]
+    P1 = K1 @ np.asarray(cam_T_world1, dtype=np.float64)[:3, :]
+    Xh = cv2.triangulatePoints(P0, P1, np.ascontiguousarray(pts0.T), np.ascontiguousarray(pts1.T)).T  # (M, 4)
+    scale = np.abs(Xh).max(axis=1)
+    finite = np.abs(Xh[:, 3]) > _W_MIN_REL * scale
+    X = np.full((M, 3), np.nan)
+    X[finite] = Xh[finite, :3] / Xh[finite, 3:4]
+    uv0, z0 = project_points(np.nan_to_num(X), cam_T_world0, K0)
+    uv1, z1 = project_points(np.nan_to_num(X), cam_T_world1, K1)
+    err = np.maximum(np.linalg.norm(uv0 - pts0, axis=1), np.linalg.norm(uv1 - pts1, axis=1))
+    r0 = X - camera_center(cam_T_world0)
+    r1 = X - camera_center(cam_T_world1)
+    den = np.linalg.norm(r0, axis=1) * np.linalg.norm(r1, axis=1)  # 0 only for X at a camera centre
+    cosang = np.divide(np.sum(r0 * r1, axis=1), den, out=np.ones(M), where=den > 0)  # then parallax 0
+    parallax = np.degrees(np.arccos(np.clip(cosang, -1.0, 1.0)))
+    for a in (z0, z1, err, parallax):
+        a[~finite] = np.nan
+    return X, z0, z1, err, parallax, finite
+
+
+def _check_scene(scene):
+    frames = getattr(scene, "frames", None)
+    if not isinstance(frames, list) or len(frames) == 0:
+        raise ValueError("scene must have a non-empty list of frames")
+    for k, f in enumerate(frames):
+        if f.image is None:
+            raise ValueError(f"scene.frames[{k}].image is None; load the scene with images")
+        if f.image.shape != (f.height, f.width, 3):
+            raise ValueError(f"scene.frames[{k}].image must have shape ({f.height}, {f.width}, 3); got {f.image.shape}")
+        check_rigid(f.cam_T_world, f"scene.frames[{k}].cam_T_world")
+        check_intrinsics(f.K, f"scene.frames[{k}].K")
+        if f.mask is not None and f.mask.shape != (f.height, f.width):
+            raise ValueError(f"scene.frames[{k}].mask must have shape ({f.height}, {f.width}); got {f.mask.shape}")
+
+
+def _lift(pix, depth, cam_T_world, K):
+    """World points on the rays through pixels pix (M, 2) at camera depths depth (M,)."""
+    pc = np.stack([(pix[:, 0] - K[0, 2]) / K[0, 0] * depth, (pix[:, 1] - K[1, 2]) / K[1, 1] * depth, depth], axis=1)
+    R, t = cam_T_world[:3, :3], cam_T_world[:3, 3]
+    return (pc - t) @ R  # R^T (p_cam - t), row-wise
+
+
+def _random_pixels(rng, frames, pools, n):
+    """n draws of (frame index, continuous pixel) uniformly over the pixels listed in ``pools``.
+
+    pools[k]: flat pixel indices (row-major) available in frame k.
+    """
+    sizes = np.array([len(p) for p in pools], dtype=np.int64)
+    all_flat = np.concatenate([np.asarray(p, dtype=np.int64) for p in pools])
+    all_frame = np.repeat(np.arange(len(pools)), sizes)
+    draw = rng.integers(0, all_flat.size, n)
+    frame_idx, flat = all_frame[draw], all_flat[draw]
+    widths = np.array([f.width for f in frames], dtype=np.int64)[frame_idx]
+    rows, cols = np.divmod(flat, widths)
+    pix = np.stack([cols + rng.random(n), rows + rng.random(n)], axis=1)  # uniform inside the pixel
+    return frame_idx, pix
+
+
+def initialize_points(scene, config: InitConfig = None, rng=None):
+    """Initial static and dynamic points of ``scene`` (see the module docstring).
+
+    scene: d2gs_np.data.scene.Scene with images (and optional masks, True = dynamic).
+    config: InitConfig. rng: np.random.Generator (subsampling, fill, dynamic seeding).
+    Returns (static_points (Ns, 3), static_colors (Ns, 3), dynamic_points (Nd, 3) or None,
+    dynamic_colors (Nd, 3) or None, info dict). Colours are RGB in [0, 1], float64.
+    """
+    config = InitConfig() if config is None else config
+    if not isinstance(config, InitConfig):
+        raise TypeError(f"config must be an InitConfig; got {type(config).__name__}")
+    if not isinstance(rng, np.random.Generator):
+        raise TypeError(f"rng must be a np.random.Generator (np.random.default_rng(seed)); got {type(rng).__name__}")
+    _check_scene(scene)
+    frames = scene.frames
+    N = len(frames)
+    fc = config.features
+
+    # ---- 1. features and matches on static pixels
+    keypoints = [detect_features(f.image, fc, f.mask) for f in frames]
+    skips = sorted({min(s, N - 1) for s in config.frame_skips}) if N > 1 else []
+    pairs = [(k, k + s) for s in skips for k in range(N - s)]
+    tri_pts, tri_cols, tri_src, tri_depth, tri_err = [], [], [], [], []
+    num_matches = []
+    for a, b in pairs:
+        m = match_keypoints(keypoints[a], keypoints[b], fc)
+        num_matches.append(m.num_inliers)
+        if m.num_inliers == 0:
+            continue
+        fa, fb = frames[a], frames[b]
+        X, z0, z1, err, parallax, finite = triangulate_matches(m.pts0, m.pts1, fa.cam_T_world, fb.cam_T_world, fa.K, fb.K)
+        with np.errstate(invalid="ignore"):
+            keep = (finite & (z0 > 0) & (z1 > 0) & (err <= config.max_reprojection_error_px)
+                    & (parallax >= config.min_parallax_deg))
+        if not np.any(keep):
+            continue
+        cols = 0.5 * (sample_image_bilinear(fa.image, m.pts0[keep]) + sample_image_bilinear(fb.image, m.pts1[keep]))
+        tri_pts.append(X[keep])
+        tri_cols.append(cols)
+        tri_src.append(np.full(int(keep.sum()), a, dtype=np.int64))
+        tri_depth.append(z0[keep])
+        tri_err.append(err[keep])
+    if tri_pts:
+        tri_pts, tri_cols = np.concatenate(tri_pts), np.concatenate(tri_cols)
+        tri_src, tri_depth, tri_err = np.concatenate(tri_src), np.concatenate(tri_depth), np.concatenate(tri_err)
+    else:
+        tri_pts, tri_cols = np.zeros((0, 3)), np.zeros((0, 3))
+        tri_src, tri_depth, tri_err = np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
+    num_triangulated = tri_pts.shape[0]
+    if num_triangulated > config.max_static_points:
+        sel = np.sort(rng.choice(num_triangulated, config.max_static_points, replace=False))
+        tri_pts, tri_cols, tri_src, tri_depth, tri_err = (a[sel] for a in (tri_pts, tri_cols, tri_src, tri_depth, tri_err))
+
+    # ---- 2. depth range for the random fill
+    if tri_depth.size > 0:
+        p_lo, p_hi = np.percentile(tri_depth, config.fill_depth_percentiles)
+        near, far = (1.0 - config.fill_depth_margin) * p_lo, (1.0 + config.fill_depth_margin) * p_hi
+        depth_source = "triangulated"
+    elif scene.scene_scale is not None:
+        near, far = (v * float(scene.scene_scale) for v in config.fallback_depth_range)
+        depth_source = "fallback (nothing triangulated)"
+    else:
+        raise ValueError(
+            "no static point could be triangulated and the scene has no scene_scale to guess depths from; "
+            "check the poses and images, lower InitConfig.features.contrast_threshold, or set scene.scene_scale"
+        )
+
+    # ---- 3. random fill on static pixels
+    static_pools = []
+    for f in frames:
+        allowed = np.ones(f.height * f.width, dtype=bool) if f.mask is None else (
+            static_detector_mask(f.mask, fc.mask_dilation_px).ravel() > 0)
+        static_pools.append(np.flatnonzero(allowed))
+    n_fill = config.random_fill_points if sum(len(p) for p in static_pools) > 0 else 0
+    fill_pts, fill_cols = np.zeros((0, 3)), np.zeros((0, 3))
+    fill_src = np.zeros(0, dtype=np.int64)
+    if n_fill > 0:
+        fill_src, pix = _random_pixels(rng, frames, static_pools, n_fill)
+        depth = rng.uniform(near, far, n_fill)
+        fill_pts = np.empty((n_fill, 3))
+        fill_cols = np.empty((n_fill, 3))
+        for k in np.unique(fill_src):
+            s = fill_src == k
+            fill_pts[s] = _lift(pix[s], depth[s], frames[k].cam_T_world, frames[k].K)
+            fill_cols[s] = sample_image_bilinear(frames[k].image, pix[s])
+
+    static_points = np.concatenate([tri_pts, fill_pts])
+    static_colors = np.clip(np.concatenate([tri_cols, fill_cols]), 0.0, 1.0)
+
+    # ---- 4. dynamic points inside the masks
+    dyn_pools = [np.flatnonzero(f.mask.ravel()) if f.mask is not None else np.zeros(0, dtype=np.int64) for f in frames]
+    has_moving = sum(len(p) for p in dyn_pools) > 0
+    dynamic_points = dynamic_colors = None
+    dyn_src = np.zeros(0, dtype=np.int64)
+    dyn_pix = np.zeros((0, 2))
+    frame_depth = np.full(N, np.nan)
+    if has_moving and config.dynamic_points > 0:
+        ref = tri_pts if tri_pts.shape[0] > 0 else fill_pts
+        fallback = float(np.median(tri_depth)) if tri_depth.size else 0.5 * (near + far)
+        for k, f in enumerate(frames):
+            uv, z = project_points(ref, f.cam_T_world, f.K) if ref.shape[0] else (np.zeros((0, 2)), np.zeros(0))
+            vis = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < f.width) & (uv[:, 1] >= 0) & (uv[:, 1] < f.height)
+            frame_depth[k] = float(np.median(z[vis])) if np.any(vis) else fallback
+        dyn_src, dyn_pix = _random_pixels(rng, frames, dyn_pools, config.dynamic_points)
+        jitter = rng.uniform(1.0 - config.dynamic_depth_jitter, 1.0 + config.dynamic_depth_jitter, len(dyn_src))
+        depth = config.dynamic_depth_factor * frame_depth[dyn_src] * jitter
+        dynamic_points = np.empty((len(dyn_src), 3))
+        dynamic_colors = np.empty((len(dyn_src), 3))
+        for k in np.unique(dyn_src):
+            s = dyn_src == k
+            dynamic_points[s] = _lift(dyn_pix[s], depth[s], frames[k].cam_T_world, frames[k].K)
+            dynamic_colors[s] = sample_image_bilinear(frames[k].image, dyn_pix[s])
+        dynamic_colors = np.clip(dynamic_colors, 0.0, 1.0)
+
+    if not has_moving:
+        dynamic_note = "no masks" if all(f.mask is None for f in frames) else "masks have no moving pixels"
+    elif config.dynamic_points == 0:
+        dynamic_note = "dynamic_points = 0"
+    else:
+        dynamic_note = "seeded in masks"
+    info = {
+        "num_static_triangulated": int(tri_pts.shape[0]),
+        "num_static_fill": int(fill_pts.shape[0]),
+        "num_dynamic": 0 if dynamic_points is None else int(dynamic_points.shape[0]),
+        "reproj_error_mean_px": float(tri_err.mean()) if tri_err.size else float("nan"),
+        "num_pairs_matched": int(sum(n > 0 for n in num_matches)),
+        "mean_matches_per_pair": float(np.mean(num_matches)) if num_matches else 0.0,
+        "reproj_error_median_px": float(np.median(tri_err)) if tri_err.size else float("nan"),
+        "num_triangulated_before_cap": int(num_triangulated),
+        "num_pairs": len(pairs),
+        "num_keypoints_mean": float(np.mean([len(kp) for kp in keypoints])),
+        "fill_depth_near": float(near),
+        "fill_depth_far": float(far),
+        "fill_depth_source": depth_source,
+        "dynamic": dynamic_note,
+        "dynamic_frame_depths": frame_depth,
+        "static_source_frames": np.concatenate([tri_src, fill_src]),
+        "dynamic_source_frames": dyn_src,
+        "dynamic_source_pixels": dyn_pix,
+    }
+    return static_points, static_colors, dynamic_points, dynamic_colors, info
