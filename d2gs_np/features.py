@@ -227,7 +227,8 @@ def match_keypoints(kp0: Keypoints, kp1: Keypoints, config: FeatureConfig = None
     if len(kp0) < 1 or len(kp1) < 2:
         return _empty_matches(kp0, kp1)
     knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(kp0.descriptors, kp1.descriptors, k=2)
-    pairs = [(m[0].queryIdx, m[0].trainIdx) for m in knn if len(m) == 2 and m[0].distance < config.ratio * m[1].distance]
+    pairs = [(m[0].queryIdx, m[0].trainIdx) for m in knn
+             if len(m) == 2 and m[0].distance < config.ratio * m[1].distance]
     if len(pairs) < config.min_matches:
         return _empty_matches(kp0, kp1, len(pairs))
     idx0, idx1 = (np.array(a, dtype=np.int64) for a in zip(*pairs))

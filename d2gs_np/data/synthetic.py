@@ -143,7 +143,8 @@ class SyntheticConfig:
             )
         if not 0 <= self.num_test_views <= self.num_frames:
             raise ValueError(
-                f"SyntheticConfig.num_test_views must be in [0, num_frames={self.num_frames}]; got {self.num_test_views}"
+                f"SyntheticConfig.num_test_views must be in [0, num_frames={self.num_frames}]; "
+                f"got {self.num_test_views}"
             )
         if self.test_offset_fraction < 0:
             raise ValueError(f"SyntheticConfig.test_offset_fraction must be >= 0; got {self.test_offset_fraction}")
@@ -158,7 +159,9 @@ PRESETS = {
     "static": SyntheticConfig(moving_objects=False),
     # moving objects; exposure 0 (rendered once per frame); true poses given as the estimates
     "sharp": SyntheticConfig(exposure_fraction=0.0, subframes=1, rot_noise_deg=0.0, trans_noise_fraction=0.0),
-    # moving objects; blurry (exposure 0.7 of the frame interval, ~2-5 px of blur); noisy poses
+    # moving objects; blurry (exposure 0.7 of the frame interval; at 240x135, seed 0: camera blur
+    # 0.7-6.1 px per frame (median 3.7), mover centres 0.6-11 px (median 5.4); PSNR blurry vs
+    # sharp 25-37 dB, median 30); noisy poses
     "dynamic": SyntheticConfig(),
 }
 

@@ -239,7 +239,8 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
         if m.num_inliers == 0:
             continue
         fa, fb = frames[a], frames[b]
-        X, z0, z1, err, parallax, finite = triangulate_matches(m.pts0, m.pts1, fa.cam_T_world, fb.cam_T_world, fa.K, fb.K)
+        X, z0, z1, err, parallax, finite = triangulate_matches(
+            m.pts0, m.pts1, fa.cam_T_world, fb.cam_T_world, fa.K, fb.K)
         with np.errstate(invalid="ignore"):
             keep = (finite & (z0 > 0) & (z1 > 0) & (err <= config.max_reprojection_error_px)
                     & (parallax >= config.min_parallax_deg))
@@ -260,7 +261,8 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
     num_triangulated = tri_pts.shape[0]
     if num_triangulated > config.max_static_points:
         sel = np.sort(rng.choice(num_triangulated, config.max_static_points, replace=False))
-        tri_pts, tri_cols, tri_src, tri_depth, tri_err = (a[sel] for a in (tri_pts, tri_cols, tri_src, tri_depth, tri_err))
+        tri_pts, tri_cols, tri_src, tri_depth, tri_err = (
+            a[sel] for a in (tri_pts, tri_cols, tri_src, tri_depth, tri_err))
 
     # ---- 2. depth range for the random fill
     if tri_depth.size > 0:

@@ -131,7 +131,8 @@ def test_blurry_frame_is_the_mean_of_subframes(dyn):
         mask = np.zeros((cfg.height, cfg.width), dtype=bool)
         for i in range(S):
             ti = tk + (i / (S - 1) - 0.5) * tau
-            img, dyn_px = syn.render_view(world, syn.camera_pose(world, ti), ti, K, cfg.width, cfg.height, cfg.supersample)
+            pose = syn.camera_pose(world, ti)
+            img, dyn_px = syn.render_view(world, pose, ti, K, cfg.width, cfg.height, cfg.supersample)
             acc += img
             mask |= dyn_px
         np.testing.assert_allclose(dyn.frames[k].image, acc / S, rtol=0, atol=RERENDER_ATOL)
