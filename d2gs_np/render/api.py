@@ -60,7 +60,7 @@ class RenderSaved:
     @property
     def num_evaluations(self):
         """Number of (Gaussian, pixel) alpha evaluations of the forward pass (benchmarks)."""
-        return int(self.raster["n_eval"].sum())
+        return int(self.raster["n_eval_tile"].sum())
 
 
 # ---------------------------------------------------------------------------------------------

@@ -208,13 +208,14 @@ def _jacobian(x, y, z, fx, fy, lims):
 
 @njit(cache=True, parallel=True)
 def _project_fwd_kernel(means, quats, scales, opacities, viewmat, K, consts, antialiased,
-                        means2d, depths, conics, radii, opac_eff):
+                        means2d, depths, conics, radii, opac_eff, cov2d):
     """Project every Gaussian (prange over Gaussians; row i of each output written by iteration i).
 
     means (N,3), quats (N,4), scales (N,3), opacities (N,), viewmat (4,4), K (3,3), consts
     (N_CONSTS,); outputs means2d (N,2), depths (N,), conics (N,3), radii (N,2) float (0 = culled),
-    opac_eff (N,) (opacity times the antialiasing compensation, or the opacity).
-    Culled Gaussians get means2d = conics = opac_eff = 0; depths is always the camera z.
+    opac_eff (N,) (opacity times the antialiasing compensation, or the opacity), cov2d (N,3) the
+    dilated 2D covariance (c00, c01, c11) (used by the rasteriser to bound each row's footprint).
+    Culled Gaussians get means2d = conics = opac_eff = cov2d = 0; depths is always the camera z.
     """
     n = means.shape[0]
     zero = consts[K_ZERO]
@@ -244,6 +245,9 @@ def _project_fwd_kernel(means, quats, scales, opacities, viewmat, K, consts, ant
         radii[i, 0] = zero
         radii[i, 1] = zero
         opac_eff[i] = zero
+        cov2d[i, 0] = zero
+        cov2d[i, 1] = zero
+        cov2d[i, 2] = zero
         if not (z > near and z < far):
             continue
         u = fx * x / z + cx
@@ -277,6 +281,9 @@ def _project_fwd_kernel(means, quats, scales, opacities, viewmat, K, consts, ant
         conics[i, 2] = c00 / det
         radii[i, 0] = rx
         radii[i, 1] = ry
+        cov2d[i, 0] = c00
+        cov2d[i, 1] = s01
+        cov2d[i, 2] = c11
         o = opacities[i]
         if antialiased:
             r = det_orig / det
@@ -488,7 +495,8 @@ def _project_bwd_kernel(means, quats, scales, opacities, viewmat, K, consts, ant
 def project_fwd(means, quats, scales, opacities, cam_T_world, K, consts, antialiased):
     """Allocate and run the projection forward (inputs already validated by ``api.render_fwd``).
 
-    Returns dict(means2d (N,2), depths (N,), conics (N,3), radii_f (N,2) float, opac_eff (N,)).
+    Returns dict(means2d (N,2), depths (N,), conics (N,3), radii_f (N,2) float, opac_eff (N,),
+    cov2d (N,3)).
     """
     n = means.shape[0]
     dtype = means.dtype
@@ -497,9 +505,10 @@ def project_fwd(means, quats, scales, opacities, cam_T_world, K, consts, antiali
     conics = np.empty((n, 3), dtype)
     radii = np.empty((n, 2), dtype)
     opac_eff = np.empty(n, dtype)
+    cov2d = np.empty((n, 3), dtype)
     _project_fwd_kernel(means, quats, scales, opacities, cam_T_world, K, consts, bool(antialiased),
-                        means2d, depths, conics, radii, opac_eff)
-    return dict(means2d=means2d, depths=depths, conics=conics, radii_f=radii, opac_eff=opac_eff)
+                        means2d, depths, conics, radii, opac_eff, cov2d)
+    return dict(means2d=means2d, depths=depths, conics=conics, radii_f=radii, opac_eff=opac_eff, cov2d=cov2d)
 
 
 def project_bwd(means, quats, scales, opacities, cam_T_world, K, consts, antialiased, radii_f,

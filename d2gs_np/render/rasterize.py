@@ -15,26 +15,37 @@ Pipeline (CONVENTIONS.md §5-8, gsplat 1.5.3):
 3. ``_rasterize_fwd_kernel`` (prange over tiles): every pixel composites its tile's list front to
    back with the exact rules of §6 (skip if sigma < 0 or alpha < 1/255; alpha clamped at 0.999;
    stop *before* a Gaussian that would bring T(1-alpha) <= 1e-4) and stores its final
-   transmittance and the list position of its last contributor.
-4. ``_rasterize_bwd_kernel`` (prange over tiles): every pixel walks back from its last
-   contributor, recovering T_k = T_{k+1} / (1 - alpha_k) (safe: alpha <= 0.999), as 3DGS and
-   gsplat do. Per-intersection gradients go to ``buf`` (n_isect, 10), row = list position, so a
-   row is only ever written by the one thread that owns its tile, in a fixed pixel order.
+   transmittance and the list position of its last contributor. Inside a tile the Gaussians are
+   the outer loop (front to back) with per-pixel state, and each Gaussian visits only its
+   footprint: its 3.33-sigma box, narrowed on every row to the interval where
+   sigma <= ln(255 o) + ALPHA_CUTOFF_SAFETY. Outside that footprint alpha < 1/255 for certain
+   (with a relative margin of 1e-3 >> rounding), so the skipped pairs are exactly those the rule
+   skips: the image is that of the plain per-pixel loop, only faster.
+4. ``_rasterize_bwd_kernel`` (prange over tiles): the same footprints, Gaussians from the tile's
+   latest last contributor back to its first; each pixel walks its own contributors back to
+   front, recovering T_k = T_{k+1} / (1 - alpha_k) (safe: alpha <= 0.999), as 3DGS and gsplat
+   do. Each intersection's gradient is summed over the tile's pixels in a fixed order and
+   written once to its own row of ``buf`` (n_isect, 10); a row belongs to one tile, so to one
+   thread.
 5. ``_isect_reduce_kernel`` (prange over Gaussians): each Gaussian sums its own rows of ``buf``
    in its fixed slot order.
 
 Determinism: no floating-point sum in the backward pass depends on thread scheduling (each sum
 is owned by one loop iteration and runs in a fixed order), so gradients are bitwise identical
-run to run and for any number of threads. Memory is O(N + n_isect + pixels), never O(N x pixels).
+run to run and for any number of threads. Memory is O(N + n_isect + pixels), never O(N x pixels):
+the per-tile scratch is O(tile pixels + tile list length).
 """
 from __future__ import annotations
 
+import functools
 import math
 
 import numpy as np
 from numba import njit, prange
 
+from d2gs_np import constants as C
 from d2gs_np.render.project import (
+    K_TWO,
     K_ALPHA_MAX,
     K_ALPHA_THRESHOLD,
     K_HALF,
@@ -44,9 +55,11 @@ from d2gs_np.render.project import (
     K_ZERO,
 )
 
-# Columns of the per-Gaussian packed parameters and of the gradient buffer.
-_U, _V, _CA, _CB, _CC, _OP, _R, _G, _B, _Z = range(10)
+# Columns of the tile-local packed parameters (all 16) and of the gradient buffer (first 10).
+_U, _V, _CA, _CB, _CC, _OP, _R, _G, _B, _Z, _RX, _RY, _CUT, _SLOPE, _IC11, _IA = range(16)
 _NCOL = 10
+_NLOC = 16
+_TILE_ORDER_SEED = 0  # seed of the fixed tile permutation (load balance only; results never depend on it)
 
 
 @njit(cache=True, parallel=True)
@@ -137,10 +150,16 @@ def _isect_build_kernel(depths, counts, rects, goff, grid_w, tile_offsets, isect
 
 
 @njit(cache=True)
-def _gather_tile(start, end, isect_gauss, means2d, conics, opac_eff, colors, depths, dtype_probe):
-    """Copy the parameters of a tile's Gaussians, in list order, into a (m, 10) local array."""
+def _gather_tile(start, end, isect_gauss, means2d, conics, opac_eff, colors, depths, radii_f, sigma_cut,
+                 cov2d, consts):
+    """Copy the parameters of a tile's Gaussians, in list order, into a (m, _NLOC) local array.
+
+    Besides the parameters, each row gets the footprint bounds used by ``_row_range``: the slope
+    c01/c11 of the line of per-row minima, 1/c11 and 1/a (a = conic[0] = c11/det).
+    """
     m = end - start
-    loc = np.empty((m, _NCOL), dtype_probe.dtype)
+    one = consts[K_ONE]
+    loc = np.empty((m, _NLOC), consts.dtype)
     for k in range(m):
         g = isect_gauss[start + k]
         loc[k, _U] = means2d[g, 0]
@@ -153,39 +172,74 @@ def _gather_tile(start, end, isect_gauss, means2d, conics, opac_eff, colors, dep
         loc[k, _G] = colors[g, 1]
         loc[k, _B] = colors[g, 2]
         loc[k, _Z] = depths[g]
+        loc[k, _RX] = radii_f[g, 0]
+        loc[k, _RY] = radii_f[g, 1]
+        loc[k, _CUT] = sigma_cut[g]
+        c11 = cov2d[g, 2]
+        loc[k, _SLOPE] = cov2d[g, 1] / c11
+        loc[k, _IC11] = one / c11
+        loc[k, _IA] = one / conics[g, 0]
     return loc
 
 
 @njit(cache=True)
-def _eval_gaussian(loc, k, px, py, half):
-    """(dx, dy, sigma, exp(-sigma)) of local Gaussian k at pixel centre (px, py).
+def _box_range(c, r, lo, hi, half, one):
+    """Pixels [a, b) of [lo, hi) whose centre p + 0.5 may lie within r of c (1 px conservative)."""
+    fa = np.floor(c - r - half) - one
+    fb = np.ceil(c + r - half) + one
+    a = lo if fa <= lo else (hi if fa >= hi else int(fa))
+    b = lo if fb < lo else (hi if fb >= hi else int(fb) + 1)
+    return a, b
+
+
+@njit(cache=True)
+def _row_range(loc, k, dy, ja, jb, half, one, two, zero):
+    """Columns [a, b) of [ja, jb) where Gaussian k may have sigma <= sigma_cut on a row at dy.
+
+    On a row, sigma(dx) = sigma_min + a/2 (dx - dx*)^2 with dx* = (c01/c11) dy and
+    sigma_min = dy^2 / (2 c11) (no cancellation: built from the covariance, not the conic), so
+    sigma <= cut only for |dx - dx*| <= sqrt((2 cut - dy^2 / c11) / a). Pixels outside that
+    interval (widened by 1 px) have sigma > cut, hence alpha < 1/255 by the margin
+    ALPHA_CUTOFF_SAFETY, far above rounding: skipping them is exactly what the 1/255 rule does.
+    """
+    w2 = (two * loc[k, _CUT] - dy * dy * loc[k, _IC11]) * loc[k, _IA]
+    if not w2 >= zero:  # also catches cut = -inf (opacity 0)
+        return ja, ja
+    xc = loc[k, _U] - loc[k, _SLOPE] * dy  # pixel-centre x of the row's minimum
+    return _box_range(xc, math.sqrt(w2), ja, jb, half, one)
+
+
+@njit(cache=True)
+def _sigma(dx, dy, ca, cb, cc, half):
+    """sigma = 0.5 (a dx^2 + c dy^2) + b dx dy with d = mean2d - pixel centre.
 
     Shared by the forward and backward kernels so both take bitwise the same discrete decisions.
-    ``exp(-sigma)`` is only meaningful when sigma >= 0.
     """
-    dx = loc[k, _U] - px
-    dy = loc[k, _V] - py
-    sigma = half * (loc[k, _CA] * dx * dx + loc[k, _CC] * dy * dy) + loc[k, _CB] * dx * dy
-    if sigma < 0:
-        return dx, dy, sigma, half  # unused: the caller skips this Gaussian
-    return dx, dy, sigma, math.exp(-sigma)
+    return half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
 
 
 @njit(cache=True, parallel=True)
-def _rasterize_fwd_kernel(means2d, conics, opac_eff, colors, depths, isect_gauss, tile_offsets,
-                          px_centres, py_centres, background, consts, grid_w, tile_size,
-                          image, depth_img, T_final, last_idx, n_eval):
+def _rasterize_fwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, sigma_cut, cov2d, isect_gauss,
+                          tile_offsets, tile_order, px_centres, py_centres, background, consts, grid_w,
+                          tile_size, image, depth_img, T_final, last_idx, n_eval_tile):
     """Front-to-back compositing, prange over tiles (each pixel written by its tile only).
 
+    Within a tile the Gaussians are the outer loop, in list order (front to back), and each
+    visits only the pixels of its footprint (3.33-sigma box, then per row the interval where
+    sigma <= sigma_cut), keeping per-pixel T, C, D, last contributor and a "stopped" flag. So
+    every pixel still sees its Gaussians front to back and applies the exact rules of
+    CONVENTIONS.md §6; the pixels not visited are exactly those the 1/255 rule would skip.
+
     Outputs: image (H,W,3) = C + T_final background, depth_img (H,W) = sum w z, T_final (H,W),
-    last_idx (H,W) int64 (list position of the last contributor, -1 if none), n_eval (H,W) int64
-    (number of (Gaussian, pixel) evaluations, for benchmarks).
+    last_idx (H,W) int64 (list position of the last contributor, -1 if none), n_eval_tile
+    (n_tiles,) int64 (number of (Gaussian, pixel) sigma evaluations, for benchmarks).
     """
     H = image.shape[0]
     W = image.shape[1]
     n_tiles = tile_offsets.shape[0] - 1
     zero = consts[K_ZERO]
     one = consts[K_ONE]
+    two = consts[K_TWO]
     half = consts[K_HALF]
     amax = consts[K_ALPHA_MAX]
     athr = consts[K_ALPHA_THRESHOLD]
@@ -193,7 +247,8 @@ def _rasterize_fwd_kernel(means2d, conics, opac_eff, colors, depths, isect_gauss
     bg0 = background[0]
     bg1 = background[1]
     bg2 = background[2]
-    for t in prange(n_tiles):
+    for it in prange(n_tiles):
+        t = tile_order[it]
         start = tile_offsets[t]
         end = tile_offsets[t + 1]
         ty = t // grid_w
@@ -202,68 +257,103 @@ def _rasterize_fwd_kernel(means2d, conics, opac_eff, colors, depths, isect_gauss
         y0 = ty * tile_size
         x1 = min(x0 + tile_size, W)
         y1 = min(y0 + tile_size, H)
-        loc = _gather_tile(start, end, isect_gauss, means2d, conics, opac_eff, colors, depths, consts)
-        m = end - start
-        for i in range(y0, y1):
-            py = py_centres[i]
-            for j in range(x0, x1):
-                px = px_centres[j]
-                T = one
-                c0 = zero
-                c1 = zero
-                c2 = zero
-                d = zero
-                last = -1
-                evaluated = m
-                for k in range(m):
-                    dx, dy, sigma, vis = _eval_gaussian(loc, k, px, py, half)
-                    if sigma < zero:
+        tw = x1 - x0
+        npix = tw * (y1 - y0)
+        Tp = np.empty(npix, image.dtype)
+        acc = np.zeros((npix, 4), image.dtype)  # r, g, b, depth
+        last = np.empty(npix, np.int64)
+        stopped = np.zeros(npix, np.bool_)
+        Tp[:] = one
+        last[:] = -1
+        n_stopped = 0
+        count = 0
+        loc = _gather_tile(start, end, isect_gauss, means2d, conics, opac_eff, colors, depths, radii_f,
+                           sigma_cut, cov2d, consts)
+        for k in range(end - start):
+            if n_stopped == npix:
+                break
+            u = loc[k, _U]
+            v = loc[k, _V]
+            ca = loc[k, _CA]
+            cb = loc[k, _CB]
+            cc = loc[k, _CC]
+            o = loc[k, _OP]
+            cut = loc[k, _CUT]
+            col0 = loc[k, _R]
+            col1 = loc[k, _G]
+            col2 = loc[k, _B]
+            zk = loc[k, _Z]
+            ja0, jb0 = _box_range(u, loc[k, _RX], x0, x1, half, one)
+            ia, ib = _box_range(v, loc[k, _RY], y0, y1, half, one)
+            for i in range(ia, ib):
+                dy = v - py_centres[i]
+                ja, jb = _row_range(loc, k, dy, ja0, jb0, half, one, two, zero)
+                count += jb - ja
+                for j in range(ja, jb):
+                    p = (i - y0) * tw + (j - x0)
+                    if stopped[p]:
                         continue
-                    alpha = loc[k, _OP] * vis
+                    dx = u - px_centres[j]
+                    sigma = _sigma(dx, dy, ca, cb, cc, half)
+                    if sigma < zero or sigma > cut:
+                        continue
+                    alpha = o * math.exp(-sigma)
                     if alpha > amax:
                         alpha = amax
                     if alpha < athr:
                         continue
+                    T = Tp[p]
                     next_T = T * (one - alpha)
                     if next_T <= tmin:
-                        evaluated = k + 1
-                        break
+                        stopped[p] = True
+                        n_stopped += 1
+                        continue
                     w = alpha * T
-                    c0 += loc[k, _R] * w
-                    c1 += loc[k, _G] * w
-                    c2 += loc[k, _B] * w
-                    d += loc[k, _Z] * w
-                    T = next_T
-                    last = start + k
-                image[i, j, 0] = c0 + T * bg0
-                image[i, j, 1] = c1 + T * bg1
-                image[i, j, 2] = c2 + T * bg2
-                depth_img[i, j] = d
+                    acc[p, 0] += col0 * w
+                    acc[p, 1] += col1 * w
+                    acc[p, 2] += col2 * w
+                    acc[p, 3] += zk * w
+                    Tp[p] = next_T
+                    last[p] = start + k
+        for i in range(y0, y1):
+            for j in range(x0, x1):
+                p = (i - y0) * tw + (j - x0)
+                T = Tp[p]
+                image[i, j, 0] = acc[p, 0] + T * bg0
+                image[i, j, 1] = acc[p, 1] + T * bg1
+                image[i, j, 2] = acc[p, 2] + T * bg2
+                depth_img[i, j] = acc[p, 3]
                 T_final[i, j] = T
-                last_idx[i, j] = last
-                n_eval[i, j] = evaluated
+                last_idx[i, j] = last[p]
+        n_eval_tile[t] = count
 
 
 @njit(cache=True, parallel=True)
-def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, isect_gauss, tile_offsets,
-                          px_centres, py_centres, consts, grid_w, tile_size, T_final, last_idx,
-                          v_color_img, v_depth_img, v_T_img, buf):
+def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, sigma_cut, cov2d, isect_gauss,
+                          tile_offsets, tile_order, px_centres, py_centres, consts, grid_w, tile_size,
+                          T_final, last_idx, v_color_img, v_depth_img, v_T_img, buf):
     """Back-to-front gradient of the compositing, prange over tiles.
 
     v_color_img (H,W,3) = dL/dC, v_depth_img (H,W) = dL/dD, v_T_img (H,W) = dL/dT_final (all
-    paths: background, alpha, expected depth). Writes buf (n_isect, 10) rows [start, end) of each
-    tile: dL/d(u, v, conic a, b, c, opacity_eff, r, g, b, z) of that intersection (must be zero on
-    entry).
+    paths: background, alpha, expected depth). Gaussians are the outer loop, from the tile's
+    latest last contributor back to its first, over the same footprints as the forward pass;
+    every pixel walks its own contributors back to front from its last one, recovering
+    T_k = T_{k+1} / (1 - alpha_k) (alpha <= 0.999, so the division is safe), as 3DGS and gsplat
+    do. The gradient of intersection ``start + k`` (dL/d(u, v, conic a, b, c, opacity_eff, r, g,
+    b, z)) is summed over the tile's pixels in a fixed order and written once to row start + k of
+    buf (n_isect, 10); rows no pixel uses stay as given (zero).
     """
     H = T_final.shape[0]
     W = T_final.shape[1]
     n_tiles = tile_offsets.shape[0] - 1
     zero = consts[K_ZERO]
     one = consts[K_ONE]
+    two = consts[K_TWO]
     half = consts[K_HALF]
     amax = consts[K_ALPHA_MAX]
     athr = consts[K_ALPHA_THRESHOLD]
-    for t in prange(n_tiles):
+    for it in prange(n_tiles):
+        t = tile_order[it]
         start = tile_offsets[t]
         end = tile_offsets[t + 1]
         if end == start:
@@ -274,62 +364,103 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, isect_gauss
         y0 = ty * tile_size
         x1 = min(x0 + tile_size, W)
         y1 = min(y0 + tile_size, H)
-        loc = _gather_tile(start, end, isect_gauss, means2d, conics, opac_eff, colors, depths, consts)
+        tw = x1 - x0
+        npix = tw * (y1 - y0)
+        Tp = np.empty(npix, T_final.dtype)
+        acc = np.zeros((npix, 4), T_final.dtype)  # sums behind: color * weight (r, g, b), depth * weight
+        last = np.empty(npix, np.int64)
+        kmax = -1
         for i in range(y0, y1):
-            py = py_centres[i]
             for j in range(x0, x1):
-                last = last_idx[i, j]
-                if last < start:
-                    continue
-                px = px_centres[j]
-                Tf = T_final[i, j]
-                T = Tf
-                vc0 = v_color_img[i, j, 0]
-                vc1 = v_color_img[i, j, 1]
-                vc2 = v_color_img[i, j, 2]
-                vd = v_depth_img[i, j]
-                v_Tf = v_T_img[i, j]
-                acc0 = zero  # sum over the Gaussians behind k of color * weight
-                acc1 = zero
-                acc2 = zero
-                accd = zero
-                for k in range(last - start, -1, -1):
-                    dx, dy, sigma, vis = _eval_gaussian(loc, k, px, py, half)
-                    if sigma < zero:
+                p = (i - y0) * tw + (j - x0)
+                Tp[p] = T_final[i, j]
+                last[p] = last_idx[i, j]
+                if last[p] > kmax:
+                    kmax = last[p]
+        if kmax < start:
+            continue
+        loc = _gather_tile(start, kmax + 1, isect_gauss, means2d, conics, opac_eff, colors, depths, radii_f,
+                           sigma_cut, cov2d, consts)
+        for k in range(kmax - start, -1, -1):
+            row = start + k
+            u = loc[k, _U]
+            v = loc[k, _V]
+            ca = loc[k, _CA]
+            cb = loc[k, _CB]
+            cc = loc[k, _CC]
+            o = loc[k, _OP]
+            cut = loc[k, _CUT]
+            col0 = loc[k, _R]
+            col1 = loc[k, _G]
+            col2 = loc[k, _B]
+            zk = loc[k, _Z]
+            g_u = zero
+            g_v = zero
+            g_a = zero
+            g_b = zero
+            g_c = zero
+            g_o = zero
+            g_r = zero
+            g_g = zero
+            g_bl = zero
+            g_z = zero
+            ja0, jb0 = _box_range(u, loc[k, _RX], x0, x1, half, one)
+            ia, ib = _box_range(v, loc[k, _RY], y0, y1, half, one)
+            for i in range(ia, ib):
+                dy = v - py_centres[i]
+                ja, jb = _row_range(loc, k, dy, ja0, jb0, half, one, two, zero)
+                for j in range(ja, jb):
+                    p = (i - y0) * tw + (j - x0)
+                    if row > last[p]:
                         continue
-                    raw = loc[k, _OP] * vis
+                    dx = u - px_centres[j]
+                    sigma = _sigma(dx, dy, ca, cb, cc, half)
+                    if sigma < zero or sigma > cut:
+                        continue
+                    vis = math.exp(-sigma)
+                    raw = o * vis
                     alpha = raw
                     if alpha > amax:
                         alpha = amax
                     if alpha < athr:
                         continue
                     ra = one / (one - alpha)
-                    T = T * ra  # transmittance in front of Gaussian k
+                    T = Tp[p] * ra  # transmittance in front of Gaussian k
+                    Tp[p] = T
                     fac = alpha * T
-                    col0 = loc[k, _R]
-                    col1 = loc[k, _G]
-                    col2 = loc[k, _B]
-                    zk = loc[k, _Z]
-                    row = start + k
-                    buf[row, _R] += fac * vc0
-                    buf[row, _G] += fac * vc1
-                    buf[row, _B] += fac * vc2
-                    buf[row, _Z] += fac * vd
-                    v_alpha = ((col0 * T - acc0 * ra) * vc0 + (col1 * T - acc1 * ra) * vc1
-                               + (col2 * T - acc2 * ra) * vc2 + (zk * T - accd * ra) * vd
-                               - v_Tf * Tf * ra)
-                    acc0 += col0 * fac
-                    acc1 += col1 * fac
-                    acc2 += col2 * fac
-                    accd += zk * fac
+                    vc0 = v_color_img[i, j, 0]
+                    vc1 = v_color_img[i, j, 1]
+                    vc2 = v_color_img[i, j, 2]
+                    vd = v_depth_img[i, j]
+                    g_r += fac * vc0
+                    g_g += fac * vc1
+                    g_bl += fac * vc2
+                    g_z += fac * vd
+                    v_alpha = ((col0 * T - acc[p, 0] * ra) * vc0 + (col1 * T - acc[p, 1] * ra) * vc1
+                               + (col2 * T - acc[p, 2] * ra) * vc2 + (zk * T - acc[p, 3] * ra) * vd
+                               - v_T_img[i, j] * T_final[i, j] * ra)
+                    acc[p, 0] += col0 * fac
+                    acc[p, 1] += col1 * fac
+                    acc[p, 2] += col2 * fac
+                    acc[p, 3] += zk * fac
                     if raw <= amax:  # no gradient through the 0.999 clamp
-                        buf[row, _OP] += v_alpha * vis
+                        g_o += v_alpha * vis
                         v_sigma = -v_alpha * raw
-                        buf[row, _CA] += half * dx * dx * v_sigma
-                        buf[row, _CB] += dx * dy * v_sigma
-                        buf[row, _CC] += half * dy * dy * v_sigma
-                        buf[row, _U] += v_sigma * (loc[k, _CA] * dx + loc[k, _CB] * dy)
-                        buf[row, _V] += v_sigma * (loc[k, _CB] * dx + loc[k, _CC] * dy)
+                        g_a += half * dx * dx * v_sigma
+                        g_b += dx * dy * v_sigma
+                        g_c += half * dy * dy * v_sigma
+                        g_u += v_sigma * (ca * dx + cb * dy)
+                        g_v += v_sigma * (cb * dx + cc * dy)
+            buf[row, _U] = g_u
+            buf[row, _V] = g_v
+            buf[row, _CA] = g_a
+            buf[row, _CB] = g_b
+            buf[row, _CC] = g_c
+            buf[row, _OP] = g_o
+            buf[row, _R] = g_r
+            buf[row, _G] = g_g
+            buf[row, _B] = g_bl
+            buf[row, _Z] = g_z
 
 
 @njit(cache=True, parallel=True)
@@ -401,26 +532,47 @@ def build_intersections(means2d, radii_f, depths, consts, width, height, tile_si
 
 def pixel_centres(width, height, dtype):
     """(px (W,), py (H,)) pixel-centre coordinates j + 0.5, i + 0.5 in ``dtype``."""
-    from d2gs_np.constants import PIXEL_CENTER_OFFSET
-
-    px = (np.arange(width, dtype=np.float64) + PIXEL_CENTER_OFFSET).astype(dtype)
-    py = (np.arange(height, dtype=np.float64) + PIXEL_CENTER_OFFSET).astype(dtype)
+    px = (np.arange(width, dtype=np.float64) + C.PIXEL_CENTER_OFFSET).astype(dtype)
+    py = (np.arange(height, dtype=np.float64) + C.PIXEL_CENTER_OFFSET).astype(dtype)
     return px, py
 
 
+def sigma_cutoffs(opac_eff):
+    """Per-Gaussian sigma beyond which alpha < 1/255 for certain: ln(o / (1/255)) + safety (-inf for o = 0).
+
+    See constants.ALPHA_CUTOFF_SAFETY: the skip it allows is exactly the 1/255 rule's decision.
+    """
+    with np.errstate(divide="ignore"):
+        return np.log(opac_eff / C.ALPHA_THRESHOLD) + C.ALPHA_CUTOFF_SAFETY
+
+
+@functools.lru_cache(maxsize=64)
+def _tile_order(n_tiles):
+    """A fixed pseudo-random permutation of the tiles, so that Numba's static split of the prange
+    gives every thread a similar mix of busy and empty screen regions. Results never depend on it."""
+    order = np.random.default_rng(_TILE_ORDER_SEED).permutation(n_tiles).astype(np.int64)
+    order.flags.writeable = False
+    return order
+
+
 def rasterize_fwd(proj, colors, background, consts, isect, width, height, tile_size):
-    """Step 3. Returns dict(image (H,W,3), depth (H,W), T_final (H,W), last_idx, n_eval)."""
+    """Step 3. Returns dict(image (H,W,3), depth (H,W), T_final (H,W), last_idx (H,W),
+    n_eval_tile (n_tiles,), sigma_cut (N,))."""
     dtype = colors.dtype
     px, py = pixel_centres(width, height, dtype)
+    n_tiles = isect["tile_offsets"].shape[0] - 1
+    sigma_cut = sigma_cutoffs(proj["opac_eff"])
     image = np.empty((height, width, 3), dtype)
     depth = np.empty((height, width), dtype)
     T_final = np.empty((height, width), dtype)
     last_idx = np.empty((height, width), np.int64)
-    n_eval = np.empty((height, width), np.int64)
+    n_eval_tile = np.zeros(n_tiles, np.int64)
     _rasterize_fwd_kernel(proj["means2d"], proj["conics"], proj["opac_eff"], colors, proj["depths"],
-                          isect["isect_gauss"], isect["tile_offsets"], px, py, background, consts,
-                          isect["grid_w"], tile_size, image, depth, T_final, last_idx, n_eval)
-    return dict(image=image, depth=depth, T_final=T_final, last_idx=last_idx, n_eval=n_eval)
+                          proj["radii_f"], sigma_cut, proj["cov2d"], isect["isect_gauss"], isect["tile_offsets"],
+                          _tile_order(n_tiles), px, py, background, consts, isect["grid_w"], tile_size,
+                          image, depth, T_final, last_idx, n_eval_tile)
+    return dict(image=image, depth=depth, T_final=T_final, last_idx=last_idx, n_eval_tile=n_eval_tile,
+                sigma_cut=sigma_cut)
 
 
 def rasterize_bwd(proj, colors, consts, isect, raster, tile_size, v_color_img, v_depth_img, v_T_img):
@@ -430,11 +582,12 @@ def rasterize_bwd(proj, colors, consts, isect, raster, tile_size, v_color_img, v
     dtype = colors.dtype
     height, width = raster["T_final"].shape
     px, py = pixel_centres(width, height, dtype)
+    n_tiles = isect["tile_offsets"].shape[0] - 1
     buf = np.zeros((isect["n_isect"], _NCOL), dtype)
     _rasterize_bwd_kernel(proj["means2d"], proj["conics"], proj["opac_eff"], colors, proj["depths"],
-                          isect["isect_gauss"], isect["tile_offsets"], px, py, consts, isect["grid_w"],
-                          tile_size, raster["T_final"], raster["last_idx"], v_color_img, v_depth_img,
-                          v_T_img, buf)
+                          proj["radii_f"], raster["sigma_cut"], proj["cov2d"], isect["isect_gauss"], isect["tile_offsets"],
+                          _tile_order(n_tiles), px, py, consts, isect["grid_w"], tile_size, raster["T_final"],
+                          raster["last_idx"], v_color_img, v_depth_img, v_T_img, buf)
     out = dict(v_means2d=np.zeros((n, 2), dtype), v_conics=np.zeros((n, 3), dtype),
                v_opac_eff=np.zeros(n, dtype), v_colors=np.zeros((n, 3), dtype),
                v_depths=np.zeros(n, dtype))
