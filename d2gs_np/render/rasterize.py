@@ -45,6 +45,7 @@ from numba import njit, prange
 
 from d2gs_np import constants as C
 from d2gs_np.render.project import (
+    K_DET_MIN,
     K_TWO,
     K_ALPHA_MAX,
     K_ALPHA_THRESHOLD,
@@ -155,10 +156,13 @@ def _gather_tile(start, end, isect_gauss, means2d, conics, opac_eff, colors, dep
     """Copy the parameters of a tile's Gaussians, in list order, into a (m, _NLOC) local array.
 
     Besides the parameters, each row gets the footprint bounds used by ``_row_range``: the slope
-    c01/c11 of the line of per-row minima, 1/c11 and 1/a (a = conic[0] = c11/det).
+    c01/c11 of the line of per-row minima, the row-minimum coefficient (1/c11) and 1/a
+    (a = conic[0] = c11/det).
     """
     m = end - start
+    zero = consts[K_ZERO]
     one = consts[K_ONE]
+    det_min = consts[K_DET_MIN]
     loc = np.empty((m, _NLOC), consts.dtype)
     for k in range(m):
         g = isect_gauss[start + k]
@@ -175,10 +179,18 @@ def _gather_tile(start, end, isect_gauss, means2d, conics, opac_eff, colors, dep
         loc[k, _RX] = radii_f[g, 0]
         loc[k, _RY] = radii_f[g, 1]
         loc[k, _CUT] = sigma_cut[g]
+        c00 = cov2d[g, 0]
+        c01 = cov2d[g, 1]
         c11 = cov2d[g, 2]
-        loc[k, _SLOPE] = cov2d[g, 1] / c11
-        loc[k, _IC11] = one / c11
+        loc[k, _SLOPE] = c01 / c11
         loc[k, _IA] = one / conics[g, 0]
+        det = c00 * c11 - c01 * c01  # bitwise the projection's det before its clamp
+        if det >= det_min:
+            loc[k, _IC11] = one / c11  # conic = inverse covariance: row minimum dy^2 / (2 c11)
+        else:
+            # det clamped (only possible with eps2d = 0): conic = adj(cov) / DET_MIN, whose row
+            # minimum is dy^2 det / (2 DET_MIN c11) (<= 0 if det <= 0: rows are never skipped)
+            loc[k, _IC11] = max(det, zero) / (det_min * c11)
     return loc
 
 

@@ -157,13 +157,15 @@ def test_matches_reference_antialiased(seed):
     compare_with_reference(scene, config=cfg, seed=seed)
 
 
-def test_matches_reference_other_config():
-    """Non-default near plane, eps2d and a tile size that is not a power of two."""
-    cfg = RenderConfig(near_plane=1.0, eps2d=0.1, tile_size=7)
+@pytest.mark.parametrize("cfg", [RenderConfig(near_plane=1.0, eps2d=0.1, tile_size=7),
+                                 RenderConfig(eps2d=0.0, tile_size=32)])
+def test_matches_reference_other_config(cfg):
+    """Non-default near plane, eps2d (including no dilation) and tile sizes (7: not a power of two)."""
     rng = np.random.default_rng(12)
     scene = rf.safe_random_scene(rng, 40, 30, 19, margin=MARGIN, config=cfg)
     out, _, _ = compare_with_reference(scene, config=cfg, seed=12)
-    assert out["num_intersections"] == tile_intersections_numpy(out["means2d"], out["radii"], 30, 19, ts=7)
+    n_isect = tile_intersections_numpy(out["means2d"], out["radii"], 30, 19, ts=cfg.tile_size)
+    assert out["num_intersections"] == n_isect
 
 
 def test_tile_border_straddling():
