@@ -35,6 +35,7 @@ from d2gs_np import trajectory as traj_model
 from d2gs_np.data.scene import Scene
 from d2gs_np.geometry.se3 import se3_exp, se3_interpolate
 from d2gs_np.losses.photometric import photometric_bwd, photometric_fwd
+from d2gs_np.losses.ssim import SSIM_WINDOW
 from d2gs_np.optim import adam
 from d2gs_np.render import render_bwd, render_fwd
 from d2gs_np.scene import gaussians
@@ -43,7 +44,7 @@ from d2gs_np.scene.model import evaluate_bwd, evaluate_fwd
 from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint, save_checkpoint
 from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.log import RunLog, Stopwatch, psnr_from_mse
-from d2gs_np.train.schedule import TargetCache, render_scale
+from d2gs_np.train.schedule import TargetCache
 
 CHECKPOINT_NAME = "checkpoint.npz"
 FINAL_NAME = "final.npz"
@@ -154,7 +155,7 @@ class Trainer:
         self.times = np.array([f.time for f in self.frames], dtype=np.float64)
         self.poses_est = np.stack([f.cam_T_world for f in self.frames]).astype(np.float64)
         self.background = np.asarray(config.train.background, dtype=np.float64)
-        self.cache = TargetCache(scene, config.schedule) if _accepts_schedule(TargetCache) else TargetCache(scene)
+        self.cache = TargetCache.from_scene(scene, mask_threshold=config.schedule.mask_threshold)
         self.stopwatch = Stopwatch()
         self.step_index = 0
         self.extent = scene_extent(self.poses_est)
@@ -184,7 +185,7 @@ class Trainer:
         if self.components.blur:
             self.params.update(traj_model.init_trajectory(cfg.trajectory, self.poses_est, self.times, rng))
             if self.components.learn_exposure:
-                self.params["camera.exposure_logit"] = blur_model.init_exposure_logit()
+                self.params.update(blur_model.init_exposure())
         self.adam_state = adam.adam_init(self.params)
 
     def _make_stages(self) -> list:
@@ -219,7 +220,7 @@ class Trainer:
                 rates[name] = lr.deform_other
             else:
                 rates[name] = getattr(lr, kind)
-        return adam.AdamConfig(lr=rates)
+        return adam.AdamConfig(lrs=rates)
 
     def stage_at(self, step: int) -> Stage:
         for s in self.stages:
@@ -228,6 +229,17 @@ class Trainer:
         return self.stages[-1]
 
     # ------------------------------------------------------------------ one step
+    def scale_at(self, step: int) -> float:
+        """Render scale of the progressive schedule, raised if needed so that the smallest image
+        side keeps at least one SSIM window (11 px)."""
+        if not self.config.train.progressive:
+            return 1.0
+        r = self.config.schedule.scale(step, self.config.train.iters)
+        if self.config.loss.lambda_ssim > 0:
+            side = min(min(f.width, f.height) for f in self.frames)
+            r = max(r, min(1.0, SSIM_WINDOW / side))
+        return r
+
     def frame_for_step(self, step: int) -> int:
         """Seeded permutation per epoch; depends only on (seed, step), so resuming reproduces it."""
         epoch, pos = divmod(step, self.num_frames)
@@ -239,7 +251,7 @@ class Trainer:
         if not self.components.blur:
             return 0.0
         if self.components.learn_exposure:
-            tau, _ = blur_model.exposure_fwd(params["camera.exposure_logit"], self.num_frames)
+            tau, _ = blur_model.exposure_fwd(params, self.num_frames)
             return float(tau)
         return blur_model.exposure_from_scene(self.components.exposure_fraction, self.num_frames)
 
@@ -273,8 +285,8 @@ class Trainer:
                 v_p = dict(v_p)
                 v_p.update(traj_model.endpoints_bwd(tsaved, v_xs[None], v_xe[None]))
                 if self.components.learn_exposure:
-                    _, esaved = blur_model.exposure_fwd(params["camera.exposure_logit"], self.num_frames)
-                    v_p["camera.exposure_logit"] = blur_model.exposure_bwd(esaved, v_tau)
+                    _, esaved = blur_model.exposure_fwd(params, self.num_frames)
+                    v_p.update(blur_model.exposure_bwd(esaved, v_tau))
                 return v_p
         else:
             ri, esaved = evaluate_fwd(img_params, f.time, cfg.deform)
@@ -290,18 +302,14 @@ class Trainer:
     def step(self, step: int) -> dict:
         stage = self.stage_at(step)
         k = self.frame_for_step(step)
-        scale = (render_scale(step, self.config.train.iters, self.config.schedule)
-                 if self.config.train.progressive else 1.0)
+        scale = self.scale_at(step)
         out, backward, tgt = self.render_frame(k, scale, stage.static_only)
         image = out["image"]
-        target = tgt.image
         ignore = tgt.mask if (stage.static_only and tgt.mask is not None) else None
-        if ignore is not None:  # moving pixels carry no loss while only the static set is rendered
-            target = np.where(ignore[..., None], image, target)
-        loss, lsaved = photometric_fwd(image, target, self.config.loss.lambda_ssim)
+        # Moving pixels carry no loss while only the static set is rendered (warm-up stage).
+        weights = None if ignore is None else (~ignore).astype(image.dtype)
+        loss, lsaved = photometric_fwd(image, tgt.image, self.config.loss.lambda_ssim, mask=weights)
         v_image = photometric_bwd(lsaved, 1.0)
-        if ignore is not None:
-            v_image = np.where(ignore[..., None], 0.0, v_image)
         grads = backward(v_image)
         grads = {n: g for n, g in grads.items() if n.startswith(stage.trainable) and n in self.params}
         self.params, self.adam_state = adam.adam_update(grads, self.adam_state, self.params, self.adam_config)
@@ -457,11 +465,3 @@ def _short(info: dict) -> str:
         if isinstance(v, (int, float, np.integer, np.floating)):
             items.append(f"{k}={v:.3g}" if isinstance(v, (float, np.floating)) else f"{k}={v}")
     return ", ".join(items[:6])
-
-
-def _accepts_schedule(cls) -> bool:
-    import inspect
-    try:
-        return len(inspect.signature(cls).parameters) >= 2
-    except (TypeError, ValueError):
-        return False
