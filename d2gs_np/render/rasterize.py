@@ -2,7 +2,7 @@
 
 Pipeline (CONVENTIONS.md §5-8, gsplat 1.5.3):
 
-1. ``_tile_rects_kernel`` (prange over Gaussians): the tiles ``[floor((u-rx)/ts), ceil((u+rx)/ts))
+1. ``_tile_rects_kernel`` (serial loop over Gaussians): the tiles ``[floor((u-rx)/ts), ceil((u+rx)/ts))
    x [floor((v-ry)/ts), ceil((v+ry)/ts))`` clamped to the grid, and their number per Gaussian.
 2. ``_isect_build_kernel`` (sequential, O(N log N + n_isect)): a stable argsort of the visible
    Gaussians by float32 camera depth (ties by Gaussian index), then a bucket pass over the
@@ -63,16 +63,17 @@ _NLOC = 16
 _TILE_ORDER_SEED = 0  # seed of the fixed tile permutation (load balance only; results never depend on it)
 
 
-@njit(cache=True, parallel=True)
+@njit(cache=True)
 def _tile_rects_kernel(means2d, radii_f, consts, grid_w, grid_h, rects, counts):
     """Tile rectangle [x0, x1) x [y0, y1) of each Gaussian (rects (N,4) int64) and its tile count.
 
-    Culled Gaussians (a radius 0) get an empty rectangle and count 0.
+    Culled Gaussians (a radius 0) get an empty rectangle and count 0. Serial on purpose: it is
+    ~20 flops per Gaussian, less than the cost of waking the threads of a parallel region.
     """
     n = means2d.shape[0]
     zero = consts[K_ZERO]
     ts = consts[K_TILE]
-    for i in prange(n):
+    for i in range(n):
         rx = radii_f[i, 0]
         ry = radii_f[i, 1]
         if rx == zero or ry == zero:
