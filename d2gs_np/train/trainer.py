@@ -327,9 +327,9 @@ class Trainer:
         if removed == 0:
             return 0
         self.params = gaussians.prune(self.params, keep_s, keep_d)
-        self.adam_state = adam.adam_select(self.adam_state, "static.", keep_s)
+        self.adam_state = adam.adam_select(self.adam_state, "static", keep_s)
         if keep_d is not None:
-            self.adam_state = adam.adam_select(self.adam_state, "dynamic.", keep_d)
+            self.adam_state = adam.adam_select(self.adam_state, "dynamic", keep_d)
         return removed
 
     def heldout_psnr(self) -> Optional[float]:

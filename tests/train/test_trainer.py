@@ -147,3 +147,14 @@ def test_config_round_trips_through_json_and_rejects_unknown_keys():
     d["train"]["itres"] = 5
     with pytest.raises(ValueError, match="itres"):
         ExperimentConfig.from_dict(d)
+
+
+def test_pruning_keeps_optimizer_state_in_step(dynamic_scene, tmp_path):
+    # A high threshold forces pruning of both sets; training must go on with consistent moments.
+    cfg = _config(iters=12, prune_every=3, prune_opacity=0.1)
+    tr = Trainer(dynamic_scene, cfg, tmp_path / "run")
+    n0 = tr.num_gaussians()
+    tr.run()
+    assert tr.num_gaussians() < n0
+    for name, p in tr.params.items():
+        assert tr.adam_state["m"][name].shape == p.shape, name
