@@ -18,6 +18,7 @@ from d2gs_np.blur import BlurConfig
 from d2gs_np.render.config import RenderConfig
 from d2gs_np.scene.deformation import DeformConfig
 from d2gs_np.scene.initialize import InitConfig
+from d2gs_np.scene.motion_init import MotionInitConfig
 from d2gs_np.train.schedule import ScheduleConfig
 from d2gs_np.trajectory import TrajectoryConfig
 
@@ -101,6 +102,7 @@ class ExperimentConfig:
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
     schedule: ScheduleConfig = field(default_factory=ScheduleConfig)
     init: InitConfig = field(default_factory=InitConfig)
+    motion_init: MotionInitConfig = field(default_factory=MotionInitConfig)
 
     def to_dict(self) -> dict:
         return _to_plain(self)

@@ -40,6 +40,7 @@ from d2gs_np.optim import adam
 from d2gs_np.render import render_bwd, render_fwd
 from d2gs_np.scene import gaussians
 from d2gs_np.scene.initialize import initialize_points
+from d2gs_np.scene.motion_init import initialize_deformation
 from d2gs_np.scene.model import evaluate_bwd, evaluate_fwd
 from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint, save_checkpoint
 from d2gs_np.train.config import ExperimentConfig
@@ -179,6 +180,14 @@ class Trainer:
         if not self.components.dynamic:
             d_pts, d_col = None, None
         self.params = gaussians.init_params(s_pts, s_col, d_pts, d_col, deform_config=cfg.deform, rng=rng)
+        if d_pts is not None and cfg.motion_init.enabled:
+            means, coefs, minfo = initialize_deformation(
+                self.scene, d_pts, info["dynamic_source_frames"], info["dynamic_source_pixels"], cfg.deform,
+                cfg.motion_init)
+            self.params["dynamic.means"] = means
+            self.params["dynamic.deform_means"] = coefs
+            self.log.note(f"dynamic motion initialised from {minfo['num_tracks']} mask tracks "
+                          f"({minfo['num_tracked_seeds']} of {len(means)} seeds tracked)")
         self.log.note(
             f"initialised {gaussians.num_static(self.params)} static and {gaussians.num_dynamic(self.params)} "
             f"dynamic Gaussians in {time.perf_counter() - t0:.1f}s ({_short(info)})")
