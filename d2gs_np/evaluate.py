@@ -68,9 +68,15 @@ def load_run(run_dir) -> LoadedRun:
 
 
 def _image_metrics(pairs):
+    """Mean PSNR and SSIM over image pairs. PSNR of identical images is infinite; strict JSON has
+    no infinity, so it is written as null (with ``identical: true``)."""
     ps = [metrics.psnr(a, b) for a, b in pairs]
     ss = [metrics.ssim(a, b) for a, b in pairs]
-    return {"psnr": float(np.mean(ps)), "ssim": float(np.mean(ss)), "num_images": len(pairs)}
+    mean_psnr = float(np.mean(ps))
+    out = {"psnr": mean_psnr if np.isfinite(mean_psnr) else None, "ssim": float(np.mean(ss)), "num_images": len(pairs)}
+    if not np.isfinite(mean_psnr):
+        out["identical"] = True
+    return out
 
 
 def evaluate(run: LoadedRun, scene) -> dict:
@@ -114,5 +120,5 @@ def evaluate_run(run_dir, scene_dir=None) -> dict:
         raise ValueError("the run does not record its scene folder; pass it explicitly (d2gs eval RUN --scene SCENE)")
     scene = load_scene(scene_dir)
     result = evaluate(run, scene)
-    atomic_write_text(Path(run_dir) / "metrics.json", json.dumps(result, indent=2))
+    atomic_write_text(Path(run_dir) / "metrics.json", json.dumps(result, indent=2, allow_nan=False))
     return result
