@@ -54,10 +54,10 @@ class LearningRates:
 
 @dataclass(frozen=True)
 class TrainConfig:
-    iters: int = 1500
+    iters: int = 2000
     # Stage split (METHOD.md §8): camera/static warm-up, deformation, joint; fractions of iters.
     warmup_fraction: float = 0.1
-    deform_fraction: float = 0.3
+    deform_fraction: float = 0.1
     seed: int = 0
     background: tuple = (0.0, 0.0, 0.0)
     lr: LearningRates = field(default_factory=LearningRates)
