@@ -158,3 +158,19 @@ def test_pruning_keeps_optimizer_state_in_step(dynamic_scene, tmp_path):
     assert tr.num_gaussians() < n0
     for name, p in tr.params.items():
         assert tr.adam_state["m"][name].shape == p.shape, name
+
+
+def test_posenet_trajectory_and_learned_exposure_train(dynamic_scene, tmp_path):
+    from d2gs_np.trajectory import TrajectoryConfig
+
+    scene = dataclasses.replace(dynamic_scene, exposure_fraction=None)  # exposure unknown -> learned
+    cfg = _config(iters=8).replace(trajectory=TrajectoryConfig(kind="posenet"))
+    tr = Trainer(scene, cfg, tmp_path / "run")
+    before = {n: v.copy() for n, v in tr.params.items() if n.startswith(("posenet.", "camera."))}
+    assert "camera.exposure_logit" in before and "posenet.W0" in before
+    tr.run()
+    assert tr.components.learn_exposure
+    for n, v in before.items():
+        assert not np.array_equal(tr.params[n], v), f"{n} was not trained"
+    assert any("exposure length learned" in n for n in tr.log.notes)
+    assert any("trajectory model: posenet" in n for n in tr.log.notes)
