@@ -137,7 +137,9 @@ def threshold_margins(scene, config=None):
           the pixel stopped;
       "alpha_clamp": |o*exp(-sigma) - 0.999| / 0.999 over the same pairs with alpha >= 1/255;
       "transmittance": |T*(1-alpha) - 1e-4| / 1e-4 over the same pairs with alpha >= 1/255;
-      "near_plane": (z - near) / near over Gaussians in front of the camera;
+      "near_plane": |z - near| / near over Gaussians in front of the camera (a Gaussian between
+          the camera and the near plane is culled on either side of a small step, so only the
+          distance to the plane matters);
       "depth_order": |z_i - z_j| / max(|z_i|, |z_j|) over consecutive visible Gaussians in the
           front-to-back order;
       "jacobian_clamp": |x/z - limit| / |limit| over visible Gaussians and the four x/z, y/z
@@ -167,7 +169,7 @@ def threshold_margins(scene, config=None):
     }
     z = proj["depths"]
     front = z > 0
-    out["near_plane"] = _min((z[front] - near) / near)
+    out["near_plane"] = _min(np.abs(z[front] - near) / near)
     zs = z[saved["order"]]
     out["depth_order"] = _min(np.abs(np.diff(zs)) / np.maximum(np.abs(zs[1:]), np.abs(zs[:-1])))
     vis = proj["radii"][:, 0] > 0
