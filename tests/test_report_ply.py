@@ -1,0 +1,46 @@
+"""Error-against-time plots and the PLY layout."""
+import numpy as np
+
+from d2gs_np.data.ply import SH_C0, read_ply, write_ply
+from d2gs_np.report import comparison_strip, plot_error_vs_time, read_log
+
+
+def _fake_run(path, rows):
+    path.mkdir(parents=True)
+    lines = ["step,seconds,stage,loss,train_psnr,heldout_psnr,scale,num_gaussians"]
+    lines += [f"{s},{t},joint,0.1,{p},{'' if h is None else h},1.0,10" for s, t, p, h in rows]
+    (path / "log.csv").write_text("\n".join(lines) + "\n")
+
+
+def test_plot_error_vs_time_writes_a_png(tmp_path):
+    _fake_run(tmp_path / "a", [(0, 0.1, 20.0, 19.0), (10, 1.0, 25.0, None), (20, 2.0, 27.0, 26.0)])
+    _fake_run(tmp_path / "b", [(0, 0.2, 18.0, 17.0), (20, 3.0, 24.0, 23.5)])
+    out = plot_error_vs_time([tmp_path / "a", tmp_path / "b"], tmp_path / "p.png")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    c = read_log(tmp_path / "a")
+    np.testing.assert_array_equal(c["step"], [0, 10, 20])
+    assert np.isnan(c["heldout_psnr"][1]) and c["heldout_psnr"][2] == 26.0
+
+
+def test_ply_round_trip_in_the_3dgs_layout(tmp_path):
+    rng = np.random.default_rng(0)
+    n = 7
+    g = dict(means=rng.normal(size=(n, 3)), log_scales=rng.normal(size=(n, 3)) - 3,
+             quats=rng.normal(size=(n, 4)), opacity_logits=rng.normal(size=n), colors=rng.uniform(size=(n, 3)))
+    write_ply(tmp_path / "g.ply", **g)
+    raw = (tmp_path / "g.ply").read_bytes()
+    header = raw[:raw.index(b"end_header")].decode()
+    for prop in ("x", "f_dc_0", "opacity", "scale_2", "rot_0", "rot_3"):
+        assert f"property float {prop}\n" in header
+    back = read_ply(tmp_path / "g.ply")
+    for k, v in g.items():
+        np.testing.assert_allclose(back[k], v, rtol=1e-6, atol=1e-6, err_msg=k)  # stored as float32
+    # f_dc is the SH DC coefficient viewers expect: rgb = 0.5 + SH_C0 * f_dc.
+    f_dc = np.frombuffer(raw[raw.index(b"end_header\n") + 11:], dtype="<f4").reshape(n, 17)[:, 6:9]
+    np.testing.assert_allclose(0.5 + SH_C0 * f_dc, g["colors"], atol=1e-6)
+
+
+def test_comparison_strip_shape():
+    a = np.zeros((4, 5, 3))
+    s = comparison_strip([[a, a, a], [a, a, a]])
+    assert s.shape == (4 * 2 + 2, 5 * 3 + 2 * 2, 3)
