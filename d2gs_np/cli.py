@@ -103,13 +103,10 @@ def _cmd_render(args):
     if not 0.0 <= args.time <= 1.0:
         raise ValueError(f"--time must be in [0, 1]; got {args.time}")
     run = load_run(args.run)
-    if args.pose:
-        pose = _read_pose_file(args.pose)
-    else:
-        k = int(np.argmin(np.abs(run.times - args.time)))
-        pose = run.mid_pose(k)
-    K = np.asarray(run.meta["K"])
-    img = run.render(args.time, pose, K, run.meta["width"], run.meta["height"])
+    k = int(np.argmin(np.abs(run.times - args.time)))  # nearest training frame: its camera
+    pose = _read_pose_file(args.pose) if args.pose else run.mid_pose(k)
+    K = np.asarray(run.meta["K"][k])
+    img = run.render(args.time, pose, K, run.meta["width"][k], run.meta["height"][k])
     save_image(args.out, img)
     print(f"wrote {args.out}")
 
@@ -118,14 +115,18 @@ def _cmd_export_ply(args):
     from d2gs_np.data.ply import write_ply
     from d2gs_np.evaluate import load_run
     from d2gs_np.scene.model import evaluate_fwd
-    from d2gs_np.scene.gaussians import logit
 
     if not 0.0 <= args.time <= 1.0:
         raise ValueError(f"--time must be in [0, 1]; got {args.time}")
     run = load_run(args.run)
     scene_params = {n: v for n, v in run.params.items() if n.startswith(("static.", "dynamic."))}
     ri, _ = evaluate_fwd(scene_params, args.time, run.config.deform)
-    write_ply(args.out, ri["means"], np.log(ri["scales"]), ri["quats"], logit(ri["opacities"]), ri["colors"])
+    # Scales and opacities do not change with time: export the stored log-scales and logits
+    # (exact, and finite even where the sigmoid saturates).
+    sets = [p for p in ("static", "dynamic") if f"{p}.means" in scene_params]
+    log_scales = np.concatenate([scene_params[f"{p}.log_scales"] for p in sets])
+    logits = np.concatenate([scene_params[f"{p}.opacity_logits"] for p in sets])
+    write_ply(args.out, ri["means"], log_scales, ri["quats"], logits, ri["colors"])
     print(f"wrote {ri['means'].shape[0]} Gaussians at t = {args.time} to {args.out}")
 
 

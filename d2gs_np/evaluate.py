@@ -83,32 +83,44 @@ def evaluate(run: LoadedRun, scene) -> dict:
     """Metrics dictionary of METHOD.md §10 for a loaded run and its scene (images loaded)."""
     out = {}
     frames = scene.frames
-    if len(frames) != len(run.times):
-        raise ValueError(f"the scene has {len(frames)} frames but the run was trained on {len(run.times)}; "
-                         "evaluate with the scene it was trained on")
+    if len(frames) != len(run.times) or not np.allclose([f.time for f in frames], run.times):
+        raise ValueError(f"the scene's {len(frames)} frames do not match the {len(run.times)} frames (times) the run "
+                         "was trained on; evaluate with the scene it was trained on")
     mids = run.mid_poses()
     if scene.has_sharp:
         renders = [run.render(f.time, mids[k], f.K, f.width, f.height) for k, f in enumerate(frames)]
         out["dvs"] = _image_metrics([(r, f.sharp) for r, f in zip(renders, frames)])
         out["input_blur"] = _image_metrics([(f.image, f.sharp) for f in frames])
     if scene.has_gt_poses and len(frames) >= 3:
-        gt = np.stack([f.gt_cam_T_world for f in frames])
-        ate = metrics.ate(mids, gt)
-        rpe_t, rpe_r = metrics.rpe(mids, gt)
-        ate0 = metrics.ate(run.poses_est, gt)
-        rpe_t0, rpe_r0 = metrics.rpe(run.poses_est, gt)
-        out["trajectory"] = {"ate": float(ate), "rpe_t": float(rpe_t), "rpe_r": float(rpe_r),
-                             "initial": {"ate": float(ate0), "rpe_t": float(rpe_t0), "rpe_r": float(rpe_r0)}}
-        if scene.test_frames:
-            s, R, t = metrics.sim3_inverse(*metrics.align_trajectory(mids, gt))
-            pairs = []
-            for f in scene.test_frames:
-                pose = metrics.sim3_apply_to_poses(s, R, t, f.cam_T_world)
-                pairs.append((run.render(f.time, pose, f.K, f.width, f.height), f.image))
-            out["nvs"] = _image_metrics(pairs)
+        try:
+            out.update(_trajectory_and_nvs(run, scene, mids))
+        except ValueError as e:  # e.g. a camera that never moves: no Sim(3) alignment exists
+            out["trajectory"] = {"skipped": str(e)}
     out["train_seconds"] = float(run.meta["seconds"])
     out["steps"] = int(run.meta["step"])
     out["left_out"] = list(run.meta["left_out"])
+    return out
+
+
+def _trajectory_and_nvs(run: LoadedRun, scene, mids) -> dict:
+    out = {}
+    frames = scene.frames
+    gt = np.stack([f.gt_cam_T_world for f in frames])
+    ate = metrics.ate(mids, gt)
+    rpe_t, rpe_r = metrics.rpe(mids, gt)
+    ate0 = metrics.ate(run.poses_est, gt)
+    rpe_t0, rpe_r0 = metrics.rpe(run.poses_est, gt)
+    out["trajectory"] = {"ate": float(ate), "rpe_t": float(rpe_t), "rpe_r": float(rpe_r),
+                         "initial": {"ate": float(ate0), "rpe_t": float(rpe_t0), "rpe_r": float(rpe_r0)}}
+    if scene.test_frames:
+        # Test views are given in the true frame; the similarity aligning our trajectory to the
+        # truth, inverted, carries them into the reconstruction's frame.
+        s, R, t = metrics.sim3_inverse(*metrics.align_trajectory(mids, gt))
+        pairs = []
+        for f in scene.test_frames:
+            pose = metrics.sim3_apply_to_poses(s, R, t, f.cam_T_world)
+            pairs.append((run.render(f.time, pose, f.K, f.width, f.height), f.image))
+        out["nvs"] = _image_metrics(pairs)
     return out
 
 

@@ -47,6 +47,7 @@ __all__ = [
     "AdamConfig",
     "adam_init",
     "adam_update",
+    "adam_update_rows",
     "adam_select",
     "adam_extend",
 ]
@@ -258,7 +259,7 @@ def adam_update(grads, state, params, config):
         raise TypeError(f"grads must be a dict of arrays; got {type(grads).__name__}")
     b1, b2 = config.betas
     new_params = dict(params)
-    new_state = {"step": dict(state["step"]), "m": dict(state["m"]), "v": dict(state["v"])}
+    new_state = {slot: dict(blocks) for slot, blocks in state.items()}  # keeps "row_step" too
     for name, g in grads.items():
         if g is None:
             continue
@@ -306,6 +307,57 @@ def _prefixed(state, block_prefix):
     return [k for k in state["m"] if k.startswith(block_prefix + ".")]
 
 
+def adam_update_rows(grads, rows, state, params, config):
+    """Row-sparse Adam (as torch.optim.SparseAdam): only the rows ``rows[name]`` of each block in
+    ``grads`` are updated: their moments, their parameters, and their own step counts (kept in
+    ``state["row_step"][name]``, (N,) ints) for the bias correction. Rows outside the list keep
+    their parameters AND moments, so per-frame blocks (camera endpoints) of frames not in the
+    batch do not drift on stale momentum. The learning rate is the block's schedule at the
+    block's step count. Returns (new params, new state); inputs are not modified.
+    """
+    if not isinstance(config, AdamConfig):
+        raise TypeError(f"config must be an AdamConfig; got {type(config).__name__}")
+    b1, b2 = config.betas
+    new_params = dict(params)
+    new_state = {slot: dict(blocks) for slot, blocks in state.items()}
+    new_state.setdefault("row_step", {})
+    for name, g in grads.items():
+        if name not in params:
+            raise ValueError(f"grads has block {name!r} that params does not have")
+        if name not in rows:
+            raise ValueError(f"adam_update_rows needs the rows of block {name!r}; pass rows={{{name!r}: indices}}")
+        p = params[name]
+        if not isinstance(g, np.ndarray) or g.shape != p.shape or g.dtype != p.dtype:
+            raise ValueError(f"grads[{name!r}] must be a {p.dtype} array of shape {p.shape}")
+        idx = np.unique(np.asarray(rows[name], dtype=np.int64))
+        if idx.size and (idx[0] < 0 or idx[-1] >= p.shape[0]):
+            raise ValueError(f"rows[{name!r}] must index 0..{p.shape[0] - 1}; got {idx}")
+        gi = g[idx]
+        if not np.all(np.isfinite(gi)):
+            raise ValueError(f"grads[{name!r}] contains NaN or inf; check the loss and its backward")
+        m = state["m"].get(name)
+        v = state["v"].get(name)
+        m = np.zeros_like(p) if m is None else m.copy()
+        v = np.zeros_like(p) if v is None else v.copy()
+        rs = state.get("row_step", {}).get(name)
+        rs = np.zeros(p.shape[0], dtype=np.int64) if rs is None else np.array(rs, dtype=np.int64)
+        step = int(state["step"].get(name, 0))
+        lr = config.lr(name, step)
+        k = (rs[idx] + 1).reshape((-1,) + (1,) * (p.ndim - 1))
+        m[idx] = b1 * m[idx] + (1.0 - b1) * gi
+        v[idx] = b2 * v[idx] + (1.0 - b2) * (gi * gi)
+        m_hat = m[idx] / (1.0 - b1**k)
+        v_hat = v[idx] / (1.0 - b2**k)
+        newp = p.copy()
+        newp[idx] = p[idx] - lr * m_hat / (np.sqrt(v_hat) + config.eps)
+        rs[idx] += 1
+        new_params[name] = newp
+        new_state["m"][name], new_state["v"][name] = m, v
+        new_state["row_step"][name] = rs
+        new_state["step"][name] = step + 1
+    return new_params, new_state
+
+
 def adam_select(state, block_prefix, keep_mask):
     """New state with only the rows ``keep_mask`` (bool (N,)) of every block ``f"{block_prefix}.*"``.
 
@@ -314,7 +366,7 @@ def adam_select(state, block_prefix, keep_mask):
     keep_mask = np.asarray(keep_mask)
     if keep_mask.dtype != np.bool_ or keep_mask.ndim != 1:
         raise TypeError(f"keep_mask must be a 1-D boolean array; got dtype {keep_mask.dtype}, shape {keep_mask.shape}")
-    new_state = {"step": dict(state["step"]), "m": dict(state["m"]), "v": dict(state["v"])}
+    new_state = {slot: dict(blocks) for slot, blocks in state.items()}  # keeps "row_step" too
     for name in _prefixed(state, block_prefix):
         rows = state["m"][name].shape[0]
         if rows != keep_mask.shape[0]:
@@ -333,7 +385,7 @@ def adam_extend(state, block_prefix, num_new):
     """
     if isinstance(num_new, bool) or not isinstance(num_new, numbers.Integral) or num_new < 0:
         raise ValueError(f"num_new must be an integer >= 0; got {num_new!r}")
-    new_state = {"step": dict(state["step"]), "m": dict(state["m"]), "v": dict(state["v"])}
+    new_state = {slot: dict(blocks) for slot, blocks in state.items()}  # keeps "row_step" too
     for name in _prefixed(state, block_prefix):
         for key in ("m", "v"):
             x = state[key][name]

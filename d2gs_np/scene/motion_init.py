@@ -44,8 +44,8 @@ class MotionInitConfig:
             raise ValueError(f"MotionInitConfig.min_area_fraction must be in [0, 1); got {self.min_area_fraction}")
         if self.max_jump_fraction <= 0.0:
             raise ValueError(f"MotionInitConfig.max_jump_fraction must be > 0; got {self.max_jump_fraction}")
-        if self.ridge < 0.0:
-            raise ValueError(f"MotionInitConfig.ridge must be >= 0; got {self.ridge}")
+        if not self.ridge > 0.0:  # tracks shorter than 1 + K frames need it to be well posed
+            raise ValueError(f"MotionInitConfig.ridge must be > 0; got {self.ridge}")
 
 
 def mask_components(mask, min_area):

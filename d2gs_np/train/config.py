@@ -51,6 +51,12 @@ class LearningRates:
     camera: float = 1e-3  # trajectory endpoints xi_start / xi_end and PoseNet weights
     exposure: float = 1e-2
 
+    def __post_init__(self):
+        for f in dataclasses.fields(self):
+            v = getattr(self, f.name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (v >= 0.0 and v < float("inf")):
+                raise ValueError(f"LearningRates.{f.name} must be a finite number >= 0; got {v!r}")
+
 
 @dataclass(frozen=True)
 class TrainConfig:
@@ -77,8 +83,8 @@ class TrainConfig:
     quiet: bool = False
 
     def __post_init__(self):
-        if self.iters < 1:
-            raise ValueError(f"TrainConfig.iters must be >= 1; got {self.iters}")
+        if isinstance(self.iters, bool) or not isinstance(self.iters, int) or self.iters < 1:
+            raise ValueError(f"TrainConfig.iters must be an integer >= 1; got {self.iters!r}")
         if not (0 <= self.warmup_fraction and 0 <= self.deform_fraction and self.warmup_fraction + self.deform_fraction <= 1):
             raise ValueError(
                 f"TrainConfig stage fractions must be >= 0 and sum to <= 1; got warmup_fraction="
@@ -88,6 +94,19 @@ class TrainConfig:
                 raise ValueError(f"TrainConfig.{name} must be one of {_AUTO}; got {getattr(self, name)!r}")
         if len(self.background) != 3:
             raise ValueError(f"TrainConfig.background must have 3 values; got {self.background}")
+        for name in ("iters", "log_every", "eval_every", "checkpoint_every", "prune_every", "eval_frames", "seed"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int):
+                raise ValueError(f"TrainConfig.{name} must be an integer; got {v!r}")
+        if self.log_every < 1 or self.eval_frames < 1:
+            raise ValueError(f"TrainConfig.log_every and eval_frames must be >= 1; got {self.log_every}, {self.eval_frames}")
+        if min(self.eval_every, self.checkpoint_every, self.prune_every) < 0:
+            raise ValueError("TrainConfig.eval_every, checkpoint_every and prune_every must be >= 0 (0 = never)")
+        if not isinstance(self.progressive, bool) or not isinstance(self.quiet, bool):
+            raise ValueError(f"TrainConfig.progressive and quiet must be true or false; got {self.progressive!r}, "
+                             f"{self.quiet!r}")
+        if not 0.0 <= self.prune_opacity < 1.0:
+            raise ValueError(f"TrainConfig.prune_opacity must be in [0, 1); got {self.prune_opacity}")
         if self.time_budget is not None and self.time_budget <= 0:
             raise ValueError(f"TrainConfig.time_budget must be positive seconds; got {self.time_budget}")
 

@@ -82,8 +82,25 @@ class RunLog:
         if step >= total:
             sys.stdout.write("\n")
 
+    def truncate(self, step: int):
+        """Forget rows at or after ``step`` (a resumed run redoes them) and rewrite log.csv to match."""
+        self.rows = [r for r in self.rows if r["step"] is not None and r["step"] < step]
+        with open(self._csv_path, "w", newline="") as f:
+            w = csv.writer(f)
+            w.writerow(LOG_FIELDS)
+            for row in self.rows:
+                w.writerow(["" if row.get(k) is None else row[k] for k in LOG_FIELDS])
+
     def save(self):
-        atomic_write_text(self.run_dir / "log.json", json.dumps({"rows": self.rows, "notes": self.notes}, indent=1))
+        rows = [{k: _finite_or_none(v) for k, v in r.items()} for r in self.rows]  # strict JSON: no NaN/inf
+        atomic_write_text(self.run_dir / "log.json",
+                          json.dumps({"rows": rows, "notes": self.notes}, indent=1, allow_nan=False))
+
+
+def _finite_or_none(v):
+    if isinstance(v, float) and not math.isfinite(v):
+        return None
+    return v
 
 
 def psnr_from_mse(mse: float) -> float:

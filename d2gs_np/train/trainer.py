@@ -49,6 +49,19 @@ from d2gs_np.train.schedule import TargetCache
 
 CHECKPOINT_NAME = "checkpoint.npz"
 FINAL_NAME = "final.npz"
+PER_FRAME_BLOCKS = ("camera.xi_start", "camera.xi_end")  # one row per frame: row-sparse Adam
+
+
+def latest_checkpoint(run_dir):
+    """The checkpoint of a run with the most steps (final.npz or checkpoint.npz), or None."""
+    best, best_step = None, -1
+    for name in (CHECKPOINT_NAME, FINAL_NAME):
+        path = Path(run_dir) / name
+        if path.exists():
+            step = int(load_checkpoint(path)[1]["step"])
+            if step > best_step:
+                best, best_step = path, step
+    return best
 
 
 @dataclass(frozen=True)
@@ -76,6 +89,7 @@ class Components:
         if not self.blur:
             out += ["blur_model", "trajectory_model"]
         out += ["pose_refinement"]  # Gauss-Newton endpoint refinement: a later component
+        out += ["loss_ts", "loss_gs", "loss_reproj", "loss_freq"]  # regularisers: a later component
         return out
 
 
@@ -111,8 +125,15 @@ def decide_components(scene: Scene, config: ExperimentConfig, log: Optional[RunL
     else:
         blur = True
         if tc.learn_exposure == "on" or (tc.learn_exposure == "auto" and ef is None):
-            learn = True
-            say("blur model: on, exposure length learned (scene gives no exposure_fraction)")
+            if not dynamic:
+                # tau only moves the sub-frame times, which only the dynamic set sees.
+                learn = False
+                say("blur model: on; exposure length not learned (no dynamic set, so tau has no effect)")
+            else:
+                learn = True
+                why = "config train.learn_exposure = on" if tc.learn_exposure == "on" else \
+                    "the scene gives no exposure_fraction"
+                say(f"blur model: on, n = {config.blur.num_virtual}, exposure length learned ({why})")
         else:
             learn = False
             if ef is None:
@@ -120,6 +141,7 @@ def decide_components(scene: Scene, config: ExperimentConfig, log: Optional[RunL
             say(f"blur model: on, n = {config.blur.num_virtual} virtual views, exposure_fraction = {ef} from the scene")
         say(f"trajectory model: {config.trajectory.kind}")
     say("pose refinement (Gauss-Newton on reprojection residuals): not run (not part of this version)")
+    say("regularisers L_ts, L_gs, L_reproj, L_freq: not applied (not part of this version); loss = L_render")
     return Components(dynamic=dynamic, blur=blur, learn_exposure=learn, exposure_fraction=float(ef or 0.0))
 
 
@@ -135,11 +157,15 @@ def validate_scene_for_training(scene: Scene):
             raise ValueError(f"frame {i} ({f.file_path}) image contains NaN or inf")
 
 
-def scene_extent(poses) -> float:
-    """Radius of the camera centres around their mean (3DGS's 'cameras_extent'), at least 1e-3 of unit."""
+def scene_extent(poses, scene_scale=None) -> float:
+    """1.1 x the radius of the camera centres around their mean (3DGS's 'cameras_extent'), which
+    scales the position learning rates. A camera that does not move (tripod) has no such radius:
+    then the scene's scene_scale is used, else 1."""
     centres = np.array([-T[:3, :3].T @ T[:3, 3] for T in poses])
     r = float(np.max(np.linalg.norm(centres - centres.mean(0), axis=1))) * 1.1
-    return max(r, 1.0)
+    if r > 1e-9 * max(1.0, float(np.max(np.abs(centres)))):
+        return r
+    return float(scene_scale) if scene_scale else 1.0
 
 
 class Trainer:
@@ -150,7 +176,6 @@ class Trainer:
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.hooks: list = list(hooks)
-        self.log = RunLog(self.run_dir, quiet=config.train.quiet, resume=resume)
         self.frames = scene.frames
         self.num_frames = len(self.frames)
         self.times = np.array([f.time for f in self.frames], dtype=np.float64)
@@ -159,12 +184,18 @@ class Trainer:
         self.cache = TargetCache.from_scene(scene, mask_threshold=config.schedule.mask_threshold)
         self.stopwatch = Stopwatch()
         self.step_index = 0
-        self.extent = scene_extent(self.poses_est)
+        self.extent = scene_extent(self.poses_est, scene.scene_scale)
 
-        ckpt = self.run_dir / CHECKPOINT_NAME
-        if resume and ckpt.exists():
+        if resume:
+            ckpt = latest_checkpoint(self.run_dir)
+            if ckpt is None:
+                raise FileNotFoundError(f"--resume: no checkpoint in {self.run_dir}; train without --resume first")
+            self.log = RunLog(self.run_dir, quiet=config.train.quiet, resume=True)
             self._restore(ckpt)
         else:
+            for stale in (CHECKPOINT_NAME, FINAL_NAME, "metrics.json"):  # a fresh run never mixes with an old one
+                (self.run_dir / stale).unlink(missing_ok=True)
+            self.log = RunLog(self.run_dir, quiet=config.train.quiet, resume=False)
             atomic_write_text(self.run_dir / "config.json", config.to_json())
             self.components = decide_components(scene, config, self.log)
             self._initialise()
@@ -204,7 +235,9 @@ class Trainer:
         d = int(round(tc.deform_fraction * n)) if self.components.dynamic else 0
         stages = []
         if w > 0:
-            stages.append(Stage("warmup", 0, w, ("static.", "camera.", "posenet."), True))
+            # camera.exposure_logit is not trained here: only the static set is rendered, and tau
+            # only moves the dynamic set's sub-frame times, so its gradient is exactly zero.
+            stages.append(Stage("warmup", 0, w, ("static.", "camera.xi", "posenet."), True))
         if d > 0:
             stages.append(Stage("deform", w, w + d, ("dynamic.",), False))
         stages.append(Stage("joint", w + d, n, ("static.", "dynamic.", "camera.", "posenet."), False))
@@ -275,14 +308,16 @@ class Trainer:
         params = self.params if params is None else params
         return mid_exposure_pose(params, self.config, self.components.blur, self.poses_est, self.times, k)
 
-    def render_frame(self, k: int, scale: float, static_only: bool, params=None, blurred: bool = True):
-        """Forward of frame k at render scale; returns (out, backward closure, target, mask, K, w, h)."""
+    def render_frame(self, k: int, scale: float, static_only: bool, params=None):
+        """Training forward of frame k at a render scale: the blurry render with the blur model,
+        else a sharp render at the given pose. Returns (out, backward closure v_image -> v_params,
+        target record of the schedule's cache)."""
         params = self.params if params is None else params
         cfg = self.config
         tgt = self.cache.get(k, scale)
         img_params = {n: v for n, v in params.items() if n.startswith("static.")} if static_only else params
         f = self.frames[k]
-        if self.components.blur and blurred:
+        if self.components.blur:
             xs, xe, tsaved = self.endpoints([k], params)
             tau = self.exposure_tau(params)
             out, bsaved = blur_model.blur_render_fwd(
@@ -317,11 +352,25 @@ class Trainer:
         ignore = tgt.mask if (stage.static_only and tgt.mask is not None) else None
         # Moving pixels carry no loss while only the static set is rendered (warm-up stage).
         weights = None if ignore is None else (~ignore).astype(image.dtype)
-        loss, lsaved = photometric_fwd(image, tgt.image, self.config.loss.lambda_ssim, mask=weights)
+        lam = self.config.loss.lambda_ssim
+        if weights is not None:
+            if not weights.any():  # every pixel moving: nothing static to learn from in this frame
+                return {"step": step, "frame": k, "stage": stage.name, "loss": float("nan"),
+                        "train_psnr": float("nan"), "scale": scale, "width": tgt.width, "height": tgt.height}
+            pad = SSIM_WINDOW // 2
+            if lam > 0 and not weights[pad:-pad or None, pad:-pad or None].any():
+                lam = 0.0  # no static pixel inside the SSIM interior at this size: L1 only
+        loss, lsaved = photometric_fwd(image, tgt.image, lam, mask=weights)
         v_image = photometric_bwd(lsaved, 1.0)
         grads = backward(v_image)
         grads = {n: g for n, g in grads.items() if n.startswith(stage.trainable) and n in self.params}
+        # Per-frame endpoint rows of other frames get no gradient this step: update only row k
+        # (row-sparse Adam), so they do not drift on stale momentum.
+        sparse = {n: grads.pop(n) for n in list(grads) if n in PER_FRAME_BLOCKS}
         self.params, self.adam_state = adam.adam_update(grads, self.adam_state, self.params, self.adam_config)
+        if sparse:
+            self.params, self.adam_state = adam.adam_update_rows(
+                sparse, {n: [k] for n in sparse}, self.adam_state, self.params, self.adam_config)
         mse = float(np.mean((image - tgt.image) ** 2)) if ignore is None else float(
             np.mean(((image - tgt.image) ** 2)[~ignore]))
         return {"step": step, "frame": k, "stage": stage.name, "loss": float(loss), "train_psnr": psnr_from_mse(mse),
@@ -375,15 +424,26 @@ class Trainer:
             "step": self.step_index, "seconds": self.stopwatch.seconds(), "config": self.config.to_dict(),
             "components": self.components.__dict__, "left_out": self.components.left_out(),
             "poses_est": self.poses_est.tolist(), "times": self.times.tolist(), "final": final,
-            "scene_root": str(self.scene.root) if self.scene.root is not None else None,
-            "K": np.asarray(self.frames[0].K).tolist(), "width": int(self.frames[0].width),
-            "height": int(self.frames[0].height),
+            "scene_root": str(Path(self.scene.root).resolve()) if self.scene.root is not None else None,
+            "K": [np.asarray(f.K).tolist() for f in self.frames], "width": [int(f.width) for f in self.frames],
+            "height": [int(f.height) for f in self.frames],
         }
         save_checkpoint(self.run_dir / (FINAL_NAME if final else CHECKPOINT_NAME), arrays, meta)
         self.log.save()
 
     def _restore(self, path):
         arrays, meta = load_checkpoint(path)
+        saved_cfg = ExperimentConfig.from_dict(meta["config"])
+        # A resumed run continues the saved experiment: only the run length and output may change.
+        free = {"iters", "time_budget", "quiet"}
+        changed = [f"train.{k}" for k, v in self.config.train.__dict__.items()
+                   if k not in free and getattr(saved_cfg.train, k) != v]
+        changed += [k for k in saved_cfg.__dict__ if k != "train" and getattr(saved_cfg, k) != getattr(self.config, k)]
+        if changed:
+            raise ValueError(f"--resume with a config that differs from the saved run in {changed}; resume with the "
+                             f"run's own config (RUN/config.json), changing only {sorted(free)}")
+        if len(meta["times"]) != self.num_frames or not np.allclose(meta["times"], self.times):
+            raise ValueError(f"--resume: the scene's frames do not match the run in {path.parent}")
         self.params = {k[len("params/"):]: v for k, v in arrays.items() if k.startswith("params/")}
         state = {}
         for k, v in arrays.items():
@@ -397,6 +457,7 @@ class Trainer:
         self.step_index = int(meta["step"])
         self.stopwatch = Stopwatch(meta["seconds"])
         self.components = Components(**meta["components"])
+        self.log.truncate(self.step_index)
         self.log.note(f"resumed from {path} at step {self.step_index} ({meta['seconds']:.1f}s of training)")
 
     # ------------------------------------------------------------------ the loop
@@ -404,6 +465,10 @@ class Trainer:
         tc = self.config.train
         total = tc.iters
         t_start = time.perf_counter()
+        t_jit = time.perf_counter()
+        _warm_up_kernels(self.config)
+        self.log.note(f"JIT warm-up (compile or cache load) took {time.perf_counter() - t_jit:.1f}s, not counted "
+                      "as training time")
         if self.step_index == 0:
             self.log.note(f"training {total} steps; stages: " + ", ".join(
                 f"{s.name} [{s.start}, {s.stop})" for s in self.stages))
@@ -444,6 +509,16 @@ class Trainer:
                       f"({wall:.1f}s wall including evaluation)")
         self.log.save()
         return {"steps": self.step_index, "train_seconds": self.stopwatch.seconds(), **info}
+
+
+def _warm_up_kernels(config: ExperimentConfig):
+    """Compile (or load from the Numba cache) the renderer's kernels on one tiny Gaussian so the
+    first training step's time is training, not JIT."""
+    one = np.ones((1, 3))
+    out, saved = render_fwd(np.array([[0.0, 0.0, 2.0]]), np.array([[1.0, 0.0, 0.0, 0.0]]), 0.1 * one,
+                            np.array([0.5]), 0.5 * one, np.eye(4), np.array([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]),
+                            8, 8, np.zeros(3), config.render)
+    render_bwd(saved, np.ones_like(out["image"]))
 
 
 def mid_exposure_pose(params, config: ExperimentConfig, blur_on: bool, poses_est, times, k: int) -> np.ndarray:

@@ -251,3 +251,32 @@ def test_gradient_errors():
         adam_update({"x": np.zeros(3)}, state, params, config)
     with pytest.raises(TypeError, match="AdamConfig"):
         adam_update({"w": np.zeros(3)}, state, params, {"lr": 0.1})
+
+
+def test_row_sparse_update_leaves_other_rows_and_their_moments_alone():
+    from d2gs_np.optim.adam import adam_update_rows
+
+    rng = np.random.default_rng(3)
+    p0 = {"camera.xi_start": rng.normal(size=(5, 6))}
+    cfg = AdamConfig(lrs={"camera.xi_start": 1e-2})
+    state = adam_init(p0)
+    g = {"camera.xi_start": rng.normal(size=(5, 6))}
+    p1, s1 = adam_update_rows(g, {"camera.xi_start": [2]}, state, p0, cfg)
+    changed = np.any(p1["camera.xi_start"] != p0["camera.xi_start"], axis=1)
+    np.testing.assert_array_equal(changed, [False, False, True, False, False])
+    # A first step of Adam moves by lr * sign(g) (up to eps).
+    np.testing.assert_allclose(p1["camera.xi_start"][2] - p0["camera.xi_start"][2],
+                               -1e-2 * np.sign(g["camera.xi_start"][2]), rtol=1e-12)
+    # Row 4's first update later is again a bias-corrected first step (its own count is 0),
+    # and row 2 does not move on stale momentum meanwhile.
+    g2 = {"camera.xi_start": rng.normal(size=(5, 6))}
+    p2, s2 = adam_update_rows(g2, {"camera.xi_start": [4]}, s1, p1, cfg)
+    np.testing.assert_array_equal(p2["camera.xi_start"][2], p1["camera.xi_start"][2])
+    np.testing.assert_allclose(p2["camera.xi_start"][4] - p1["camera.xi_start"][4],
+                               -1e-2 * np.sign(g2["camera.xi_start"][4]), rtol=1e-12)
+    np.testing.assert_array_equal(s2["row_step"]["camera.xi_start"], [0, 0, 1, 0, 1])
+    # Dense updates and pruning keep the row counts.
+    p3, s3 = adam_update({}, s2, p2, cfg)
+    assert "row_step" in s3
+    with pytest.raises(ValueError, match="rows"):
+        adam_update_rows(g2, {}, s2, p2, cfg)

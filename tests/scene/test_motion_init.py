@@ -76,7 +76,7 @@ def test_components_and_tracking():
     assert track_components(cents, gate=0.1)[1].min() >= 2  # gated: all new tracks
 
 
-@pytest.mark.parametrize("bad", [dict(min_area_fraction=1.5), dict(max_jump_fraction=0.0), dict(ridge=-1.0)])
+@pytest.mark.parametrize("bad", [dict(min_area_fraction=1.5), dict(max_jump_fraction=0.0), dict(ridge=-1.0), dict(ridge=0.0)])
 def test_config_validation(bad):
     with pytest.raises(ValueError, match="MotionInitConfig"):
         MotionInitConfig(**bad)

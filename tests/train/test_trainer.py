@@ -174,3 +174,57 @@ def test_posenet_trajectory_and_learned_exposure_train(dynamic_scene, tmp_path):
         assert not np.array_equal(tr.params[n], v), f"{n} was not trained"
     assert any("exposure length learned" in n for n in tr.log.notes)
     assert any("trajectory model: posenet" in n for n in tr.log.notes)
+
+
+def test_resume_after_a_time_budget_stop_continues_from_the_final_result(sharp_scene, tmp_path):
+    cfg = _config(iters=8)
+    first = Trainer(sharp_scene, cfg.replace(train=dataclasses.replace(cfg.train, time_budget=1e-9)), tmp_path / "r")
+    first.run()
+    stopped = first.step_index
+    assert 0 < stopped < 8
+    again = Trainer(sharp_scene, cfg, tmp_path / "r", resume=True)
+    assert again.step_index == stopped
+    again.run()
+    steps = [int(line.split(",")[0]) for line in (tmp_path / "r" / "log.csv").read_text().splitlines()[1:]]
+    assert steps == sorted(set(steps)), "log.csv has repeated or backwards steps after resume"
+
+
+def test_resume_errors(sharp_scene, tmp_path):
+    with pytest.raises(FileNotFoundError, match="no checkpoint"):
+        Trainer(sharp_scene, _config(), tmp_path / "empty", resume=True)
+    Trainer(sharp_scene, _config(iters=2), tmp_path / "r").run()
+    other = _config(iters=2, seed=5)
+    with pytest.raises(ValueError, match="train.seed"):
+        Trainer(sharp_scene, other, tmp_path / "r", resume=True)
+
+
+def test_only_the_trained_frame_moves_its_camera_endpoints(dynamic_scene, tmp_path):
+    tr = Trainer(dynamic_scene, _config(iters=20, warmup_fraction=0.0, deform_fraction=0.0), tmp_path / "r")
+    before = tr.params["camera.xi_start"].copy()
+    info = tr.step(0)
+    moved = np.flatnonzero(np.any(tr.params["camera.xi_start"] != before, axis=1))
+    np.testing.assert_array_equal(moved, [info["frame"]])
+
+
+def test_warmup_survives_frames_whose_ssim_interior_is_all_moving(dynamic_scene, tmp_path):
+    frames = []
+    for f in dynamic_scene.frames:
+        m = f.mask.copy()
+        m[8:20, :] = True  # a band across the middle: at the smallest scale the SSIM interior is masked
+        frames.append(dataclasses.replace(f, mask=m))
+    scene = dataclasses.replace(dynamic_scene, frames=frames)
+    tr = Trainer(scene, _config(iters=10, warmup_fraction=0.5), tmp_path / "r")
+    tr.run()
+    assert tr.step_index == 10
+
+
+def test_float_and_bool_config_types_are_checked():
+    with pytest.raises(ValueError, match="iters"):
+        ExperimentConfig.from_dict({"train": {"iters": 3.0}})
+    with pytest.raises(ValueError, match="progressive"):
+        ExperimentConfig.from_dict({"train": {"progressive": "false"}})
+    with pytest.raises(ValueError, match="log_every"):
+        TrainConfig(log_every=0)
+    from d2gs_np.train.config import LearningRates
+    with pytest.raises(ValueError, match="LearningRates.means"):
+        LearningRates(means=-1.0)
