@@ -312,8 +312,8 @@ def adam_update_rows(grads, rows, state, params, config):
     ``grads`` are updated: their moments, their parameters, and their own step counts (kept in
     ``state["row_step"][name]``, (N,) ints) for the bias correction. Rows outside the list keep
     their parameters AND moments, so per-frame blocks (camera endpoints) of frames not in the
-    batch do not drift on stale momentum. The learning rate is the block's schedule at the
-    block's step count. Returns (new params, new state); inputs are not modified.
+    batch do not drift on stale momentum. Each row's learning rate is the block's schedule at
+    that row's own step count (a schedule counts the visits of a row). Returns (new params, new state); inputs are not modified.
     """
     if not isinstance(config, AdamConfig):
         raise TypeError(f"config must be an AdamConfig; got {type(config).__name__}")
@@ -342,8 +342,9 @@ def adam_update_rows(grads, rows, state, params, config):
         rs = state.get("row_step", {}).get(name)
         rs = np.zeros(p.shape[0], dtype=np.int64) if rs is None else np.array(rs, dtype=np.int64)
         step = int(state["step"].get(name, 0))
-        lr = config.lr(name, step)
-        k = (rs[idx] + 1).reshape((-1,) + (1,) * (p.ndim - 1))
+        bshape = (-1,) + (1,) * (p.ndim - 1)
+        lr = np.array([config.lr(name, int(c)) for c in rs[idx]], dtype=p.dtype).reshape(bshape)
+        k = (rs[idx] + 1).reshape(bshape)
         m[idx] = b1 * m[idx] + (1.0 - b1) * gi
         v[idx] = b2 * v[idx] + (1.0 - b2) * (gi * gi)
         m_hat = m[idx] / (1.0 - b1**k)

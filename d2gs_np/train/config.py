@@ -48,7 +48,8 @@ class LearningRates:
     colors: float = 2.5e-3 * 4  # no SH: plain RGB learns faster than 3DGS's SH DC term
     deform: float = 1.6e-4  # deformation coefficients of means (times extent); others use deform_other
     deform_other: float = 1e-3
-    camera: float = 1e-3  # trajectory endpoints xi_start / xi_end and PoseNet weights
+    camera: float = 1e-3  # trajectory endpoints xi_start / xi_end and PoseNet weights; decays to camera_final
+    camera_final: float = 1e-5
     exposure: float = 1e-2
 
     def __post_init__(self):

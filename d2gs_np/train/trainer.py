@@ -251,7 +251,9 @@ class Trainer:
         for name in self.params:
             kind = name.split(".", 1)[1] if "." in name else name
             if name.startswith(("camera.xi", "posenet.")):
-                rates[name] = lr.camera
+                # Per-frame rows are visited once per epoch: decay over the visits a row gets.
+                visits = n // self.num_frames + 1 if name.startswith("camera.xi") else n
+                rates[name] = adam.exponential_decay(lr.camera, lr.camera_final, visits)
             elif name == "camera.exposure_logit":
                 rates[name] = lr.exposure
             elif kind == "means":
