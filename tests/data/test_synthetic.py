@@ -211,7 +211,9 @@ def test_test_views_are_sideways_offset_sharp_renders(dyn):
 
 # ---------------------------------------------------------------------- camera path
 def test_camera_path_is_smooth():
-    world = syn.build_world(syn.PRESETS["dynamic"])
+    cfg = syn.PRESETS["dynamic"]
+    world = syn.build_world(cfg)
+    shake = max(1.0, cfg.shake_scale)  # the shake's amplitudes, and so its acceleration, scale with this
 
     def max_accel(h):
         t = np.arange(-0.05, 1.05 + h / 2, h)
@@ -221,14 +223,14 @@ def test_camera_path_is_smooth():
     a1, a2 = max_accel(2e-3), max_accel(1e-3)
     # Smooth path: the second difference converges to the (bounded) acceleration. A kink of
     # velocity jump dv would show up as dv / h, doubling when h halves.
-    assert a1 < 50.0  # world units per (unit time)^2; measured ~26 (shake 0.006 at ~6-9 cycles dominates)
+    assert a1 < 50.0 * shake  # world units per (unit time)^2; measured ~26 at shake_scale 1 (shake 0.006 at ~6-9 cycles dominates)
     assert abs(a2 - a1) < 0.02 * a1
     # orientation too: angular second difference of consecutive relative rotations
     t = np.arange(0.0, 1.0, 1e-3)
     P = syn.camera_pose(world, t)
     w = se3_log(P[1:] @ se3_inverse(P[:-1]))[:, 3:] / 1e-3  # angular velocity samples
     jumps = np.abs(np.diff(w, axis=0)).max() / 1e-3
-    assert jumps < 100.0  # rad / unit time^2; measured ~42 (rotation shake 0.009 rad at 6-9 cycles)
+    assert jumps < 100.0 * shake  # rad / unit time^2; measured ~42 at shake_scale 1 (rotation shake 0.009 rad at 6-9 cycles)
 
 
 # ------------------------------------------------------------------- I/O round trip
@@ -295,3 +297,17 @@ def test_make_scene_rejects_unknown_preset_and_field():
         syn.make_scene("blurry")
     with pytest.raises(TypeError, match="override"):
         syn.make_scene("dynamic", widht=10)
+
+
+def test_shake_scale_strengthens_blur_and_keeps_the_path_smooth():
+    from d2gs_np import metrics
+    from d2gs_np.data.synthetic import make_scene
+
+    kw = dict(width=64, height=36, num_frames=6, num_test_views=0)
+    mild = make_scene("dynamic", 0, shake_scale=1.0, **kw)
+    strong = make_scene("dynamic", 0, shake_scale=3.0, **kw)
+    p_mild = np.mean([metrics.psnr(f.image, f.sharp) for f in mild.frames])
+    p_strong = np.mean([metrics.psnr(f.image, f.sharp) for f in strong.frames])
+    assert p_strong < p_mild - 1.0, (p_mild, p_strong)
+    with pytest.raises(ValueError, match="shake_scale"):
+        make_scene("dynamic", 0, shake_scale=-1.0, **kw)
