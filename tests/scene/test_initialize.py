@@ -168,8 +168,9 @@ def test_dynamic_depth_is_the_scaled_median_static_depth_of_the_frame(scene):
 
 
 def test_no_moving_pixels_give_no_dynamic_points():
+    # shake_scale 1: mild blur, so that this tiny scene still triangulates some static points
     static_scene = syn.make_scene("static", seed=0, width=96, height=54, num_frames=4, num_test_views=0,
-                                  rot_noise_deg=0.0, trans_noise_fraction=0.0)
+                                  rot_noise_deg=0.0, trans_noise_fraction=0.0, shake_scale=1.0)
     s, c, d, dc, info = initialize_points(static_scene, InitConfig(), np.random.default_rng(0))
     assert d is None and dc is None and info["num_dynamic"] == 0
     assert info["dynamic"] == "masks have no moving pixels"
