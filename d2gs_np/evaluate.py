@@ -20,6 +20,7 @@ import numpy as np
 
 from d2gs_np import metrics
 from d2gs_np.data.io import load_scene
+from d2gs_np.geometry.camera import camera_center
 from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint
 from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.trainer import CHECKPOINT_NAME, FINAL_NAME, mid_exposure_pose, render_at
@@ -102,6 +103,19 @@ def evaluate(run: LoadedRun, scene) -> dict:
     return out
 
 
+def align_with_orientations(est_cam_T_world, gt_cam_T_world):
+    """Sim(3) (s, R, t) with gt ~= s R est + t, fitted (Umeyama) on each camera's centre and on the
+    three points one spread-length along its axes, so orientations pin the rotation even when the
+    centres are (nearly) collinear. Spread = RMS distance of the centres from their mean."""
+    def points(T):
+        c = camera_center(T)
+        d = float(np.sqrt(np.mean(np.sum((c - c.mean(0)) ** 2, axis=1))))
+        d = d if d > 0 else 1.0
+        axes = np.swapaxes(np.asarray(T)[:, :3, :3], 1, 2)  # columns: camera axes in world coordinates
+        return np.concatenate([c] + [c + d * axes[:, :, j] for j in range(3)])
+    return metrics.umeyama(points(est_cam_T_world), points(gt_cam_T_world), with_scale=True)
+
+
 def _trajectory_and_nvs(run: LoadedRun, scene, mids) -> dict:
     out = {}
     frames = scene.frames
@@ -114,8 +128,10 @@ def _trajectory_and_nvs(run: LoadedRun, scene, mids) -> dict:
                          "initial": {"ate": float(ate0), "rpe_t": float(rpe_t0), "rpe_r": float(rpe_r0)}}
     if scene.test_frames:
         # Test views are given in the true frame; the similarity aligning our trajectory to the
-        # truth, inverted, carries them into the reconstruction's frame.
-        s, R, t = metrics.sim3_inverse(*metrics.align_trajectory(mids, gt))
+        # truth, inverted, carries them into the reconstruction's frame. It is fitted on camera
+        # centres AND orientations: a hand-held path is close to a line or an arc, about which
+        # centres alone leave the rotation undetermined (ATE keeps the centres-only protocol).
+        s, R, t = metrics.sim3_inverse(*align_with_orientations(mids, gt))
         pairs = []
         for f in scene.test_frames:
             pose = metrics.sim3_apply_to_poses(s, R, t, f.cam_T_world)
