@@ -47,7 +47,7 @@ from dataclasses import dataclass
 import numpy as np
 
 from d2gs_np.constants import POSENET_INPUT_STD_MIN
-from d2gs_np.geometry.se3 import check_rigid, se3_log
+from d2gs_np.geometry.se3 import check_rigid, se3_inverse, se3_log
 
 __all__ = [
     "TRAJECTORY_KINDS",
@@ -76,6 +76,11 @@ class TrajectoryConfig:
     hidden_layers, hidden_width: PoseNet size (METHOD.md: 2 hidden layers of 64).
     activation: "tanh" or "softplus" (PoseNet hidden layers).
     output_init_scale: PoseNet output-layer weight scale at initialisation (see module docstring).
+    init: "velocity" (default): the direct endpoints start on the camera's motion, estimated from
+        the neighbouring estimated poses (``velocity_endpoints``), with init_spread only as a
+        floor; "random": a tiny spread in a random direction. The velocity start matters: with a
+        tiny random spread the endpoints open far too slowly (measured on the dynamic preset:
+        learned exposure rotations 0.03-0.57 deg against 0.6-1.6 deg true after 2000 steps).
     """
 
     kind: str = "direct"
@@ -84,8 +89,11 @@ class TrajectoryConfig:
     hidden_width: int = 64
     activation: str = "tanh"
     output_init_scale: float = 1e-5
+    init: str = "velocity"
 
     def __post_init__(self):
+        if self.init not in ("velocity", "random"):
+            raise ValueError(f"TrajectoryConfig.init must be 'velocity' or 'random'; got {self.init!r}")
         if self.kind not in TRAJECTORY_KINDS:
             raise ValueError(f"TrajectoryConfig.kind must be one of {TRAJECTORY_KINDS}; got {self.kind!r}")
         if self.activation not in ACTIVATIONS:
@@ -140,10 +148,34 @@ def _unit_vectors(rng, n):
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def init_trajectory(config, poses_est, times, rng):
+def velocity_endpoints(poses_est, times, exposure_fraction):
+    """Endpoint tangents (xi_start, xi_end) (N, 6) of an exposure centred on each estimated pose,
+    moving with the camera's velocity estimated from the neighbouring estimates.
+
+    Velocity (left-perturbation tangent per unit time): v_k = log(T_{k+1} T_{k-1}^{-1}) / (t_{k+1} -
+    t_{k-1}), one-sided at the ends. The exposure lasts tau = exposure_fraction x the local frame
+    interval, so xi_start = -v tau / 2 and xi_end = +v tau / 2 (T(t) ~ exp((t - t_k) v) T_k).
+    """
+    N = poses_est.shape[0]
+    P = np.asarray(poses_est, dtype=np.float64)
+    t = np.asarray(times, dtype=np.float64)
+    lo = np.clip(np.arange(N) - 1, 0, N - 1)
+    hi = np.clip(np.arange(N) + 1, 0, N - 1)
+    dt = t[hi] - t[lo]
+    rel = np.einsum("nij,njk->nik", P[hi], se3_inverse(P[lo]))
+    v = se3_log(rel) / np.where(dt > 0, dt, 1.0)[:, None]
+    v[dt <= 0] = 0.0
+    interval = dt / np.maximum(hi - lo, 1)  # local frame interval
+    half = 0.5 * float(exposure_fraction) * interval[:, None]
+    return -v * half, v * half
+
+
+def init_trajectory(config, poses_est, times, rng, exposure_fraction=None):
     """Initial trajectory blocks.
 
     config: TrajectoryConfig. poses_est: (N, 4, 4) estimated cam_T_world. times: (N,).
+    exposure_fraction: used by the "velocity" start of the direct model (None: 0.5, the learned
+    exposure's initial value).
     rng: np.random.Generator (directions of the initial spread, PoseNet weights).
     Returns a dict of C-contiguous blocks (names: trajectory_block_names(config)), of the dtype
     of poses_est (float32 stays float32, else float64).
@@ -157,8 +189,14 @@ def init_trajectory(config, poses_est, times, rng):
     s = float(config.init_spread)
     if config.kind == "direct":
         d = _unit_vectors(rng, N)
-        return {"camera.xi_start": np.ascontiguousarray(-s * d, dtype=dtype),
-                "camera.xi_end": np.ascontiguousarray(s * d, dtype=dtype)}
+        xs, xe = -s * d, s * d
+        if config.init == "velocity" and N > 1:
+            vs, ve = velocity_endpoints(poses_est, times, 0.5 if exposure_fraction is None else exposure_fraction)
+            # Keep the tiny random spread where the camera did not move (a saddle otherwise).
+            moving = np.linalg.norm(ve - vs, axis=1) > 2 * s
+            xs[moving], xe[moving] = vs[moving], ve[moving]
+        return {"camera.xi_start": np.ascontiguousarray(xs, dtype=dtype),
+                "camera.xi_end": np.ascontiguousarray(xe, dtype=dtype)}
     H, L = config.hidden_width, config.hidden_layers
     params = {}
     fan_in = _NUM_INPUTS

@@ -60,7 +60,7 @@ def test_shapes_and_blocks(kind):
 def test_initial_spread_is_tiny_and_nonzero(kind):
     rng = np.random.default_rng(1)
     poses, times = _trajectory(rng)
-    config = TrajectoryConfig(kind=kind, init_spread=1e-4)
+    config = TrajectoryConfig(kind=kind, init_spread=1e-4, init="random")  # the tiny symmetry-breaking start
     params = init_trajectory(config, poses, times, rng)
     (xs, xe), _ = endpoints_fwd(params, config, np.arange(N), poses, times)
     spread = np.linalg.norm(xe - xs, axis=1)
@@ -173,3 +173,29 @@ def test_validation():
         endpoints_fwd(params, TrajectoryConfig(kind="posenet"), np.array([0]), poses, times)
     with pytest.raises(ValueError, match="times must have shape"):
         init_trajectory(config, poses, times[:3], rng)
+
+
+def test_velocity_endpoints_recover_a_constant_velocity_exposure():
+    from d2gs_np.geometry import se3_exp
+    from d2gs_np.trajectory import velocity_endpoints
+
+    v = np.array([0.3, -0.1, 0.2, 0.05, -0.4, 0.2])  # tangent per unit time (left perturbation)
+    T0 = se3_exp(np.array([0.1, 0.2, 3.0, 0.3, 0.1, -0.2]))
+    times = np.linspace(0.0, 1.0, 7)
+    poses = np.stack([se3_exp(t * v) @ T0 for t in times])
+    xs, xe = velocity_endpoints(poses, times, exposure_fraction=0.6)
+    half = 0.5 * 0.6 * (1.0 / 6.0)
+    np.testing.assert_allclose(xe, np.tile(v * half, (7, 1)), atol=1e-12)
+    np.testing.assert_allclose(xs, -xe, atol=1e-15)
+
+
+def test_velocity_init_is_used_and_falls_back_to_random_spread_for_a_still_camera():
+    from d2gs_np.trajectory import TrajectoryConfig, init_trajectory
+
+    rng = np.random.default_rng(0)
+    still = np.tile(np.eye(4), (5, 1, 1))
+    p = init_trajectory(TrajectoryConfig(), still, np.linspace(0, 1, 5), rng, exposure_fraction=0.5)
+    spread = np.linalg.norm(p["camera.xi_end"] - p["camera.xi_start"], axis=1)
+    np.testing.assert_allclose(spread, 2e-4, rtol=1e-12)  # the tiny symmetry-breaking spread
+    with pytest.raises(ValueError, match="init"):
+        TrajectoryConfig(init="zeros")

@@ -223,7 +223,9 @@ class Trainer:
             f"initialised {gaussians.num_static(self.params)} static and {gaussians.num_dynamic(self.params)} "
             f"dynamic Gaussians in {time.perf_counter() - t0:.1f}s ({_short(info)})")
         if self.components.blur:
-            self.params.update(traj_model.init_trajectory(cfg.trajectory, self.poses_est, self.times, rng))
+            self.params.update(traj_model.init_trajectory(
+                cfg.trajectory, self.poses_est, self.times, rng,
+                exposure_fraction=None if self.components.learn_exposure else self.components.exposure_fraction))
             if self.components.learn_exposure:
                 self.params.update(blur_model.init_exposure())
         self.adam_state = adam.adam_init(self.params)
