@@ -72,6 +72,16 @@ def project_points(points, cam_T_world, K):
     return uv, z
 
 
+def unproject_points(pix, depth, cam_T_world, K):
+    """World points on the rays through continuous pixels pix (M, 2) at camera depths depth (M,):
+    the inverse of project_points for points in front of the camera."""
+    pix = np.asarray(pix, dtype=np.float64)
+    depth = np.asarray(depth, dtype=np.float64)
+    pc = np.stack([(pix[:, 0] - K[0, 2]) / K[0, 0] * depth, (pix[:, 1] - K[1, 2]) / K[1, 1] * depth, depth], axis=1)
+    T = np.asarray(cam_T_world, dtype=np.float64)
+    return (pc - T[:3, 3]) @ T[:3, :3]  # R^T (p_cam - t), row-wise
+
+
 def camera_center(cam_T_world):
     """World position of the camera centre, (..., 4, 4) -> (..., 3): -R^T t."""
     T = np.asarray(cam_T_world, dtype=np.float64)
@@ -108,6 +118,6 @@ def look_at(eye, target, up=(0.0, -1.0, 0.0)):
 
 
 __all__ = [
-    "make_intrinsics", "check_intrinsics", "scale_intrinsics", "scaled_size", "project_points",
+    "make_intrinsics", "check_intrinsics", "scale_intrinsics", "scaled_size", "project_points", "unproject_points",
     "camera_center", "opengl_c2w_to_cam_T_world", "cam_T_world_to_opengl_c2w", "look_at", "check_rigid",
 ]

@@ -46,7 +46,7 @@ import numpy as np
 
 from d2gs_np.constants import PIXEL_CENTER_OFFSET
 from d2gs_np.features import FeatureConfig, detect_features, match_keypoints, static_detector_mask
-from d2gs_np.geometry.camera import camera_center, check_intrinsics, project_points
+from d2gs_np.geometry.camera import camera_center, check_intrinsics, project_points, unproject_points
 from d2gs_np.geometry.se3 import check_rigid
 
 __all__ = ["InitConfig", "initialize_points", "triangulate_matches", "sample_image_bilinear"]
@@ -186,11 +186,6 @@ def _check_scene(scene):
             raise ValueError(f"scene.frames[{k}].mask must have shape ({f.height}, {f.width}); got {f.mask.shape}")
 
 
-def _lift(pix, depth, cam_T_world, K):
-    """World points on the rays through pixels pix (M, 2) at camera depths depth (M,)."""
-    pc = np.stack([(pix[:, 0] - K[0, 2]) / K[0, 0] * depth, (pix[:, 1] - K[1, 2]) / K[1, 1] * depth, depth], axis=1)
-    R, t = cam_T_world[:3, :3], cam_T_world[:3, 3]
-    return (pc - t) @ R  # R^T (p_cam - t), row-wise
 
 
 def _random_pixels(rng, frames, pools, n):
@@ -294,7 +289,7 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
         fill_cols = np.empty((n_fill, 3))
         for k in np.unique(fill_src):
             s = fill_src == k
-            fill_pts[s] = _lift(pix[s], depth[s], frames[k].cam_T_world, frames[k].K)
+            fill_pts[s] = unproject_points(pix[s], depth[s], frames[k].cam_T_world, frames[k].K)
             fill_cols[s] = sample_image_bilinear(frames[k].image, pix[s])
 
     static_points = np.concatenate([tri_pts, fill_pts])
@@ -321,7 +316,7 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
         dynamic_colors = np.empty((len(dyn_src), 3))
         for k in np.unique(dyn_src):
             s = dyn_src == k
-            dynamic_points[s] = _lift(dyn_pix[s], depth[s], frames[k].cam_T_world, frames[k].K)
+            dynamic_points[s] = unproject_points(dyn_pix[s], depth[s], frames[k].cam_T_world, frames[k].K)
             dynamic_colors[s] = sample_image_bilinear(frames[k].image, dyn_pix[s])
         dynamic_colors = np.clip(dynamic_colors, 0.0, 1.0)
 

@@ -29,6 +29,7 @@ import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from d2gs_np.geometry.camera import unproject_points
 from d2gs_np.scene.deformation import DeformConfig, deform_basis
 
 
@@ -82,11 +83,6 @@ def track_components(centroids, gate):
     return ids
 
 
-def _lift(pix, depth, cam_T_world, K):
-    pc = np.stack([(pix[:, 0] - K[0, 2]) / K[0, 0] * depth, (pix[:, 1] - K[1, 2]) / K[1, 1] * depth, depth], axis=1)
-    return (pc - cam_T_world[:3, 3]) @ cam_T_world[:3, :3]
-
-
 def initialize_deformation(scene, seed_points, seed_frames, seed_pixels, deform_config: DeformConfig,
                            config: MotionInitConfig = MotionInitConfig()):
     """Base means (Nd, 3) and position coefficients (Nd, K, 3) for dynamic seeds.
@@ -136,7 +132,7 @@ def initialize_deformation(scene, seed_points, seed_frames, seed_pixels, deform_
         pc = (frames[k].cam_T_world[:3, :3] @ seed_points[i]) + frames[k].cam_T_world[:3, 3]
         depth = float(pc[2])
         fidx = np.array([m for m, _ in mem])
-        targets = np.stack([_lift((cent + offset)[None], np.array([depth]), frames[m].cam_T_world, frames[m].K)[0]
+        targets = np.stack([unproject_points((cent + offset)[None], np.array([depth]), frames[m].cam_T_world, frames[m].K)[0]
                             for m, cent in mem])  # (M, 3)
         A = basis[fidx]  # (M, 1 + K)
         reg = config.ridge * len(fidx) * np.eye(1 + K)

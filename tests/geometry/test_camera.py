@@ -220,3 +220,14 @@ def test_camera_center_maps_to_camera_origin():
     assert c.shape == (2, 3, 3)
     origin = np.einsum("...ij,...j->...i", cam_T_world[..., :3, :3], c) + cam_T_world[..., :3, 3]
     np.testing.assert_allclose(origin, 0.0, rtol=0, atol=DEPTH_TOL)
+
+
+def test_unproject_inverts_project():
+    from d2gs_np.geometry.camera import look_at, make_intrinsics, project_points, unproject_points
+
+    rng = np.random.default_rng(5)
+    T = look_at([0.5, -0.2, -3.0], [0.0, 0.0, 1.0])
+    K = make_intrinsics(120.0, 110.0, 40.5, 30.25)
+    pts = rng.normal(size=(20, 3))
+    uv, z = project_points(pts, T, K)
+    np.testing.assert_allclose(unproject_points(uv, z, T, K), pts, atol=1e-12)
