@@ -44,6 +44,7 @@ from d2gs_np.scene.motion_init import initialize_deformation
 from d2gs_np.scene.model import evaluate_bwd, evaluate_fwd
 from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint, save_checkpoint
 from d2gs_np.train.config import ExperimentConfig
+from d2gs_np.train.densify import GradientStats, densify
 from d2gs_np.train.log import RunLog, Stopwatch, psnr_from_mse
 from d2gs_np.train.schedule import TargetCache
 
@@ -201,6 +202,9 @@ class Trainer:
             self._initialise()
         self.stages = self._make_stages()
         self.adam_config = self._make_adam_config()
+        # Densification statistics restart at construction (also after a resume).
+        self.grad_stats = GradientStats(self.params) if config.densify.enabled else None
+        self._last_v_means2d = None
 
     # ------------------------------------------------------------------ set-up
     def _initialise(self):
@@ -329,7 +333,8 @@ class Trainer:
                 self.background, cfg.blur, cfg.deform, cfg.render)
 
             def backward(v_image):
-                v_p, v_xs, v_xe, v_tau = blur_model.blur_render_bwd(bsaved, v_image)
+                v_p, v_xs, v_xe, v_tau, aux = blur_model.blur_render_bwd(bsaved, v_image, return_aux=True)
+                self._last_v_means2d = aux["v_means2d"].sum(axis=0) * (tgt.width / f.width)  # full-res px
                 v_p = dict(v_p)
                 v_p.update(traj_model.endpoints_bwd(tsaved, v_xs[None], v_xe[None]))
                 if self.components.learn_exposure:
@@ -343,6 +348,7 @@ class Trainer:
 
             def backward(v_image):
                 g = render_bwd(rsaved, v_image)
+                self._last_v_means2d = g["means2d"] * (tgt.width / f.width)  # full-res px
                 v_p, _ = evaluate_bwd(esaved, {n: g[n] for n in ("means", "quats", "scales", "opacities", "colors")})
                 return v_p
         return out, backward, tgt
@@ -367,6 +373,10 @@ class Trainer:
         loss, lsaved = photometric_fwd(image, tgt.image, lam, mask=weights)
         v_image = photometric_bwd(lsaved, 1.0)
         grads = backward(v_image)
+        if self.grad_stats is not None:
+            visible = (np.asarray(out["radii"]).reshape(len(self._last_v_means2d), -1) > 0).all(axis=1)
+            self.grad_stats.add(self._last_v_means2d, visible.astype(np.float64),
+                                gaussians.num_static(self.params))
         grads = {n: g for n, g in grads.items() if n.startswith(stage.trainable) and n in self.params}
         # Per-frame endpoint rows of other frames get no gradient this step: update only row k
         # (row-sparse Adam), so they do not drift on stale momentum.
@@ -392,6 +402,10 @@ class Trainer:
         self.adam_state = adam.adam_select(self.adam_state, "static", keep_s)
         if keep_d is not None:
             self.adam_state = adam.adam_select(self.adam_state, "dynamic", keep_d)
+        if self.grad_stats is not None:
+            self.grad_stats.select("static", keep_s)
+            if keep_d is not None:
+                self.grad_stats.select("dynamic", keep_d)
         return removed
 
     def heldout_psnr(self) -> Optional[float]:
@@ -490,6 +504,15 @@ class Trainer:
                 hook(self, info)
             if tc.prune_every and step > 0 and step % tc.prune_every == 0 and step < int(0.9 * total):
                 self.prune()
+            dc = self.config.densify
+            if (dc.enabled and step > 0 and step % dc.every == 0
+                    and dc.start_fraction * total <= step < dc.stop_fraction * total):
+                self.params, self.adam_state, self.grad_stats, dinfo = densify(
+                    self.params, self.adam_state, self.grad_stats, dc, self.extent,
+                    max(f.width for f in self.frames), np.random.default_rng((tc.seed, step, 7)))
+                if dinfo["cloned"] or dinfo["split"]:
+                    self.log.note(f"step {step}: densified (cloned {dinfo['cloned']}, split {dinfo['split']}) -> "
+                                  f"{self.num_gaussians()} Gaussians")
             self.stopwatch.pause()
             self.step_index = step + 1
             seconds = self.stopwatch.seconds()

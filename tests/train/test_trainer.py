@@ -228,3 +228,18 @@ def test_float_and_bool_config_types_are_checked():
     from d2gs_np.train.config import LearningRates
     with pytest.raises(ValueError, match="LearningRates.means"):
         LearningRates(means=-1.0)
+
+
+def test_densification_adds_gaussians_and_keeps_state_consistent(dynamic_scene, tmp_path):
+    from d2gs_np.train.densify import DensifyConfig
+
+    cfg = _config(iters=12).replace(densify=DensifyConfig(enabled=True, every=4, start_fraction=0.0,
+                                                          stop_fraction=1.0, grad_threshold_ndc=1e-9))
+    tr = Trainer(dynamic_scene, cfg, tmp_path / "run")
+    n0 = tr.num_gaussians()
+    tr.run()
+    assert tr.num_gaussians() > n0, "a tiny threshold must densify"
+    assert any("densified" in n for n in tr.log.notes)
+    for name, p in tr.params.items():
+        assert tr.adam_state["m"][name].shape == p.shape, name
+    assert tr.grad_stats.sum["static"].shape[0] == tr.params["static.means"].shape[0]
