@@ -1,0 +1,65 @@
+"""Densification: which Gaussians are cloned or split, what the children look like, and that the
+optimizer state and statistics stay in step."""
+import numpy as np
+import pytest
+
+from d2gs_np.optim import adam
+from d2gs_np.scene.gaussians import init_params
+from d2gs_np.train.densify import DensifyConfig, GradientStats, densify
+
+
+def _params(rng):
+    pts = rng.normal(size=(6, 3))
+    p = init_params(pts, rng.uniform(size=(6, 3)), rng.normal(size=(3, 3)), rng.uniform(size=(3, 3)), rng=rng)
+    p["static.log_scales"][:] = np.log(0.001)  # small: cloned
+    p["static.log_scales"][3:] = np.log(0.5)  # large: split
+    p["dynamic.deform_means"][:] = rng.normal(size=p["dynamic.deform_means"].shape)
+    return p
+
+
+def test_clone_small_split_large_only_above_threshold():
+    rng = np.random.default_rng(0)
+    p = _params(rng)
+    state = adam.adam_init(p)
+    stats = GradientStats(p)
+    cfg = DensifyConfig(enabled=True, grad_threshold_ndc=1e-3, percent_dense=0.01)
+    width = 100
+    thr = 1e-3 * 2 / width
+    g = np.zeros((9, 2))
+    g[[0, 3], 0] = 2 * thr  # static 0 (small) and 3 (large) are hot; the rest cold
+    g[[6], 0] = 2 * thr  # dynamic 0 (scale from init: small or large, both handled)
+    stats.add(g, np.ones(9), num_static=6)
+    before = {k: v.copy() for k, v in p.items()}
+    out, st, stats2, info = densify(p, state, stats, cfg, extent=1.0, width=width, rng=np.random.default_rng(1))
+    assert info["cloned"] + info["split"] == 3
+    ns = out["static.means"].shape[0]
+    assert ns == 6 + 1 + 1  # +1 clone, split: 2 children replace 1
+    # The clone is an exact copy of static 0; the split children are smaller by split_factor.
+    assert any(np.array_equal(out["static.means"][i], before["static.means"][0]) for i in range(1, ns))
+    small = np.isclose(out["static.log_scales"][:, 0], np.log(0.5 / cfg.split_factor))
+    assert small.sum() == 2
+    assert not any(np.array_equal(m, before["static.means"][3]) for m in out["static.means"])  # parent removed
+    # Dynamic children keep their deformation coefficients.
+    nd = out["dynamic.means"].shape[0]
+    assert nd > 3
+    for name, arr in out.items():
+        assert st["m"][name].shape == arr.shape, name
+    assert stats2.sum["static"].shape == (ns,) and stats2.sum["dynamic"].shape == (nd,)
+
+
+def test_budget_caps_growth():
+    rng = np.random.default_rng(2)
+    p = _params(rng)
+    stats = GradientStats(p)
+    stats.add(np.ones((9, 2)), np.ones(9), num_static=6)
+    cfg = DensifyConfig(enabled=True, max_gaussians=10)
+    out, _, _, info = densify(p, adam.adam_init(p), stats, cfg, extent=1.0, width=100, rng=rng)
+    assert out["static.means"].shape[0] + out["dynamic.means"].shape[0] <= 10  # clones and splits add one row each
+    assert info["cloned"] + info["split"] == 1
+
+
+def test_config_validation():
+    with pytest.raises(ValueError, match="start_fraction"):
+        DensifyConfig(start_fraction=0.8, stop_fraction=0.5)
+    with pytest.raises(ValueError, match="split_factor"):
+        DensifyConfig(split_factor=1.0)
