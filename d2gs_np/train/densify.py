@@ -23,7 +23,9 @@ from d2gs_np.scene import gaussians
 
 @dataclass(frozen=True)
 class DensifyConfig:
-    enabled: bool = False
+    # On by default, measured: sharp preset (24 frames 240x135, 2000 steps) DVS 31.3 dB without,
+    # 39.3 dB with (158 s -> 277 s of training); blurry demo scene 19.34 -> 19.99 dB.
+    enabled: bool = True
     start_fraction: float = 0.1
     stop_fraction: float = 0.6
     every: int = 100

@@ -177,6 +177,7 @@ class Trainer:
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
         self.hooks: list = list(hooks)
+        self._restored_stats = {}
         self.frames = scene.frames
         self.num_frames = len(self.frames)
         self.times = np.array([f.time for f in self.frames], dtype=np.float64)
@@ -202,8 +203,10 @@ class Trainer:
             self._initialise()
         self.stages = self._make_stages()
         self.adam_config = self._make_adam_config()
-        # Densification statistics restart at construction (also after a resume).
         self.grad_stats = GradientStats(self.params) if config.densify.enabled else None
+        if self.grad_stats is not None and self._restored_stats:
+            for (slot, p), v in self._restored_stats.items():
+                getattr(self.grad_stats, slot)[p] = v
         self._last_v_means2d = None
 
     # ------------------------------------------------------------------ set-up
@@ -438,6 +441,10 @@ class Trainer:
                     arrays[f"adam/{slot}/{n}"] = v
             else:
                 arrays[f"adam/{slot}"] = np.asarray(blocks)
+        if self.grad_stats is not None:  # densification statistics, so a resume is exact
+            for p in ("static", "dynamic"):
+                arrays[f"densify/sum/{p}"] = self.grad_stats.sum[p]
+                arrays[f"densify/count/{p}"] = self.grad_stats.count[p]
         meta = {
             "step": self.step_index, "seconds": self.stopwatch.seconds(), "config": self.config.to_dict(),
             "components": self.components.__dict__, "left_out": self.components.left_out(),
@@ -463,6 +470,7 @@ class Trainer:
         if len(meta["times"]) != self.num_frames or not np.allclose(meta["times"], self.times):
             raise ValueError(f"--resume: the scene's frames do not match the run in {path.parent}")
         self.params = {k[len("params/"):]: v for k, v in arrays.items() if k.startswith("params/")}
+        self._restored_stats = {tuple(k.split("/")[1:3]): v for k, v in arrays.items() if k.startswith("densify/")}
         state = {}
         for k, v in arrays.items():
             if k.startswith("adam/"):
