@@ -13,6 +13,7 @@ Gaussians), this measures per frame:
 - true rotation spread over the exposure (degrees).
 
     python examples/blur_ceiling.py --frames 0 5 11 17 23
+    python examples/blur_ceiling.py --num-frames 12 --width 160 --height 90 --frames 0 3 5 8 11  # demo scene
 """
 from __future__ import annotations
 
@@ -59,6 +60,9 @@ def main():
     ap.add_argument("--frames", type=int, nargs="+", default=[0, 5, 11, 17, 23])
     ap.add_argument("--n", type=int, default=8, help="virtual views of the model's blur")
     ap.add_argument("--seed", type=int, default=0)
+    ap.add_argument("--num-frames", type=int, default=24)
+    ap.add_argument("--width", type=int, default=240)
+    ap.add_argument("--height", type=int, default=135)
     args = ap.parse_args()
     print(f"true endpoints, true scene; n = {args.n}; frames {args.frames}; means over frames\n")
     print("| setting | input vs sharp dB | geodesic blur vs input dB | geodesic mid vs sharp dB "
@@ -66,7 +70,8 @@ def main():
     print("|---|---|---|---|---|---|---|")
     for name, overrides in SETTINGS.items():
         t0 = time.perf_counter()
-        cfg = dataclasses.replace(sy.PRESETS["dynamic"], seed=args.seed, **overrides)
+        cfg = dataclasses.replace(sy.PRESETS["dynamic"], seed=args.seed, num_frames=args.num_frames,
+                                  width=args.width, height=args.height, **overrides)
         world = sy.build_world(cfg)
         r = np.array([frame_ceiling(world, cfg, k, args.n) for k in args.frames])
         m = r.mean(axis=0)

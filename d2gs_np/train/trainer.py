@@ -510,6 +510,16 @@ class Trainer:
             info = self.step(step)
             for hook in self.hooks:
                 hook(self, info)
+            is_last = step + 1 >= total
+            heldout = None
+            if tc.eval_every and (step % tc.eval_every == 0 or is_last):
+                # Evaluated on the model the Adam step produced, before pruning and densification
+                # change it (a split moves its children apart and costs a few dB for some steps;
+                # eval_every and the densify period share multiples, so evaluating after them would
+                # log only those transients). Not counted as training time.
+                self.stopwatch.pause()
+                heldout = self.heldout_psnr()
+                self.stopwatch.start()
             if tc.prune_every and step > 0 and step % tc.prune_every == 0 and step < int(0.9 * total):
                 self.prune()
             dc = self.config.densify
@@ -524,10 +534,6 @@ class Trainer:
             self.stopwatch.pause()
             self.step_index = step + 1
             seconds = self.stopwatch.seconds()
-            is_last = self.step_index >= total
-            heldout = None
-            if tc.eval_every and (step % tc.eval_every == 0 or is_last):
-                heldout = self.heldout_psnr()
             if step % tc.log_every == 0 or is_last or heldout is not None:
                 self.log.row(step=step, seconds=round(seconds, 4), stage=stage.name, loss=info["loss"],
                              train_psnr=info["train_psnr"], heldout_psnr=heldout, scale=round(info["scale"], 4),

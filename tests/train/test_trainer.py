@@ -273,3 +273,22 @@ def densify_like_run(tr, step):
     tc = tr.config.train
     return densify(tr.params, tr.adam_state, tr.grad_stats, tr.config.densify, tr.extent,
                    max(f.width for f in tr.frames), np.random.default_rng((tc.seed, step, 7)))
+
+
+def test_heldout_is_evaluated_before_pruning_and_densification(dynamic_scene, tmp_path, monkeypatch):
+    # The logged held-out PSNR must describe the model the Adam step produced: a split moves its
+    # children apart and costs dB for a while, and eval_every shares multiples with the densify
+    # period, so evaluating after densification would log only those transients.
+    from d2gs_np.train.densify import DensifyConfig
+
+    dens = DensifyConfig(enabled=True, every=4, start_fraction=0.0, stop_fraction=1.0, grad_threshold_ndc=1e-9)
+    cfg = _config(iters=9, eval_every=4).replace(densify=dens)
+    tr = Trainer(dynamic_scene, cfg, tmp_path / "run")
+    seen = []
+    monkeypatch.setattr(tr, "heldout_psnr", lambda: seen.append(tr.num_gaussians()) or 20.0)
+    counts = []
+    tr.hooks.append(lambda t, info: counts.append(t.num_gaussians()))  # after the Adam step
+    tr.run()
+    assert any("densified" in n for n in tr.log.notes)
+    assert seen == [counts[0], counts[4], counts[8]], (seen, counts)
+    assert counts[4] < counts[5], "the test needs a densification at step 4"
