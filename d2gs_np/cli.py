@@ -163,7 +163,7 @@ def _cmd_demo(args):
 
 
 DEMO_SCENE = {"num_frames": 12, "width": 160, "height": 90}
-DEMO_ITERS = 600  # about two minutes on a 2-core laptop with the blur model (n = 8)
+DEMO_ITERS = 600  # about 3.3 minutes on 2 cores with the blur model (n = 8), measured
 
 
 def build_parser() -> argparse.ArgumentParser:
