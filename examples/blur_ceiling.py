@@ -64,6 +64,11 @@ def main():
     ap.add_argument("--width", type=int, default=240)
     ap.add_argument("--height", type=int, default=135)
     args = ap.parse_args()
+    if args.n < 1:
+        raise SystemExit(f"--n must be >= 1; got {args.n}")
+    bad = [k for k in args.frames if not 0 <= k < args.num_frames]
+    if bad:
+        raise SystemExit(f"--frames {bad} out of range: the scene has {args.num_frames} frames (--num-frames)")
     print(f"true endpoints, true scene; n = {args.n}; frames {args.frames}; means over frames\n")
     print("| setting | input vs sharp dB | geodesic blur vs input dB | geodesic mid vs sharp dB "
           "| mid rot err deg | spread deg | s |")
