@@ -15,19 +15,28 @@ import numpy as np
 
 
 def _cmd_make_scene(args):
+    from d2gs_np.data.suite import SUITE, write_suite_scene
     from d2gs_np.data.synthetic import PRESETS, write_synthetic_scene
 
-    if args.preset not in PRESETS:
-        raise ValueError(f"--preset must be one of {sorted(PRESETS)}; got {args.preset!r}")
+    if args.preset not in PRESETS and args.preset not in SUITE:
+        raise ValueError(f"--preset must be a suite scene {sorted(SUITE)} or a regression preset "
+                         f"{sorted(PRESETS)}; got {args.preset!r}")
+    suite = args.preset in SUITE
     overrides = {}
-    if args.frames is not None:
-        overrides["num_frames"] = args.frames
-    if args.width is not None:
-        overrides["width"] = args.width
-    if args.height is not None:
-        overrides["height"] = args.height
+    for arg, suite_field, regression_field in (
+            ("frames", "num_frames", "num_frames"), ("width", "width", "width"), ("height", "height", "height"),
+            ("exposure", "exposure_fraction", "exposure_fraction"),
+            ("rot_noise_deg", "rot_noise_deg", "rot_noise_deg"), ("trans_noise", "trans_noise", "trans_noise_fraction")):
+        v = getattr(args, arg)
+        if v is not None:
+            overrides[suite_field if suite else regression_field] = v
+    if not suite and overrides.get("exposure_fraction") == 0.0:
+        overrides["subframes"] = 1
     t0 = time.perf_counter()
-    path = write_synthetic_scene(args.out, args.preset, args.seed, **overrides)
+    if suite:
+        path = write_suite_scene(args.out, args.preset, args.seed, overwrite=args.overwrite, **overrides)
+    else:
+        path = write_synthetic_scene(args.out, args.preset, args.seed, overwrite=args.overwrite, **overrides)
     print(f"wrote {args.preset} scene (seed {args.seed}) to {path} in {time.perf_counter() - t0:.1f}s")
 
 
@@ -181,11 +190,22 @@ def build_parser() -> argparse.ArgumentParser:
 
     m = sub.add_parser("make-scene", help="generate a synthetic scene folder with ground truth")
     m.add_argument("out", help="output scene folder")
-    m.add_argument("--preset", default="dynamic", help="static | sharp | dynamic (default)")
+    m.add_argument("--preset", default="dynamic",
+                   help="a suite scene (photo_room, wall_disk, cube_sign, crossing, big_mover; photographs, "
+                        "realistic motion and pose error) or a regression preset (static, sharp, dynamic: "
+                        "the project's older, easier scenes). Default dynamic")
     m.add_argument("--seed", type=int, default=0)
     m.add_argument("--frames", type=int, default=None)
     m.add_argument("--width", type=int, default=None)
     m.add_argument("--height", type=int, default=None)
+    m.add_argument("--exposure", type=float, default=None,
+                   help="exposure / frame interval in [0, 1] (0: sharp video)")
+    m.add_argument("--rot-noise-deg", type=float, default=None,
+                   help="pose error in rotation: RMS angle in degrees (suite); per-axis std (regression presets)")
+    m.add_argument("--trans-noise", type=float, default=None,
+                   help="pose error in translation: RMS fraction of the scene depth (suite); per-axis std as a "
+                        "fraction of the scene scale (regression presets)")
+    m.add_argument("--overwrite", action="store_true", help="replace an existing scene folder")
     m.set_defaults(func=_cmd_make_scene)
 
     t = sub.add_parser("train", help="train on a scene folder")

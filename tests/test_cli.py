@@ -76,3 +76,13 @@ def test_help_lists_the_commands(capsys):
     out = capsys.readouterr().out
     for cmd in ("demo", "make-scene", "train", "eval", "render", "export-ply"):
         assert cmd in out
+
+
+def test_make_scene_writes_a_suite_scene_with_overrides(tmp_path):
+    out = tmp_path / "room"
+    assert main(["make-scene", str(out), "--preset", "photo_room", "--frames", "3", "--width", "32",
+                 "--height", "18", "--exposure", "0", "--rot-noise-deg", "0", "--trans-noise", "0"]) == 0
+    cfg = json.loads((out / "suite_config.json").read_text())
+    assert (cfg["family"], cfg["exposure_fraction"], cfg["subframes"], cfg["rot_noise_deg"]) == \
+        ("photo_room", 0.0, 1, 0.0)
+    assert main(["make-scene", str(out), "--preset", "photo_room", "--frames", "3"]) == 2  # exists, no --overwrite

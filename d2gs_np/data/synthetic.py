@@ -75,6 +75,7 @@ __all__ = [
     "frame_depth_map",
     "perturb_poses",
     "generate",
+    "render_clip",
     "make_scene",
     "write_synthetic_scene",
 ]
@@ -659,30 +660,48 @@ def generate(config: SyntheticConfig) -> Scene:
     if not isinstance(config, SyntheticConfig):
         raise TypeError(f"config must be a SyntheticConfig; got {type(config).__name__}")
     world = build_world(config)
-    K = intrinsics(config)
-    W, H, ss = config.width, config.height, config.supersample
     times = frame_times(config)
-    tau = exposure_length(config)
-    blurred = tau > 0
-    S = config.subframes if blurred else 1
-    u = np.linspace(0.0, 1.0, S) if S > 1 else np.array([0.5])
-
     gt = camera_pose(world, times)
     noise_rng = np.random.default_rng(np.random.SeedSequence([config.seed, 2]))
     est, _ = perturb_poses(gt, config.rot_noise_deg, config.trans_noise_fraction * SCENE_SCALE, noise_rng)
-    start = camera_pose(world, times - 0.5 * tau)
-    end = camera_pose(world, times + 0.5 * tau)
+    return render_clip(
+        lambda t: camera_pose(world, t), lambda T, t, K, W, H, ss: render_view(world, T, t, K, W, H, ss),
+        times=times, tau=exposure_length(config), subframes=config.subframes, est_poses=est,
+        K=intrinsics(config), width=config.width, height=config.height, supersample=config.supersample,
+        num_test_views=config.num_test_views, test_offset=config.test_offset_fraction * SCENE_SCALE,
+        exposure_fraction=config.exposure_fraction, scene_scale=SCENE_SCALE)
+
+
+def render_clip(camera_pose_fn, render_fn, *, times, tau, subframes, est_poses, K, width, height, supersample,
+                num_test_views, test_offset, exposure_fraction, scene_scale) -> Scene:
+    """Frames of a video of an analytic world, shared by every synthetic scene family.
+
+    camera_pose_fn(t (M,)) -> true cam_T_world (M, 4, 4); render_fn(cam_T_world, t, K, W, H,
+    supersample) -> (sharp rgb (H, W, 3), moving (H, W) bool). Blurry frame k is the mean of
+    ``subframes`` sharp sub-frames at t_k + (u_i - 0.5) tau, u_i evenly spaced in [0, 1], with the
+    camera and the objects at that time; its mask is the union of the sub-frames' moving pixels.
+    est_poses (N, 4, 4) are the poses the method is given. Test views: sharp renders at
+    ``num_test_views`` evenly spaced training times from the true camera moved by +-test_offset
+    along its own x axis (alternating sides).
+    """
+    W, H, ss = width, height, supersample
+    blurred = tau > 0
+    S = subframes if blurred else 1
+    u = np.linspace(0.0, 1.0, S) if S > 1 else np.array([0.5])
+    gt = camera_pose_fn(times)
+    start = camera_pose_fn(times - 0.5 * tau)
+    end = camera_pose_fn(times + 0.5 * tau)
 
     frames = []
     for k, tk in enumerate(times):
-        sharp, mask = render_view(world, gt[k], tk, K, W, H, ss)
+        sharp, mask = render_fn(gt[k], tk, K, W, H, ss)
         if blurred:
             acc = np.zeros((H, W, 3))
             mask = np.zeros((H, W), dtype=bool)
             ts = tk + (u - 0.5) * tau
-            sub_poses = camera_pose(world, ts)
+            sub_poses = camera_pose_fn(ts)
             for i in range(S):
-                img, dyn = render_view(world, sub_poses[i], ts[i], K, W, H, ss)
+                img, dyn = render_fn(sub_poses[i], ts[i], K, W, H, ss)
                 acc += img
                 mask |= dyn
             blurry = acc / S
@@ -690,25 +709,25 @@ def generate(config: SyntheticConfig) -> Scene:
             blurry = sharp.copy()
         name = f"{k:04d}.png"
         frames.append(Frame(
-            file_path=f"images/{name}", time=float(tk), cam_T_world=est[k], K=K.copy(), width=W, height=H,
+            file_path=f"images/{name}", time=float(tk), cam_T_world=est_poses[k], K=K.copy(), width=W, height=H,
             image=blurry, mask=mask, mask_path=f"masks/{name}", sharp=sharp, sharp_file_path=f"sharp/{name}",
             gt_cam_T_world=gt[k], gt_exposure_start=start[k], gt_exposure_end=end[k],
         ))
 
     test_frames = []
-    if config.num_test_views > 0:
-        idx = np.unique(np.round(np.linspace(0, config.num_frames - 1, config.num_test_views)).astype(int))
+    if num_test_views > 0:
+        idx = np.unique(np.round(np.linspace(0, len(times) - 1, num_test_views)).astype(int))
         for j, k in enumerate(idx):
             sign = 1.0 if j % 2 == 0 else -1.0
-            T = _test_pose(gt[k], sign * config.test_offset_fraction * SCENE_SCALE)
-            img, _ = render_view(world, T, times[k], K, W, H, ss)
+            T = _test_pose(gt[k], sign * test_offset)
+            img, _ = render_fn(T, times[k], K, W, H, ss)
             test_frames.append(Frame(
                 file_path=f"test/{j:04d}.png", time=float(times[k]), cam_T_world=T, K=K.copy(), width=W,
                 height=H, image=img, gt_cam_T_world=T.copy(),
             ))
     return Scene(
-        frames=frames, test_frames=test_frames, exposure_fraction=float(config.exposure_fraction),
-        scene_scale=SCENE_SCALE, blur_subframes=int(S),
+        frames=frames, test_frames=test_frames, exposure_fraction=float(exposure_fraction),
+        scene_scale=float(scene_scale), blur_subframes=int(S),
     )
 
 
