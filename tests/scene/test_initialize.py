@@ -122,7 +122,8 @@ def test_static_points_avoid_moving_objects(scene, result):
 def test_fill_points_lie_in_the_frusta_on_static_pixels(scene, result):
     static, colors, _, _, info = result
     cfg = InitConfig()
-    n, nf = info["num_static_triangulated"], info["num_static_fill"]
+    n = info["num_static_triangulated"] + info["num_static_dense"]
+    nf = info["num_static_fill"]
     assert nf == cfg.random_fill_points and static.shape == (n + nf, 3) and colors.shape == (n + nf, 3)
     fill, src = static[n:], info["static_source_frames"][n:]
     near, far = info["fill_depth_near"], info["fill_depth_far"]
@@ -187,7 +188,8 @@ def test_counts_follow_the_config_and_rng_is_respected(scene):
     a = initialize_points(scene, cfg, np.random.default_rng(7))
     b = initialize_points(scene, cfg, np.random.default_rng(7))
     c = initialize_points(scene, cfg, np.random.default_rng(8))
-    assert a[0].shape == (130, 3) and a[2].shape == (40, 3)
+    assert a[0].shape == (130 + a[4]["num_static_dense"], 3) and a[2].shape == (40, 3)
+    assert a[4]["num_static_dense"] > 0
     assert a[4]["num_triangulated_before_cap"] > 100
     for x, y in zip(a[:4], b[:4]):
         assert np.array_equal(x, y)
@@ -228,3 +230,74 @@ def test_validation(scene):
         InitConfig(dynamic_depth_factor=1.5)
     with pytest.raises(ValueError, match="fill_depth_percentiles"):
         InitConfig(fill_depth_percentiles=(90.0, 10.0))
+
+
+# ------------------------------------------------------------- dense seeding
+# Inverse depth of a plane is affine in the pixel coordinates, so linear interpolation of 1/z over
+# a triangulation is exact inside the hull: only float64 rounding of the barycentric weights.
+PLANE_DEPTH_RTOL = 1e-10
+
+
+def _plane_points(rng, n):
+    """Points of the plane z = 4 + 0.3 x - 0.2 y seen by an identity camera, and their pixels."""
+    K = np.array([[100.0, 0, 32], [0, 100.0, 24], [0, 0, 1]])
+    xy = rng.uniform(-1.0, 1.0, (n, 2))
+    z = 4 + 0.3 * xy[:, 0] - 0.2 * xy[:, 1]
+    pts = np.column_stack([xy, z])
+    uv, depth = project_points(pts, np.eye(4), K)
+    return pts, uv, depth, K
+
+
+def test_inverse_depth_interpolation_is_exact_on_a_plane():
+    from d2gs_np.scene.initialize import interpolate_inverse_depth
+
+    rng = np.random.default_rng(0)
+    pts, uv, z, K = _plane_points(rng, 200)
+    q = np.column_stack([rng.uniform(uv[:, 0].min() + 5, uv[:, 0].max() - 5, 50),
+                         rng.uniform(uv[:, 1].min() + 5, uv[:, 1].max() - 5, 50)])
+    depth, kept = interpolate_inverse_depth(uv, z, q)
+    assert kept.all()
+    # the true depth of the plane along each query ray
+    rays = np.linalg.solve(K, np.column_stack([q, np.ones(len(q))]).T).T
+    true = 4.0 / (1.0 - 0.3 * rays[:, 0] + 0.2 * rays[:, 1])
+    np.testing.assert_allclose(depth, true, rtol=PLANE_DEPTH_RTOL)
+
+
+def test_inverse_depth_interpolation_drops_an_outlier_and_handles_degenerate_input():
+    from d2gs_np.scene.initialize import interpolate_inverse_depth
+
+    rng = np.random.default_rng(1)
+    _, uv, z, _ = _plane_points(rng, 100)
+    z_bad = z.copy()
+    z_bad[7] *= 3.0  # a mismatched triangulation far behind the plane
+    depth, kept = interpolate_inverse_depth(uv, z_bad, uv[7:8] + 0.1)
+    assert not kept[7] and kept.sum() == 99
+    np.testing.assert_allclose(depth, z[7], rtol=0.02)
+    # collinear points, too few points, negative depths: NaN, never an exception or inf
+    line = np.column_stack([np.linspace(0, 10, 12), np.linspace(0, 5, 12)])
+    for uv_, z_ in ((line, np.full(12, 3.0)), (uv[:2], z[:2]), (uv[:20], -z[:20])):
+        d, _ = interpolate_inverse_depth(uv_, z_, np.array([[3.0, 2.0]]))
+        assert np.isnan(d).all()
+
+
+def test_dense_points_sit_at_static_pixel_centres_with_their_colours(scene, result):
+    static, colors, _, _, info = result
+    n0, nd = info["num_static_triangulated"], info["num_static_dense"]
+    assert nd > 1000
+    dense, src = static[n0:n0 + nd], info["static_source_frames"][n0:n0 + nd]
+    cfg = InitConfig()
+    for k in np.unique(src):
+        f = scene.frames[k]
+        uv, z = project_points(dense[src == k], f.cam_T_world, f.K)
+        assert _in_image(uv, z, f).all()
+        # seeded at pixel centres of static pixels, coloured by that pixel
+        np.testing.assert_allclose(uv - 0.5, np.round(uv - 0.5), atol=1e-6)
+        rows, cols = np.floor(uv[:, 1]).astype(int), np.floor(uv[:, 0]).astype(int)
+        allowed = static_detector_mask(f.mask, cfg.features.mask_dilation_px) > 0
+        assert allowed[rows, cols].all()
+        np.testing.assert_allclose(colors[n0:n0 + nd][src == k], np.clip(f.image[rows, cols], 0, 1), atol=1e-12)
+
+
+def test_dense_seeding_is_off_with_zero_frames(scene):
+    *_, info = initialize_points(scene, InitConfig(dense_frames=0), np.random.default_rng(0))
+    assert info["num_static_dense"] == 0
