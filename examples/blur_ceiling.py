@@ -13,6 +13,7 @@ Gaussians), this measures per frame:
 - true rotation spread over the exposure (degrees).
 
     python examples/blur_ceiling.py --frames 0 5 11 17 23
+    python examples/blur_ceiling.py --suite            # every scene of the suite
     python examples/blur_ceiling.py --num-frames 12 --width 160 --height 90 --frames 0 3 5 8 11  # demo scene
 """
 from __future__ import annotations
@@ -34,25 +35,47 @@ SETTINGS = {
 }
 
 
-def frame_ceiling(world, cfg, k, n):
-    """Per-frame figures (see module docstring) for frame k of the generator config ``cfg``."""
-    K, W, H, ss = sy.intrinsics(cfg), cfg.width, cfg.height, cfg.supersample
-    tau, t = sy.exposure_length(cfg), sy.frame_times(cfg)[k]
+def frame_ceiling(pose_fn, render_fn, t, tau, subframes, n):
+    """Per-frame figures (see module docstring) of the frame at mid-exposure time t.
 
-    def render(T, time_):
-        return sy.render_view(world, T, time_, K, W, H, ss)[0]
-
-    u_sub = np.linspace(0.0, 1.0, cfg.subframes)
+    pose_fn(times (M,)) -> true cam_T_world (M, 4, 4); render_fn(T, time) -> sharp image."""
+    u_sub = np.linspace(0.0, 1.0, subframes)
     times = t + (u_sub - 0.5) * tau
-    blurry = np.mean([render(T, s) for T, s in zip(sy.camera_pose(world, times), times)], axis=0)
-    T_s, T_mid, T_e = sy.camera_pose(world, np.array([t - tau / 2, t, t + tau / 2]))
+    blurry = np.mean([render_fn(T, s) for T, s in zip(pose_fn(times), times)], axis=0)
+    T_s, T_mid, T_e = pose_fn(np.array([t - tau / 2, t, t + tau / 2]))
     u = np.linspace(0.0, 1.0, n)
-    geo = np.mean([render(se3_interpolate(T_s, T_e, ui), t + (ui - 0.5) * tau) for ui in u], axis=0)
+    geo = np.mean([render_fn(se3_interpolate(T_s, T_e, ui), t + (ui - 0.5) * tau) for ui in u], axis=0)
     T_geo_mid = se3_interpolate(T_s, T_e, 0.5)
-    sharp = render(T_mid, t)
+    sharp = render_fn(T_mid, t)
     mid_err = np.degrees(np.linalg.norm(se3_log(T_geo_mid @ se3_inverse(T_mid))[3:]))
     spread = np.degrees(np.linalg.norm(se3_log(T_e @ se3_inverse(T_s))[3:]))
-    return psnr(blurry, sharp), psnr(geo, blurry), psnr(render(T_geo_mid, t), sharp), mid_err, spread
+    return psnr(blurry, sharp), psnr(geo, blurry), psnr(render_fn(T_geo_mid, t), sharp), mid_err, spread
+
+
+def regression_worlds(args):
+    """(name, pose_fn, render_fn, times, tau, subframes) of the regression preset's shake settings."""
+    for name, overrides in SETTINGS.items():
+        cfg = dataclasses.replace(sy.PRESETS["dynamic"], seed=args.seed, num_frames=args.num_frames,
+                                  width=args.width, height=args.height, **overrides)
+        world = sy.build_world(cfg)
+        K = sy.intrinsics(cfg)
+        yield (name, lambda t, w=world: sy.camera_pose(w, t),
+               lambda T, t, w=world, c=cfg, K=K: sy.render_view(w, T, t, K, c.width, c.height, c.supersample)[0],
+               sy.frame_times(cfg), sy.exposure_length(cfg), cfg.subframes)
+
+
+def suite_worlds(args):
+    """The same for every scene of the suite (d2gs_np/data/suite.py)."""
+    from d2gs_np.data import suite
+
+    for name in suite.SUITE:
+        cfg = suite.resolve(name, args.seed, num_frames=args.num_frames, width=args.width, height=args.height)
+        world = suite.build_suite_world(cfg)
+        K = suite._intrinsics(cfg)
+        yield (name, lambda t, w=world: suite.suite_camera_pose(w, t),
+               lambda T, t, w=world, c=cfg, K=K: suite.render_suite_view(w, T, t, K, c.width, c.height,
+                                                                         c.supersample)[0],
+               np.linspace(0.0, 1.0, cfg.num_frames), cfg.exposure_fraction / (cfg.num_frames - 1), cfg.subframes)
 
 
 def main():
@@ -63,6 +86,7 @@ def main():
     ap.add_argument("--num-frames", type=int, default=24)
     ap.add_argument("--width", type=int, default=240)
     ap.add_argument("--height", type=int, default=135)
+    ap.add_argument("--suite", action="store_true", help="measure the scene suite instead of the regression preset")
     args = ap.parse_args()
     if args.n < 1:
         raise SystemExit(f"--n must be >= 1; got {args.n}")
@@ -73,16 +97,13 @@ def main():
     print("| setting | input vs sharp dB | geodesic blur vs input dB | geodesic mid vs sharp dB "
           "| mid rot err deg | spread deg | s |")
     print("|---|---|---|---|---|---|---|")
-    for name, overrides in SETTINGS.items():
+    for name, pose_fn, render_fn, times, tau, subframes in (suite_worlds(args) if args.suite
+                                                            else regression_worlds(args)):
         t0 = time.perf_counter()
-        cfg = dataclasses.replace(sy.PRESETS["dynamic"], seed=args.seed, num_frames=args.num_frames,
-                                  width=args.width, height=args.height, **overrides)
-        world = sy.build_world(cfg)
-        r = np.array([frame_ceiling(world, cfg, k, args.n) for k in args.frames])
+        r = np.array([frame_ceiling(pose_fn, render_fn, times[k], tau, subframes, args.n) for k in args.frames])
         m = r.mean(axis=0)
         print(f"| {name} | {m[0]:.2f} | {m[1]:.2f} | {m[2]:.2f} | {m[3]:.3f} | {m[4]:.2f} "
               f"| {time.perf_counter() - t0:.1f} |")
-
 
 if __name__ == "__main__":
     main()

@@ -21,12 +21,14 @@ What is in a world
   changes as it turns, as a real object's would).
 - Moving rigid objects (``Mover``): a tumbling cube, a swinging sign on a
   hinge, a disk rolling on the floor, a card that enters and leaves the frame,
-  a large panel that covers about a quarter of the frame.
+  a large panel that covers about a quarter of the frame and sways.
 
 Camera: a look-at path with a pan (``pan``: world units of sideways travel
-over the clip), a low-frequency sway and a hand shake in position and
-orientation (``shake`` scales the amplitudes; ``shake_cycles`` is the
-shake's frequency in cycles per clip), all C-infinity in t.
+over the clip; ``yaw_deg``: how far the view turns about the vertical over the
+clip), a low-frequency sway and a hand shake in position and orientation
+(``shake`` scales the amplitudes; ``shake_cycles`` is the shake's frequency
+in cycles per clip), all C-infinity in t. Blur is what the camera's turn and
+shake make of pixel-scale photographic detail within one exposure.
 
 Frames follow ``synthetic.render_clip``: t_k = k / (N - 1), exposure length
 tau = exposure_fraction / (N - 1), blurry frames averaged over sub-frames with
@@ -119,8 +121,10 @@ class Mover:
     kind: "tumble" (centre on a line plus a bob, rotating about ``axis`` by ``spin`` radians over
     the clip), "swing" (body origin at a hinge, angle amplitude ``spin`` at ``cycles`` per clip
     about ``axis``), "roll" (a disk of radius ``radius`` rolling along +x on the floor: spin =
-    -distance / radius about ``axis``), "slide" (pure translation on a line, spin about ``axis``).
-    Centre c(t) = origin + velocity (t - 0.5) (+ bob for tumble).
+    -distance / radius about ``axis``), "slide" (pure translation on a line, spin about ``axis``),
+    "oscillate" (c(t) = origin + velocity sin(2 pi (cycles t + phase)): ``velocity`` is then the
+    amplitude vector; turning by spin times the same sine). Otherwise centre c(t) = origin +
+    velocity (t - 0.5) (+ a bob for tumble).
     """
 
     patches: tuple
@@ -150,6 +154,9 @@ def mover_pose(m: Mover, t: float):
         ang = -float(vel[0]) * (t - 0.5) / m.radius
     elif m.kind == "slide":
         ang = m.spin * (t - 0.5)
+    elif m.kind == "oscillate":
+        c = o + vel * np.sin(2 * np.pi * (m.cycles * t + m.phase))
+        ang = m.spin * np.sin(2 * np.pi * (m.cycles * t + m.phase))
     else:
         raise ValueError(f"unknown mover kind {m.kind!r}")
     return so3_exp(ang * axis), c
@@ -199,6 +206,7 @@ class SuiteConfig:
     subframes: int = 16
     supersample: int = 2
     pan: float = 0.8  # sideways camera travel over the clip (world units)
+    yaw_deg: float = 30.0  # the camera turns this much (degrees, about the vertical) over the clip
     shake: float = 1.0  # hand-shake amplitude scale (0 = tripod-smooth path)
     shake_cycles: float = 2.0  # hand-shake frequency, cycles per clip
     rot_noise_deg: float = 0.75  # RMS rotation error of the given poses (angle, degrees)
@@ -216,7 +224,7 @@ class SuiteConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Integral):
                 raise TypeError(f"SuiteConfig.{name} must be an int; got {type(v).__name__} {v!r}")
-        for name in ("exposure_fraction", "pan", "shake", "shake_cycles", "rot_noise_deg", "trans_noise", "drift",
+        for name in ("exposure_fraction", "pan", "yaw_deg", "shake", "shake_cycles", "rot_noise_deg", "trans_noise", "drift",
                      "test_offset_fraction", "fov_x_deg"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v):
@@ -259,6 +267,7 @@ class SuiteWorld:
     shake_pos: np.ndarray
     shake_rot: np.ndarray
     pan: float
+    yaw: float  # radians over the clip
 
 
 def _family_photo_room(rng):
@@ -306,13 +315,14 @@ def _family_crossing(rng):
 
 
 def _family_big_mover(rng):
-    """Low-frequency content (smooth photographs seen large) and a large panel covering about a quarter
-    of the frame, sliding slowly."""
+    """Low-frequency content (smooth photographs seen large) and a large panel, covering about a
+    quarter of the frame, swaying quickly left and right in front of it."""
     room = _room((-4.0, 0.0, -2.0), (4.0, 3.5, 8.0), ("coffee", "chelsea", "rocket", "coffee", "chelsea", "grass"),
                  ((1, 1), (1, 1), (1, 1), (1, 1), (1, 1), (1, 1)))
     panel = Mover((Patch((0, 0, 0.01), (1, 0, 0), (0, 1, 0), (0.75, 0.55), "astronaut", (1.0, 0.73)),
                    Patch((0, 0, -0.01), (-1, 0, 0), (0, 1, 0), (0.75, 0.55), "rocket")),
-                  "slide", origin=(-0.6, 1.0, 1.2), velocity=(0.9, 0.1, 0.0), axis=(0, 1, 0), spin=0.3)
+                  "oscillate", origin=(-0.3, 1.0, 1.2), velocity=(0.35, 0.05, 0.0), axis=(0, 1, 0), spin=0.25,
+                  cycles=1.0, phase=float(rng.uniform()))
     return room, (panel,), (0.0, 1.3, 3.2), (0.0, 1.0, -1.5)
 
 
@@ -327,13 +337,21 @@ FAMILIES = {
 # The suite: one preset per family, each a different kind of video. These describe the world;
 # they are not tuned to what the method can fit.
 SUITE = {
-    "photo_room": SuiteConfig(family="photo_room", exposure_fraction=0.6, pan=0.8, shake=1.0, shake_cycles=2.0),
-    "wall_disk": SuiteConfig(family="wall_disk", exposure_fraction=0.7, pan=1.2, shake=0.6, shake_cycles=1.5),
-    "cube_sign": SuiteConfig(family="cube_sign", exposure_fraction=0.8, pan=0.6, shake=1.5, shake_cycles=2.5),
-    "crossing": SuiteConfig(family="crossing", exposure_fraction=1.0, pan=0.4, shake=2.0, shake_cycles=3.0,
-                            drift=0.8),
-    "big_mover": SuiteConfig(family="big_mover", exposure_fraction=0.5, pan=1.5, shake=0.3, shake_cycles=1.0,
-                             drift=0.2),
+    # a hand-held sweep across a room of photographs: turning 40 deg, moderate shake
+    "photo_room": SuiteConfig(family="photo_room", exposure_fraction=0.6, pan=0.8, yaw_deg=40.0, shake=1.0,
+                              shake_cycles=2.0),
+    # a slow pan along a brick wall while a disk rolls across
+    "wall_disk": SuiteConfig(family="wall_disk", exposure_fraction=0.7, pan=1.2, yaw_deg=25.0, shake=0.6,
+                             shake_cycles=1.5),
+    # a shaky hand-held view of a tumbling cube and a swinging sign
+    "cube_sign": SuiteConfig(family="cube_sign", exposure_fraction=0.8, pan=0.6, yaw_deg=30.0, shake=1.5,
+                             shake_cycles=2.5),
+    # strong, fast hand shake at a full-interval exposure; a card crosses the frame; drifting pose error
+    "crossing": SuiteConfig(family="crossing", exposure_fraction=1.0, pan=0.4, yaw_deg=15.0, shake=2.0,
+                            shake_cycles=3.0, drift=0.8),
+    # a slow, steady pan over large smooth content; a large panel sways fast in front: object blur
+    "big_mover": SuiteConfig(family="big_mover", exposure_fraction=0.8, pan=1.5, yaw_deg=15.0, shake=0.3,
+                             shake_cycles=1.0, drift=0.2),
 }
 
 
@@ -375,11 +393,13 @@ def build_suite_world(config: SuiteConfig) -> SuiteWorld:
         textures[i] = _resample(img, 2 * p.half[0] / p.repeat[0] / texel, 2 * p.half[1] / p.repeat[1] / texel)
     sway = _sines(rng, [[0.05, 0.04, 0.05], [0.02, 0.02, 0.02]], [0.7, 1.3])
     shake_pos = _sines(rng, [[0.01, 0.01, 0.006]], [config.shake_cycles])
-    shake_rot = _sines(rng, [[0.006, 0.006, 0.003]], [config.shake_cycles * 1.1])
+    # hand shake: ~0.6 deg of tilt and pan, ~0.3 deg of roll, 1 cm of position at shake = 1
+    shake_rot = _sines(rng, [[0.01, 0.01, 0.005]], [config.shake_cycles * 1.1])
     shake_pos[:, 0, :] *= config.shake
     shake_rot[:, 0, :] *= config.shake
     return SuiteWorld(patches=tuple(patches), movers=tuple(movers), eye=eye, target=target, depth=depth,
-                      textures=textures, sway=sway, shake_pos=shake_pos, shake_rot=shake_rot, pan=config.pan)
+                      textures=textures, sway=sway, shake_pos=shake_pos, shake_rot=shake_rot, pan=config.pan,
+                      yaw=float(np.deg2rad(config.yaw_deg)))
 
 
 def suite_camera_pose(world: SuiteWorld, t):
@@ -388,7 +408,11 @@ def suite_camera_pose(world: SuiteWorld, t):
     tt = np.atleast_1d(t)
     eye = world.eye[None] + np.outer(tt - 0.5, [world.pan, 0.0, 0.0]) + _eval_sines(world.sway, tt) \
         + _eval_sines(world.shake_pos, tt)
-    target = world.target[None] + np.outer(tt - 0.5, [0.4 * world.pan, 0.0, 0.0])
+    # the viewing direction turns smoothly about the vertical by yaw over the clip
+    a = world.yaw * (tt - 0.5)
+    look = world.target - world.eye
+    target = eye + np.stack([look[0] * np.cos(a) + look[2] * np.sin(a), np.full_like(a, look[1]),
+                             -look[0] * np.sin(a) + look[2] * np.cos(a)], axis=1)
     R_shake = so3_exp(_eval_sines(world.shake_rot, tt))
     poses = np.empty((len(tt), 4, 4))
     for m in range(len(tt)):
