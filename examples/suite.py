@@ -51,8 +51,11 @@ def scene_folder(out, scene, variant, seed):
 
 def run_cell(out, scene, variant, seed, budget, iters, size, threads, config_path):
     """Make the scene (if needed), train, evaluate; returns the cell's record. Runs in a worker."""
-    os.environ["NUMBA_NUM_THREADS"] = str(threads)
     import dataclasses
+
+    import numba
+
+    numba.set_num_threads(min(threads, numba.config.NUMBA_NUM_THREADS))
 
     from d2gs_np.data.io import load_scene
     from d2gs_np.data.suite import write_suite_scene
@@ -157,19 +160,25 @@ def main(argv=None):
     cells = [(s, v) for s in args.scenes for v in args.variants]
     rows, failed = [], []
     t0 = time.perf_counter()
-    with ProcessPoolExecutor(max_workers=args.jobs) as pool:
-        futs = {pool.submit(run_cell, str(out), s, v, args.seed, args.budget, args.iters, args.size, threads,
-                            args.config): (s, v) for s, v in cells}
-        for f in as_completed(futs):
-            s, v = futs[f]
-            try:
-                r = f.result()
-                rows.append(r)
-                print(f"[{time.perf_counter() - t0:7.0f}s] {s}/{v}: DVS {fmt(r['dvs_psnr'])} dB "
-                      f"(input {fmt(r['input_psnr'])} dB), {r['steps']} steps", flush=True)
-            except Exception as e:  # a failed cell is reported, never silently dropped
-                failed.append((s, v, repr(e)))
-                print(f"FAILED {s}/{v}: {e!r}", file=sys.stderr, flush=True)
+    def record(s, v, get):
+        try:
+            r = get()
+            rows.append(r)
+            print(f"[{time.perf_counter() - t0:7.0f}s] {s}/{v}: DVS {fmt(r['dvs_psnr'])} dB "
+                  f"(input {fmt(r['input_psnr'])} dB), {r['steps']} steps", flush=True)
+        except Exception as e:  # a failed cell is reported, never silently dropped
+            failed.append((s, v, repr(e)))
+            print(f"FAILED {s}/{v}: {e!r}", file=sys.stderr, flush=True)
+
+    job = (str(out), args.seed, args.budget, args.iters, args.size, threads, args.config)
+    if args.jobs == 1:  # in this process, one cell after another
+        for s, v in cells:
+            record(s, v, lambda: run_cell(job[0], s, v, *job[1:]))
+    else:
+        with ProcessPoolExecutor(max_workers=args.jobs) as pool:
+            futs = {pool.submit(run_cell, job[0], s, v, *job[1:]): (s, v) for s, v in cells}
+            for f in as_completed(futs):
+                record(*futs[f], f.result)
     rows.sort(key=lambda r: (args.scenes.index(r["scene"]), VARIANTS.index(r["variant"])))
     with open(out / "suite.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else ["scene"])
