@@ -242,9 +242,13 @@ def adam_init(params):
     }
 
 
-def adam_update(grads, state, params, config):
+def adam_update(grads, state, params, config, lr_step_scale=1.0):
     """One Adam step on the blocks in ``grads``; returns (new params, new state).
 
+    lr_step_scale: the learning-rate schedules are read at ``floor(count x lr_step_scale)`` where
+        count is the block's own step count (the bias correction always uses the count). 1 reads
+        them at the count; a time-budgeted run whose budget binds passes (schedule progress x
+        total steps) / step > 1, so its decays finish when the budget does.
     grads: dict name -> gradient array (same shape and dtype as ``params[name]``); None values and
         blocks absent from ``grads`` are left alone (parameters, moments and step counts).
     state: from ``adam_init`` / a previous ``adam_update``.
@@ -255,6 +259,7 @@ def adam_update(grads, state, params, config):
     if not isinstance(config, AdamConfig):
         raise TypeError(f"config must be an AdamConfig; got {type(config).__name__}")
     _check_params(params)
+    _check_lr_step_scale(lr_step_scale)
     if not isinstance(grads, dict):
         raise TypeError(f"grads must be a dict of arrays; got {type(grads).__name__}")
     b1, b2 = config.betas
@@ -283,7 +288,7 @@ def adam_update(grads, state, params, config):
                 "densification call adam_select / adam_extend with the same masks / counts"
             )
         step = int(state["step"].get(name, 0))
-        lr = config.lr(name, step)
+        lr = config.lr(name, _lr_step(step, lr_step_scale))
         k = step + 1
         m = b1 * m + (1.0 - b1) * g
         v = b2 * v + (1.0 - b2) * (g * g)
@@ -307,16 +312,28 @@ def _prefixed(state, block_prefix):
     return [k for k in state["m"] if k.startswith(block_prefix + ".")]
 
 
-def adam_update_rows(grads, rows, state, params, config):
+def _check_lr_step_scale(scale):
+    if isinstance(scale, bool) or not isinstance(scale, numbers.Real) or not (0.0 < scale < float("inf")):
+        raise ValueError(f"lr_step_scale must be a finite number > 0; got {scale!r}")
+
+
+def _lr_step(count, scale):
+    """The step a learning-rate schedule is read at (see ``adam_update``); exact at scale 1."""
+    return count if scale == 1.0 else int(np.floor(count * scale))
+
+
+def adam_update_rows(grads, rows, state, params, config, lr_step_scale=1.0):
     """Row-sparse Adam (as torch.optim.SparseAdam): only the rows ``rows[name]`` of each block in
     ``grads`` are updated: their moments, their parameters, and their own step counts (kept in
     ``state["row_step"][name]``, (N,) ints) for the bias correction. Rows outside the list keep
     their parameters AND moments, so per-frame blocks (camera endpoints) of frames not in the
     batch do not drift on stale momentum. Each row's learning rate is the block's schedule at
-    that row's own step count (a schedule counts the visits of a row). Returns (new params, new state); inputs are not modified.
+    that row's own step count (a schedule counts the visits of a row), read as in ``adam_update``
+    with ``lr_step_scale``. Returns (new params, new state); inputs are not modified.
     """
     if not isinstance(config, AdamConfig):
         raise TypeError(f"config must be an AdamConfig; got {type(config).__name__}")
+    _check_lr_step_scale(lr_step_scale)
     b1, b2 = config.betas
     new_params = dict(params)
     new_state = {slot: dict(blocks) for slot, blocks in state.items()}
@@ -343,7 +360,8 @@ def adam_update_rows(grads, rows, state, params, config):
         rs = np.zeros(p.shape[0], dtype=np.int64) if rs is None else np.array(rs, dtype=np.int64)
         step = int(state["step"].get(name, 0))
         bshape = (-1,) + (1,) * (p.ndim - 1)
-        lr = np.array([config.lr(name, int(c)) for c in rs[idx]], dtype=p.dtype).reshape(bshape)
+        lr = np.array([config.lr(name, _lr_step(int(c), lr_step_scale)) for c in rs[idx]],
+                      dtype=p.dtype).reshape(bshape)
         k = (rs[idx] + 1).reshape(bshape)
         m[idx] = b1 * m[idx] + (1.0 - b1) * gi
         v[idx] = b2 * v[idx] + (1.0 - b2) * (gi * gi)

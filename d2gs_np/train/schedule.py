@@ -35,6 +35,8 @@ from d2gs_np.geometry.camera import check_intrinsics, scale_intrinsics, scaled_s
 __all__ = [
     "SCHEDULE_KINDS",
     "ScheduleConfig",
+    "training_progress",
+    "schedule_step",
     "render_scale",
     "downsample_area",
     "downsample_mask",
@@ -113,6 +115,32 @@ def render_scale(step, total_steps, r0=0.2, kind="cosine", ramp_fraction=0.5):
         a = 1.0 / (r0 * r0)
         r = 1.0 / math.sqrt(a - (a - 1.0) * s)
     return min(1.0, max(r0, r))
+
+
+def training_progress(step, seconds, total_steps, time_budget=None):
+    """How far a run is, in [0, 1]: ``step / total_steps``, or with a time budget (seconds of
+    training) the larger of that and ``seconds / time_budget``, whichever ends the run first.
+
+    Every schedule of a run (progressive resolution, stages, learning-rate decays, densification
+    and pruning windows) reads this progress, so a run stopped by its budget has finished its
+    schedule, and a run without one behaves exactly as before (progress = step / total_steps).
+    """
+    if total_steps < 1:
+        raise ValueError(f"total_steps must be >= 1; got {total_steps}")
+    p = step / total_steps
+    if time_budget is not None:
+        if not time_budget > 0:
+            raise ValueError(f"time_budget must be > 0 seconds; got {time_budget}")
+        p = max(p, seconds / time_budget)
+    return min(max(p, 0.0), 1.0)
+
+
+def schedule_step(step, seconds, total_steps, time_budget=None):
+    """The step the schedules are read at: ``step`` without a budget (exactly), else
+    ``floor(progress x total_steps)`` (never less than ``step``, at most ``total_steps``)."""
+    if time_budget is None:
+        return int(step)
+    return max(int(step), int(math.floor(training_progress(step, seconds, total_steps, time_budget) * total_steps)))
 
 
 def _check_size(width, height):

@@ -6,6 +6,7 @@ import numpy as np
 import pytest
 
 from d2gs_np.constants import ADAM_EPS
+from d2gs_np.optim import adam
 from d2gs_np.optim import (
     AdamConfig,
     Constant,
@@ -280,3 +281,56 @@ def test_row_sparse_update_leaves_other_rows_and_their_moments_alone():
     assert "row_step" in s3
     with pytest.raises(ValueError, match="rows"):
         adam_update_rows(g2, {}, s2, p2, cfg)
+
+
+# ------------------------------------------------------------- lr_step_scale (time-budgeted runs)
+def _decay_setup():
+    rng = np.random.default_rng(3)
+    params = {"a.x": rng.normal(size=(5, 3)), "cam.r": rng.normal(size=(4, 2))}
+    grads = [{"a.x": rng.normal(size=(5, 3))} for _ in range(6)]
+    return params, grads
+
+
+def test_lr_step_scale_one_is_bitwise_the_default():
+    params, grads = _decay_setup()
+    cfg = adam.AdamConfig(lrs={"a.x": adam.exponential_decay(1e-2, 1e-4, 10)})
+    p1, s1 = params, adam.adam_init(params)
+    p2, s2 = params, adam.adam_init(params)
+    for g in grads:
+        p1, s1 = adam.adam_update(g, s1, p1, cfg)
+        p2, s2 = adam.adam_update(g, s2, p2, cfg, lr_step_scale=1.0)
+    assert np.array_equal(p1["a.x"], p2["a.x"])
+
+
+def test_lr_step_scale_reads_the_schedule_further_along():
+    # scale 2 on a decay over 10 steps reads lr(2 k): the same as a decay over 5 steps read at k
+    # (the log-linear decay depends on step / max_steps only), while the bias correction is unchanged.
+    params, grads = _decay_setup()
+    fast = adam.AdamConfig(lrs={"a.x": adam.exponential_decay(1e-2, 1e-4, 10)})
+    short = adam.AdamConfig(lrs={"a.x": adam.exponential_decay(1e-2, 1e-4, 5)})
+    p1, s1 = params, adam.adam_init(params)
+    p2, s2 = params, adam.adam_init(params)
+    for g in grads:
+        p1, s1 = adam.adam_update(g, s1, p1, fast, lr_step_scale=2.0)
+        p2, s2 = adam.adam_update(g, s2, p2, short)
+    np.testing.assert_allclose(p1["a.x"], p2["a.x"], rtol=0, atol=1e-15)
+    p3, _ = adam.adam_update(grads[0], adam.adam_init(params), params, fast)
+    assert not np.allclose(p1["a.x"], p3["a.x"])
+    # row-sparse updates read their rows' visit counts the same way
+    cfg_r = adam.AdamConfig(lrs={"cam.r": adam.exponential_decay(1e-2, 1e-4, 10)})
+    short_r = adam.AdamConfig(lrs={"cam.r": adam.exponential_decay(1e-2, 1e-4, 5)})
+    g = {"cam.r": np.ones((4, 2))}
+    q1, t1 = params, adam.adam_init(params)
+    q2, t2 = params, adam.adam_init(params)
+    for _ in range(4):
+        q1, t1 = adam.adam_update_rows(g, {"cam.r": [1]}, t1, q1, cfg_r, lr_step_scale=2.0)
+        q2, t2 = adam.adam_update_rows(g, {"cam.r": [1]}, t2, q2, short_r)
+    np.testing.assert_allclose(q1["cam.r"], q2["cam.r"], rtol=0, atol=1e-15)
+
+
+@pytest.mark.parametrize("bad", [0.0, -1.0, float("nan"), float("inf"), True])
+def test_lr_step_scale_must_be_positive_and_finite(bad):
+    params, grads = _decay_setup()
+    cfg = adam.AdamConfig(lrs={"*": 1e-3})
+    with pytest.raises(ValueError, match="lr_step_scale"):
+        adam.adam_update(grads[0], adam.adam_init(params), params, cfg, lr_step_scale=bad)

@@ -128,3 +128,30 @@ def test_target_cache():
         cache.get(3, 0.5)
     with pytest.raises(ValueError, match="scale must be"):
         cache.get(0, 0.0)
+
+
+# ------------------------------------------------------------- time-budgeted progress
+def test_progress_without_a_budget_is_the_step_fraction_and_schedule_step_is_exact():
+    from d2gs_np.train.schedule import schedule_step, training_progress
+
+    for step in (0, 1, 499, 1000):
+        assert training_progress(step, 1e9, 1000) == min(step / 1000, 1.0)
+        assert schedule_step(step, 1e9, 1000) == step  # seconds ignored without a budget
+
+
+def test_progress_with_a_budget_follows_whichever_ends_the_run_first():
+    from d2gs_np.train.schedule import schedule_step, training_progress
+
+    # the budget binds: 10 of 1000 steps in 30 of 60 s is half way
+    assert training_progress(10, 30.0, 1000, 60.0) == 0.5
+    assert schedule_step(10, 30.0, 1000, 60.0) == 500
+    # the steps bind: 900 steps in 6 of 60 s
+    assert training_progress(900, 6.0, 1000, 60.0) == 0.9
+    assert schedule_step(900, 6.0, 1000, 60.0) == 900
+    # over budget: clamped to the end, never past total_steps; at time 0 exactly the step
+    assert training_progress(10, 120.0, 1000, 60.0) == 1.0 and schedule_step(10, 120.0, 1000, 60.0) == 1000
+    assert schedule_step(0, 0.0, 1000, 60.0) == 0
+    with pytest.raises(ValueError, match="time_budget"):
+        training_progress(1, 1.0, 10, 0.0)
+    with pytest.raises(ValueError, match="total_steps"):
+        training_progress(1, 1.0, 0)
