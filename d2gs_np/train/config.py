@@ -20,6 +20,7 @@ from d2gs_np.scene.deformation import DeformConfig
 from d2gs_np.scene.initialize import InitConfig
 from d2gs_np.scene.motion_init import MotionInitConfig
 from d2gs_np.train.densify import DensifyConfig
+from d2gs_np.train.prune import PruneConfig
 from d2gs_np.train.schedule import ScheduleConfig
 from d2gs_np.trajectory import TrajectoryConfig
 
@@ -125,6 +126,7 @@ class ExperimentConfig:
     init: InitConfig = field(default_factory=InitConfig)
     motion_init: MotionInitConfig = field(default_factory=MotionInitConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
+    prune: PruneConfig = field(default_factory=PruneConfig)
 
     def to_dict(self) -> dict:
         return _to_plain(self)

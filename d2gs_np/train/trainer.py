@@ -44,9 +44,10 @@ from d2gs_np.scene.motion_init import initialize_deformation
 from d2gs_np.scene.model import evaluate_bwd, evaluate_fwd
 from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint, save_checkpoint
 from d2gs_np.train.config import ExperimentConfig
+from d2gs_np.train import prune as prune_rules
 from d2gs_np.train.densify import GradientStats, densify
 from d2gs_np.train.log import RunLog, Stopwatch, psnr_from_mse
-from d2gs_np.train.schedule import TargetCache
+from d2gs_np.train.schedule import TargetCache, schedule_step
 
 CHECKPOINT_NAME = "checkpoint.npz"
 FINAL_NAME = "final.npz"
@@ -208,6 +209,8 @@ class Trainer:
             for (slot, p), v in self._restored_stats.items():
                 getattr(self.grad_stats, slot)[p] = v
         self._last_v_means2d = None
+        # schedule step of the previous step (periodic housekeeping fires when it enters a new period)
+        self._last_sched = self._restored_last_sched if resume else self.step_index - 1
 
     # ------------------------------------------------------------------ set-up
     def _initialise(self):
@@ -356,10 +359,14 @@ class Trainer:
                 return v_p
         return out, backward, tgt
 
-    def step(self, step: int) -> dict:
-        stage = self.stage_at(step)
+    def step(self, step: int, sched: Optional[int] = None) -> dict:
+        """One training step. ``sched`` is the step the schedules are read at (``schedule_step``:
+        further along than ``step`` when a time budget binds); default ``step``."""
+        sched = step if sched is None else sched
+        stage = self.stage_at(sched)
         k = self.frame_for_step(step)
-        scale = self.scale_at(step)
+        scale = self.scale_at(sched)
+        lr_scale = sched / step if sched > step > 0 else 1.0
         out, backward, tgt = self.render_frame(k, scale, stage.static_only)
         image = out["image"]
         ignore = tgt.mask if (stage.static_only and tgt.mask is not None) else None
@@ -384,10 +391,12 @@ class Trainer:
         # Per-frame endpoint rows of other frames get no gradient this step: update only row k
         # (row-sparse Adam), so they do not drift on stale momentum.
         sparse = {n: grads.pop(n) for n in list(grads) if n in PER_FRAME_BLOCKS}
-        self.params, self.adam_state = adam.adam_update(grads, self.adam_state, self.params, self.adam_config)
+        self.params, self.adam_state = adam.adam_update(grads, self.adam_state, self.params, self.adam_config,
+                                                        lr_step_scale=lr_scale)
         if sparse:
             self.params, self.adam_state = adam.adam_update_rows(
-                sparse, {n: [k] for n in sparse}, self.adam_state, self.params, self.adam_config)
+                sparse, {n: [k] for n in sparse}, self.adam_state, self.params, self.adam_config,
+                lr_step_scale=lr_scale)
         mse = float(np.mean((image - tgt.image) ** 2)) if ignore is None else float(
             np.mean(((image - tgt.image) ** 2)[~ignore]))
         return {"step": step, "frame": k, "stage": stage.name, "loss": float(loss), "train_psnr": psnr_from_mse(mse),
@@ -395,9 +404,24 @@ class Trainer:
 
     # ------------------------------------------------------------------ housekeeping
     def prune(self):
+        """Remove transparent and oversized Gaussians, and dynamic ones that escaped their masks
+        (``train/prune.py``); Adam state and densification statistics follow the same masks."""
         thr = self.config.train.prune_opacity
-        keep_s = gaussians.sigmoid(self.params["static.opacity_logits"]) > thr
-        keep_d = (gaussians.sigmoid(self.params["dynamic.opacity_logits"]) > thr) if gaussians.has_dynamic(self.params) else None
+        pc = self.config.prune
+        p = self.params
+        drop_s = prune_rules.transparent(p["static.opacity_logits"], thr) | prune_rules.oversized(
+            p["static.log_scales"], self.extent, pc.max_scale_fraction)
+        keep_s = ~drop_s
+        keep_d = None
+        if gaussians.has_dynamic(p):
+            drop_d = prune_rules.transparent(p["dynamic.opacity_logits"], thr) | prune_rules.oversized(
+                p["dynamic.log_scales"], self.extent, pc.max_scale_fraction)
+            if self.scene.has_masks:
+                drop_d |= prune_rules.escaped(
+                    p["dynamic.means"], p["dynamic.deform_means"], self.times,
+                    np.stack([self.mid_pose(k) for k in range(self.num_frames)]),
+                    np.stack([f.K for f in self.frames]), [f.mask for f in self.frames], self.config.deform, pc)
+            keep_d = ~drop_d
         removed = int((~keep_s).sum() + (0 if keep_d is None else (~keep_d).sum()))
         if removed == 0:
             return 0
@@ -449,6 +473,7 @@ class Trainer:
             "step": self.step_index, "seconds": self.stopwatch.seconds(), "config": self.config.to_dict(),
             "components": self.components.__dict__, "left_out": self.components.left_out(),
             "poses_est": self.poses_est.tolist(), "times": self.times.tolist(), "final": final,
+            "last_sched": int(self._last_sched),
             "scene_root": str(Path(self.scene.root).resolve()) if self.scene.root is not None else None,
             "K": [np.asarray(f.K).tolist() for f in self.frames], "width": [int(f.width) for f in self.frames],
             "height": [int(f.height) for f in self.frames],
@@ -481,6 +506,7 @@ class Trainer:
                     state[parts[1]] = v.item() if v.ndim == 0 else v
         self.adam_state = state
         self.step_index = int(meta["step"])
+        self._restored_last_sched = int(meta.get("last_sched", self.step_index - 1))
         self.stopwatch = Stopwatch(meta["seconds"])
         self.components = Components(**meta["components"])
         self.log.truncate(self.step_index)
@@ -500,17 +526,24 @@ class Trainer:
                 f"{s.name} [{s.start}, {s.stop})" for s in self.stages))
         last_stage = None
         info = {"loss": float("nan"), "train_psnr": float("nan")}
+        budget = tc.time_budget
+        dc = self.config.densify
         while self.step_index < total:
             step = self.step_index
-            stage = self.stage_at(step)
+            # The step the schedules are read at: the step itself, or further along when a time
+            # budget binds, so a budgeted run finishes its schedule (schedule.training_progress).
+            sched = schedule_step(step, self.stopwatch.seconds(), total, budget)
+            stage = self.stage_at(sched)
             if stage.name != last_stage:
-                self.log.note(f"stage {stage.name} from step {step}")
+                self.log.note(f"stage {stage.name} from step {step}" + (f" (schedule step {sched})"
+                                                                        if sched != step else ""))
                 last_stage = stage.name
             self.stopwatch.start()
-            info = self.step(step)
+            info = self.step(step, sched)
             for hook in self.hooks:
                 hook(self, info)
-            is_last = step + 1 >= total
+            out_of_time = budget is not None and self.stopwatch.seconds() >= budget
+            is_last = step + 1 >= total or out_of_time
             heldout = None
             if tc.eval_every and (step % tc.eval_every == 0 or is_last):
                 # Evaluated on the model the Adam step produced, before pruning and densification
@@ -520,11 +553,15 @@ class Trainer:
                 self.stopwatch.pause()
                 heldout = self.heldout_psnr()
                 self.stopwatch.start()
-            if tc.prune_every and step > 0 and step % tc.prune_every == 0 and step < int(0.9 * total):
+            # Periodic housekeeping fires when the schedule step enters a new period (without a
+            # budget: exactly at multiples of the period, as 3DGS).
+            prev = self._last_sched if budget is not None else step - 1
+            self._last_sched = sched
+            if (tc.prune_every and sched > 0 and sched // tc.prune_every > prev // tc.prune_every
+                    and sched < int(0.9 * total)):
                 self.prune()
-            dc = self.config.densify
-            if (dc.enabled and step > 0 and step % dc.every == 0
-                    and dc.start_fraction * total <= step < dc.stop_fraction * total):
+            if (dc.enabled and sched > 0 and sched // dc.every > prev // dc.every
+                    and dc.start_fraction * total <= sched < dc.stop_fraction * total):
                 self.params, self.adam_state, self.grad_stats, dinfo = densify(
                     self.params, self.adam_state, self.grad_stats, dc, self.extent,
                     max(f.width for f in self.frames), np.random.default_rng((tc.seed, step, 7)))
@@ -541,8 +578,9 @@ class Trainer:
                 self.log.progress(self.step_index, total, seconds, info["loss"], info["train_psnr"], stage.name)
             if tc.checkpoint_every and self.step_index % tc.checkpoint_every == 0 and not is_last:
                 self.checkpoint()
-            if tc.time_budget is not None and seconds >= tc.time_budget and not is_last:
-                self.log.note(f"time budget of {tc.time_budget:.0f}s reached at step {self.step_index}; stopping")
+            if out_of_time and step + 1 < total:
+                self.log.note(f"time budget of {budget:.0f}s reached at step {self.step_index} (schedule step "
+                              f"{sched} of {total}: schedule complete); stopping")
                 break
         self.checkpoint(final=True)
         wall = time.perf_counter() - t_start

@@ -292,3 +292,58 @@ def test_heldout_is_evaluated_before_pruning_and_densification(dynamic_scene, tm
     assert any("densified" in n for n in tr.log.notes)
     assert seen == [counts[0], counts[4], counts[8]], (seen, counts)
     assert counts[4] < counts[5], "the test needs a densification at step 4"
+
+
+# ------------------------------------------------------------- time budget: a finished schedule
+def test_a_time_budget_buys_a_finished_schedule(dynamic_scene, tmp_path):
+    # 10 000 steps can never run in 4 s here: the budget ends the run, and every schedule reads the
+    # budget's progress, so the run still reaches full resolution and passes through every stage.
+    cfg = _config(iters=10000, time_budget=4.0, progressive=True, log_every=1)
+    tr = Trainer(dynamic_scene, cfg, tmp_path / "run")
+    out = tr.run()
+    assert out["steps"] < 10000
+    rows = tr.log.rows
+    assert rows[-1]["scale"] == 1.0, rows[-1]
+    assert rows[0]["scale"] < 1.0
+    stages_seen = {r["stage"] for r in rows}
+    assert stages_seen == {"warmup", "deform", "joint"}, stages_seen
+    assert any("schedule complete" in str(n) for n in tr.log.notes)
+
+
+def test_without_a_budget_the_schedule_reads_the_step(dynamic_scene, tmp_path):
+    cfg = _config(iters=20, progressive=True)
+    tr = Trainer(dynamic_scene, cfg, tmp_path / "run")
+    tr.run()
+    for r in tr.log.rows:
+        assert r["scale"] == round(tr.scale_at(r["step"]), 4)
+        assert r["stage"] == tr.stage_at(r["step"]).name
+
+
+# ------------------------------------------------------------- pruning rules in the trainer
+def test_prune_removes_oversized_and_escaped_gaussians_and_keeps_state_in_step(dynamic_scene, tmp_path):
+    tr = Trainer(dynamic_scene, _config(iters=4), tmp_path / "run")
+    ns, nd = tr.params["static.means"].shape[0], tr.params["dynamic.means"].shape[0]
+    p = dict(tr.params)
+    big = np.array(p["static.log_scales"])
+    big[0] = np.log(0.5 * tr.extent)  # over the 0.1 x extent rule
+    p["static.log_scales"] = big
+    # move dynamic Gaussian 0 far from every mask: the top-left corner region of frame 0's view,
+    # at the depth of its seed
+    d = np.array(p["dynamic.means"])
+    coef = np.zeros_like(p["dynamic.deform_means"])
+    f = tr.frames[0]
+    from d2gs_np.geometry.camera import unproject_points
+
+    free = np.argwhere(~tr.frames[0].mask)
+    corner = free[np.argmin(free.sum(axis=1))]
+    d[0] = unproject_points(np.array([[corner[1] + 0.5, corner[0] + 0.5]]), np.array([1.0]), f.cam_T_world, f.K)[0]
+    p["dynamic.means"] = d
+    p["dynamic.deform_means"] = coef
+    tr.params = p
+    removed = tr.prune()
+    assert removed >= 2
+    assert tr.params["static.means"].shape[0] <= ns - 1 and tr.params["dynamic.means"].shape[0] <= nd - 1
+    assert not np.any(np.all(tr.params["static.log_scales"] == big[0], axis=1))
+    for name, v in tr.params.items():
+        if name.startswith(("static.", "dynamic.")):
+            assert tr.adam_state["m"][name].shape == v.shape, name
