@@ -87,7 +87,7 @@ def _cmd_eval(args):
 
 def _read_pose_file(path):
     """A JSON file with either "cam_T_world" (internal, world->camera OpenCV) or "transform_matrix"
-    (DATASET_FORMAT.md: OpenGL camera-to-world)."""
+    (docs/dataset_format.md §2: OpenGL camera-to-world)."""
     from d2gs_np.geometry.camera import opengl_c2w_to_cam_T_world
     from d2gs_np.geometry.se3 import check_rigid
 
@@ -209,7 +209,7 @@ def build_parser() -> argparse.ArgumentParser:
     m.set_defaults(func=_cmd_make_scene)
 
     t = sub.add_parser("train", help="train on a scene folder")
-    t.add_argument("scene", help="scene folder (DATASET_FORMAT.md)")
+    t.add_argument("scene", help="scene folder (docs/dataset_format.md)")
     t.add_argument("--out", required=True, help="run folder (checkpoints, logs)")
     t.add_argument("--config", default=None, help="experiment config JSON (see ExperimentConfig)")
     t.add_argument("--iters", type=int, default=None)

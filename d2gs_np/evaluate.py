@@ -1,4 +1,4 @@
-"""Evaluation of a finished run (DATASET_FORMAT.md, METHOD.md §10) -> RUN/metrics.json.
+"""Evaluation of a finished run (docs/method.md §10, docs/dataset_format.md §6) -> RUN/metrics.json.
 
 - dvs: render each training frame at its optimised mid-exposure pose and time,
   compare with its sharp ground truth (PSNR, SSIM over the whole image).
@@ -81,7 +81,7 @@ def _image_metrics(pairs):
 
 
 def evaluate(run: LoadedRun, scene) -> dict:
-    """Metrics dictionary of METHOD.md §10 for a loaded run and its scene (images loaded)."""
+    """Metrics dictionary of docs/method.md §10 for a loaded run and its scene (images loaded)."""
     out = {}
     frames = scene.frames
     if len(frames) != len(run.times) or not np.allclose([f.time for f in frames], run.times):

@@ -1,5 +1,5 @@
 """Densification (3DGS's adaptive density control): clone small and split large Gaussians whose
-screen-space position gradient is large. METHOD.md §8 allows it "if measured to help".
+screen-space position gradient is large. docs/method.md §8 allows it "if measured to help".
 
 Per Gaussian we accumulate the norm of dL/d(mean2d) in FULL-resolution pixels (the gradient at
 render scale r is multiplied by r) over the steps where it was visible, and every ``every``
