@@ -2,15 +2,15 @@
 
 One training step (``Trainer.step``):
   1. pick frame k (seeded permutation per epoch, reproducible after resume),
-  2. pick the render scale of the progressive schedule (METHOD.md §7) and fetch
+  2. pick the render scale of the progressive schedule (docs/method.md §7) and fetch
      the area-downsampled target and scaled intrinsics from the cache,
   3. render: with the blur model, the mean of n renders along the exposure's
-     SE(3) path (METHOD.md §4); without it, one sharp render at the given pose,
+     SE(3) path (docs/method.md §4); without it, one sharp render at the given pose,
   4. photometric loss and its gradient, back through renderer, blur model,
      trajectory model and deformation to every named parameter block,
   5. Adam on the blocks the current stage trains.
 
-Stages (METHOD.md §8): ``warmup`` trains the static set and the camera model
+Stages (docs/method.md §8): ``warmup`` trains the static set and the camera model
 on static pixels only (dynamic Gaussians are not rendered, masked pixels carry
 no loss); ``deform`` trains the dynamic set and its deformation; ``joint``
 trains everything. Stages a scene does not need are left out (no dynamic set:
@@ -77,7 +77,7 @@ class Stage:
 
 @dataclass(frozen=True)
 class Components:
-    """What this run models; decided from the scene and the config (METHOD.md §9)."""
+    """What this run models; decided from the scene and the config (docs/method.md §9)."""
 
     dynamic: bool
     blur: bool
@@ -96,7 +96,7 @@ class Components:
 
 
 def decide_components(scene: Scene, config: ExperimentConfig, log: Optional[RunLog] = None) -> Components:
-    """Apply METHOD.md §9: leave out what the scene does not need, and say why."""
+    """Apply docs/method.md §9: leave out what the scene does not need, and say why."""
     tc = config.train
     say = log.note if log is not None else (lambda m: None)
     if tc.dynamic == "off":
