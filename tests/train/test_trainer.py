@@ -325,7 +325,7 @@ def test_prune_removes_oversized_and_escaped_gaussians_and_keeps_state_in_step(d
     ns, nd = tr.params["static.means"].shape[0], tr.params["dynamic.means"].shape[0]
     p = dict(tr.params)
     big = np.array(p["static.log_scales"])
-    big[0] = np.log(0.5 * tr.extent)  # over the 0.1 x extent rule
+    big[0] = np.log(0.5 * tr.size_extent)  # over the 0.1 x extent rule
     p["static.log_scales"] = big
     # move dynamic Gaussian 0 far from every mask: the top-left corner region of frame 0's view,
     # at the depth of its seed
@@ -347,3 +347,26 @@ def test_prune_removes_oversized_and_escaped_gaussians_and_keeps_state_in_step(d
     for name, v in tr.params.items():
         if name.startswith(("static.", "dynamic.")):
             assert tr.adam_state["m"][name].shape == v.shape, name
+
+
+def test_size_extent_follows_the_scene_when_the_camera_barely_moves():
+    from d2gs_np.train.trainer import scene_extent, size_extent
+
+    rng = np.random.default_rng(0)
+    # forward-facing: camera centres within 0.1 of the origin, points on a wall 5 units away
+    poses = []
+    for c in rng.uniform(-0.1, 0.1, size=(6, 3)):
+        T = np.eye(4)
+        T[:3, 3] = -c  # identity rotation: centre = c
+        poses.append(T)
+    poses = np.stack(poses)
+    pts = np.column_stack([rng.uniform(-2, 2, 500), rng.uniform(-1, 1, 500), np.full(500, 5.0)])
+    cam = scene_extent(poses)
+    centres = np.array([-T[:3, :3].T @ T[:3, 3] for T in poses])
+    d = np.linalg.norm(pts - centres.mean(0), axis=1)
+    assert cam < 0.25
+    assert size_extent(poses, pts, cam) == 1.1 * np.percentile(d, 90)
+    # a camera circling a small object: the camera extent is the larger and is kept
+    assert size_extent(poses, 0.01 * pts, 10.0) == 10.0
+    # no points: the camera extent
+    assert size_extent(poses, np.zeros((0, 3)), cam) == cam
