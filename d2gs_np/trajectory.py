@@ -58,6 +58,7 @@ __all__ = [
     "ACTIVATIONS",
     "TrajectoryConfig",
     "trajectory_block_names",
+    "check_trajectory",
     "init_trajectory",
     "endpoints_fwd",
     "endpoints_bwd",
@@ -275,6 +276,15 @@ def _check_params(params, config, N):
                     raise ValueError(f"{k} must have shape {shape} for {config}; got {params[k].shape}")
             fan_in = fan_out
     return dtype
+
+
+def check_trajectory(params, config, poses_est, times):
+    """Raise a clear error unless ``params`` holds finite blocks of this trajectory model for the
+    N frames of ``poses_est`` (rigid, (N, 4, 4)) and ``times`` (finite, (N,)). What
+    ``endpoints_fwd`` checks on every call, for a caller that checks once (``train.model``)."""
+    _check_config(config)
+    poses_est, times = _check_poses_times(poses_est, times)
+    _check_params(params, config, poses_est.shape[0])
 
 
 def _act(a, kind):

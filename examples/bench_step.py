@@ -31,6 +31,7 @@ import numpy as np
 
 from d2gs_np.data.synthetic import make_scene
 from d2gs_np.evaluate import evaluate, load_run
+from d2gs_np.train.checkpoint import load_checkpoint
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 from d2gs_np.train.densify import DensifyConfig
 from d2gs_np.train.trainer import Trainer
@@ -81,7 +82,8 @@ def main(argv=None):
         print("last_row", repr(last))
         print("heldout", repr([(r["step"], r["heldout_psnr"]) for r in rows if r["heldout_psnr"] is not None]))
         print("losses_sha256", hashlib.sha256(repr([r["loss"] for r in rows]).encode()).hexdigest())
-        print("params_sha256", digest(run.params))
+        arrays, _ = load_checkpoint(out / "run" / "final.npz")
+        print("params_sha256", digest({k[len("params/"):]: v for k, v in arrays.items() if k.startswith("params/")}))
         print("num_gaussians", repr(int(rows[-1]["num_gaussians"])), "steps", repr(result["steps"]))
         secs = [r["seconds"] for r in rows]
         per_step = np.diff([0.0] + secs)[args.skip:]

@@ -266,3 +266,13 @@ def _render_grads(saved, v_image, v_alpha, v_depth, v_ed):
         g["v_opac_eff"])
     return dict(means=v_means, quats=v_quats, scales=v_scales, opacities=v_opacities, colors=g["v_colors"],
                 cam_T_world=v_view, background=v_background, means2d=g["v_means2d"])
+
+
+def warm_up(config=None):
+    """Compile (or load from the Numba cache) the float64 kernels of ``render_fwd`` and
+    ``render_bwd`` on one tiny Gaussian, so that timing what follows measures work, not JIT."""
+    one = np.ones((1, 3))
+    out, saved = render_fwd(np.array([[0.0, 0.0, 2.0]]), np.array([[1.0, 0.0, 0.0, 0.0]]), 0.1 * one,
+                            np.array([0.5]), 0.5 * one, np.eye(4), np.array([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]),
+                            8, 8, np.zeros(3), config)
+    render_bwd(saved, np.ones_like(out["image"]))
