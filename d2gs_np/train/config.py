@@ -29,7 +29,11 @@ _AUTO = ("auto", "on", "off")
 
 @dataclass(frozen=True)
 class LossConfig:
-    """Weights of the total loss (METHOD.md §6, Eq. 18). Regularisers plug in here."""
+    """Weights of the total loss (docs/method.md §6, Eq. 18): total = L_render + sum of weighted terms.
+
+    A regulariser adds its weight here and its term to ``train.terms.loss_terms`` (entered when
+    the weight is > 0); the training step does not change.
+    """
 
     lambda_ssim: float = 0.2  # L_render = (1 - lambda_ssim) L1 + lambda_ssim (1 - SSIM)
 
@@ -64,13 +68,13 @@ class LearningRates:
 @dataclass(frozen=True)
 class TrainConfig:
     iters: int = 2000
-    # Stage split (METHOD.md §8): camera/static warm-up, deformation, joint; fractions of iters.
+    # Stage split (docs/method.md §8): camera/static warm-up, deformation, joint; fractions of iters.
     warmup_fraction: float = 0.1
     deform_fraction: float = 0.1
     seed: int = 0
     background: tuple = (0.0, 0.0, 0.0)
     lr: LearningRates = field(default_factory=LearningRates)
-    # Components: "auto" lets the scene decide (METHOD.md §9); "on"/"off" force.
+    # Components: "auto" lets the scene decide (docs/method.md §9); "on"/"off" force.
     dynamic: str = "auto"
     blur: str = "auto"
     learn_exposure: str = "auto"  # learned tau when the scene gives no exposure_fraction
