@@ -1,4 +1,4 @@
-"""Blur formation model (METHOD.md §4, the paper's Eq. 5-9).
+"""Blur formation model (docs/method.md §4, the paper's Eq. 5-9).
 
 Frame k has an estimated mid-exposure pose T̂_k (cam_T_world) and time t_k. The camera moves
 during the exposure from T_s = exp(xi_s) T̂_k to T_e = exp(xi_e) T̂_k (LEFT perturbations,
@@ -9,7 +9,7 @@ of n sharp renders at virtual poses on the geodesic and at sub-frame times:
     t_i    = t_k + (u_i - 1/2) tau                                                  (objects move)
     B̂_k    = (1/n) sum_i render(G(t_i), T(u_i))                                     (Eq. 6)
 
-Choices made here (METHOD.md leaves them open or states them loosely):
+Choices made here (the paper leaves them open or states them loosely; docs/method.md §4):
 
 - n = 1 is a sharp camera at the ESTIMATED pose T̂_k and time t_k: xi_s, xi_e are ignored (their
   gradients are zero) and so is tau. It is exactly the sharp render at T̂_k, bit for bit (this
@@ -24,7 +24,7 @@ Choices made here (METHOD.md leaves them open or states them loosely):
   pi (a half turn between start and end, never a real exposure) it is ambiguous.
 - Every output (image, alpha, depth, expected_depth) is the plain mean over the n sub-frames. So
   the blurry "expected_depth" is the mean of the sub-frame expected depths, not the blurry depth
-  divided by the blurry alpha; the sharp mid-pose depth METHOD.md §5 needs is rendered
+  divided by the blurry alpha; the sharp mid-pose depth docs/method.md §5 needs is rendered
   separately. "radii" is the element-wise max over sub-frames (a Gaussian is visible in the
   blurry frame when it is visible in any sub-frame).
 - Pose arithmetic is done in float64 and cast to the scene dtype for rendering (float32 scenes
@@ -101,7 +101,7 @@ class BlurConfig:
     """Blur formation settings.
 
     num_virtual: n, number of virtual sub-frames averaged per blurry frame (>= 1; 1 = sharp
-        camera at the estimated pose, see the module docstring). METHOD.md default 8.
+        camera at the estimated pose, see the module docstring). Default 8 (docs/method.md §4).
     """
 
     num_virtual: int = 8

@@ -1,7 +1,8 @@
 """Command line: ``d2gs {demo, make-scene, train, eval, render, export-ply}``.
 
 Every command validates its inputs before starting work and exits with a
-one-line error (status 2) naming the problem.
+one-line error (status 2) naming the problem. Each command's help names the
+page of docs/ that explains it (docs/architecture.md §2 maps the code to the docs).
 """
 from __future__ import annotations
 
@@ -87,7 +88,7 @@ def _cmd_eval(args):
 
 def _read_pose_file(path):
     """A JSON file with either "cam_T_world" (internal, world->camera OpenCV) or "transform_matrix"
-    (DATASET_FORMAT.md: OpenGL camera-to-world)."""
+    (docs/dataset_format.md §2: OpenGL camera-to-world)."""
     from d2gs_np.geometry.camera import opengl_c2w_to_cam_T_world
     from d2gs_np.geometry.se3 import check_rigid
 
@@ -176,11 +177,20 @@ DEMO_ITERS = 600  # about 3.3 minutes on 2 cores with the blur model (n = 8), me
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(prog="d2gs", description="D2GS on the CPU: sharp dynamic 3D Gaussians and camera "
-                                "trajectories from motion-blurred monocular video.")
+    p = argparse.ArgumentParser(
+        prog="d2gs",
+        description="D2GS on the CPU: sharp dynamic 3D Gaussians and camera trajectories from motion-blurred "
+                    "monocular video. The method is explained in docs/method.md, the scene folder in "
+                    "docs/dataset_format.md.",
+        epilog="Documentation (in the source repository): docs/method.md (the method, equations and choices), "
+               "docs/conventions.md (renderer conventions), docs/dataset_format.md (scene folders), "
+               "docs/architecture.md (code layout). Each command's --help names its page.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
-    d = sub.add_parser("demo", help="make a small built-in blurry dynamic scene, train, evaluate, plot")
+    d = sub.add_parser("demo", help="make a small built-in blurry dynamic scene, train, evaluate, plot "
+                       "(docs/method.md)",
+                       description="Make the built-in blurry dynamic scene, train on it with the blur model, "
+                                   "evaluate and plot. What is trained and measured: docs/method.md §4-10.")
     d.add_argument("--out", default="runs/demo", help="output folder (default runs/demo)")
     d.add_argument("--iters", type=int, default=None, help="training steps (default 600, or the config's)")
     d.add_argument("--time-budget", type=float, default=None, help="stop training after this many seconds")
@@ -188,7 +198,11 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--seed", type=int, default=0)
     d.set_defaults(func=_cmd_demo)
 
-    m = sub.add_parser("make-scene", help="generate a synthetic scene folder with ground truth")
+    m = sub.add_parser("make-scene", help="generate a synthetic scene folder with ground truth "
+                       "(docs/dataset_format.md)",
+                       description="Generate a synthetic scene folder with full ground truth, in the format of "
+                                   "docs/dataset_format.md; the scene families are described in "
+                                   "docs/architecture.md §8.")
     m.add_argument("out", help="output scene folder")
     m.add_argument("--preset", default="dynamic",
                    help="a suite scene (photo_room, wall_disk, cube_sign, crossing, big_mover; photographs, "
@@ -208,26 +222,37 @@ def build_parser() -> argparse.ArgumentParser:
     m.add_argument("--overwrite", action="store_true", help="replace an existing scene folder")
     m.set_defaults(func=_cmd_make_scene)
 
-    t = sub.add_parser("train", help="train on a scene folder")
-    t.add_argument("scene", help="scene folder (DATASET_FORMAT.md)")
+    t = sub.add_parser("train", help="train on a scene folder (docs/method.md §7-8)",
+                       description="Train on a scene folder (docs/dataset_format.md). Stages, progressive "
+                                   "resolution and the rest of the schedule: docs/method.md §7-8; what is left "
+                                   "out and why: docs/method.md §9.")
+    t.add_argument("scene", help="scene folder (docs/dataset_format.md)")
     t.add_argument("--out", required=True, help="run folder (checkpoints, logs)")
     t.add_argument("--config", default=None, help="experiment config JSON (see ExperimentConfig)")
     t.add_argument("--iters", type=int, default=None)
     t.add_argument("--time-budget", type=float, default=None, help="seconds of training before a clean stop")
     t.add_argument("--seed", type=int, default=None)
-    t.add_argument("--blur", choices=["auto", "on", "off"], default=None, help="blur model (default auto)")
-    t.add_argument("--dynamic", choices=["auto", "on", "off"], default=None, help="dynamic set (default auto)")
-    t.add_argument("--n", type=int, default=None, help="virtual views per blurry frame")
+    t.add_argument("--blur", choices=["auto", "on", "off"], default=None,
+                   help="blur model (default auto; docs/method.md §4, §9)")
+    t.add_argument("--dynamic", choices=["auto", "on", "off"], default=None,
+                   help="dynamic set (default auto; docs/method.md §2, §9)")
+    t.add_argument("--n", type=int, default=None, help="virtual views per blurry frame (docs/method.md §4)")
     t.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.npz")
     t.add_argument("--quiet", action="store_true")
     t.set_defaults(func=_cmd_train)
 
-    e = sub.add_parser("eval", help="evaluate a run; writes RUN/metrics.json")
+    e = sub.add_parser("eval", help="evaluate a run; writes RUN/metrics.json (docs/method.md §10)",
+                       description="Evaluate a run against its scene's ground truth and write RUN/metrics.json: "
+                                   "deblurring and novel view synthesis, trajectory errors (docs/method.md §10, "
+                                   "docs/dataset_format.md §6).")
     e.add_argument("run")
     e.add_argument("--scene", default=None, help="scene folder (default: the one the run was trained on)")
     e.set_defaults(func=_cmd_eval)
 
-    r = sub.add_parser("render", help="render a run at a time and pose to PNG")
+    r = sub.add_parser("render", help="render a run at a time and pose to PNG (docs/conventions.md)",
+                       description="Render a trained run, sharp, at a normalised time and a camera pose. Camera "
+                                   "model, axes and pixel centres: docs/conventions.md §2; pose files in scene "
+                                   "convention: docs/dataset_format.md §2.")
     r.add_argument("run")
     r.add_argument("--time", type=float, required=True, help="normalised time in [0, 1]")
     r.add_argument("--pose", default=None, help="JSON with cam_T_world or transform_matrix (OpenGL c2w); "
@@ -235,7 +260,11 @@ def build_parser() -> argparse.ArgumentParser:
     r.add_argument("--out", required=True, help="output PNG")
     r.set_defaults(func=_cmd_render)
 
-    x = sub.add_parser("export-ply", help="export the Gaussians at a time in the standard 3DGS PLY layout")
+    x = sub.add_parser("export-ply", help="export the Gaussians at a time in the standard 3DGS PLY layout "
+                       "(docs/method.md §2)",
+                       description="Export the Gaussians of a run, deformed to a time, in the standard 3DGS PLY "
+                                   "layout (log-scales, opacity logits, wxyz quaternions, RGB colours; "
+                                   "docs/method.md §2).")
     x.add_argument("run")
     x.add_argument("--time", type=float, required=True)
     x.add_argument("out", help="output .ply")

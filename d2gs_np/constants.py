@@ -1,11 +1,11 @@
 """Every threshold and epsilon of the project, named once.
 
 Renderer values follow gsplat 1.5.3's reference renderer (see
-``../shared/CONVENTIONS.md``); the section of that page is given beside each.
+``docs/conventions.md``, whose §11 lists them); the section of that page is given beside each.
 Numerical epsilons carry a comment saying why they have the value they have.
 """
 
-# --- Rendering (CONVENTIONS.md) -------------------------------------------
+# --- Rendering (docs/conventions.md) ---------------------------------------
 EPS2D = 0.3  # §3: low-pass dilation added to the 2D covariance, always applied
 NEAR_PLANE = 0.01  # §4: Gaussians with camera z <= NEAR_PLANE are culled
 FAR_PLANE = 1e10  # §4: Gaussians with camera z >= FAR_PLANE are culled

@@ -1,4 +1,4 @@
-"""Evaluation of a finished run (DATASET_FORMAT.md, docs/method.md §10) -> RUN/metrics.json.
+"""Evaluation of a finished run (docs/method.md §10, docs/dataset_format.md §6) -> RUN/metrics.json.
 
 - dvs: render each training frame at its optimised mid-exposure pose and time,
   compare with its sharp ground truth (PSNR, SSIM over the whole image).

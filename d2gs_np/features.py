@@ -1,4 +1,4 @@
-"""Feature correspondences between two images (METHOD.md §5): SIFT, ratio test, RANSAC on F.
+"""Feature correspondences between two images (docs/method.md §5): SIFT, ratio test, RANSAC on F.
 
 Pipeline: 8-bit greyscale -> OpenCV SIFT (``cv2.SIFT_create``) restricted to static pixels by
 a detector mask -> brute-force L2 2-nearest-neighbour matching with Lowe's ratio test ->
@@ -6,7 +6,7 @@ RANSAC on the fundamental matrix (``cv2.findFundamentalMat``, ``FM_RANSAC``). Th
 needs network weights; features are a replaceable component behind ``match_images``.
 
 Pixel convention. OpenCV keypoint coordinates put pixel centres at INTEGER positions (pixel
-(i, j) is at (j, i)); this project puts them at (j + 0.5, i + 0.5) (CONVENTIONS.md §2). Every
+(i, j) is at (j, i)); this project puts them at (j + 0.5, i + 0.5) (docs/conventions.md §2). Every
 point leaving this module is converted: ``pts_ours = pts_opencv + 0.5``. SIFT is created with
 ``enable_precise_upscale=True``: OpenCV's default up-sampling of the first octave biases every
 keypoint by +0.25 px in x and y, which the +0.5 conversion would otherwise carry along. The fundamental matrix
@@ -249,7 +249,7 @@ def match_keypoints(kp0: Keypoints, kp1: Keypoints, config: FeatureConfig = None
 
 
 def match_images(image0, image1, config: FeatureConfig = None, mask0=None, mask1=None) -> Matches:
-    """Correspondences between two images on static pixels (METHOD.md §5).
+    """Correspondences between two images on static pixels (docs/method.md §5).
 
     image0, image1: (H, W, 3) or (H, W), float in [0, 1] or uint8 (sizes may differ).
     mask0, mask1: optional (H, W) bool motion masks, True = dynamic (dilated, then excluded).

@@ -1,7 +1,7 @@
 """Evaluation metrics: image quality (PSNR, SSIM) and camera trajectory (ATE, RPE).
 
-Definitions follow ``DATASET_FORMAT.md`` ("Evaluation protocol") and METHOD.md
-section 10.
+Definitions follow ``docs/dataset_format.md §6`` (the evaluation protocol) and
+``docs/method.md §10``.
 
 Images
 - Images are (H, W, C) floating-point arrays with values nominally in [0, 1]

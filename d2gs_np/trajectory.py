@@ -1,4 +1,4 @@
-"""Camera trajectory model: the exposure start / end poses of every frame (METHOD.md §4).
+"""Camera trajectory model: the exposure start / end poses of every frame (docs/method.md §4).
 
 Frame k has an estimated mid-exposure pose ``T̂_k`` (cam_T_world, 4x4) and the exposure
 endpoints are its LEFT perturbations ``T_s,k = exp(xi_s,k) T̂_k``, ``T_e,k = exp(xi_e,k) T̂_k``
@@ -14,7 +14,7 @@ them into virtual poses and a blurry render. Two parametrisations:
     xi_s = y[:6], xi_e = y[6:]
   blocks ``posenet.W0`` (7, H), ``posenet.b0`` (H,), ``posenet.W1`` (H, H), ``posenet.b1`` (H,),
   ``posenet.W2`` (H, 12), ``posenet.b2`` (12,) for the default 2 hidden layers of H = 64
-  (weights stored (fan_in, fan_out), rows are the batch). Choices METHOD.md leaves open:
+  (weights stored (fan_in, fan_out), rows are the batch). Choices the paper leaves open (docs/method.md §4):
   - Inputs are standardised per component with the mean and standard deviation over all N
     frames passed in ``poses_est`` / ``times`` (a fixed affine map, since the estimates are fixed);
     a component whose spread is below POSENET_INPUT_STD_MIN is only centred.
@@ -82,7 +82,7 @@ class TrajectoryConfig:
     kind: "direct" (per-frame xi blocks) or "posenet" (MLP of Eq. 8).
     init_spread: s, half the initial endpoint spread (xi_s = -s d, xi_e = +s d, |d| = 1); must
         be > 0 (zero spread is a critical point, see the module docstring).
-    hidden_layers, hidden_width: PoseNet size (METHOD.md: 2 hidden layers of 64).
+    hidden_layers, hidden_width: PoseNet size (docs/method.md §4: 2 hidden layers of 64).
     activation: "tanh" or "softplus" (PoseNet hidden layers).
     output_init_scale: PoseNet output-layer weight scale at initialisation (see module docstring).
     init: "velocity" (default): the direct endpoints start on the camera's motion, estimated from

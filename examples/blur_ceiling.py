@@ -1,4 +1,4 @@
-"""How well can the geodesic blur model (METHOD.md Eq. 9) explain a synthetic scene's blur at all?
+"""How well can the geodesic blur model (docs/method.md §4, Eq. 9) explain a synthetic scene's blur at all?
 
 For each hand-shake setting, with the TRUE exposure endpoints and the TRUE scene (ray cast, no
 Gaussians), this measures per frame:

@@ -3,7 +3,7 @@
 Scenes are plain dicts whose keys are the argument names of ``render_fwd``, so a scene renders
 with ``render_fwd(**scene, config=cfg)``.
 
-Discontinuities. The rendered outputs are only piecewise smooth in the inputs (CONVENTIONS.md
+Discontinuities. The rendered outputs are only piecewise smooth in the inputs (docs/conventions.md
 §8): a (Gaussian, pixel) evaluation switches on or off when its alpha crosses 1/255, the
 compositing stops when ``T * (1 - alpha)`` crosses 1e-4, the gradient through the 0.999 clamp
 switches off when ``o * exp(-sigma)`` crosses 0.999, a Gaussian is culled at the near plane,
@@ -252,7 +252,7 @@ def left_tangent_from_matrix_grad(T, G):
     """Tangent gradient (6,) (rho, phi) of a left perturbation from the 4x4 entrywise gradient G.
 
     For T(delta) = exp(delta^) T: M = G @ T.T; v_rho = M[:3, 3];
-    v_phi = (M[2,1]-M[1,2], M[0,2]-M[2,0], M[1,0]-M[0,1]) (render_contract.md).
+    v_phi = (M[2,1]-M[1,2], M[0,2]-M[2,0], M[1,0]-M[0,1]) (docs/conventions.md §8).
     """
     M = np.asarray(G, np.float64) @ np.asarray(T, np.float64).T
     return np.array([M[0, 3], M[1, 3], M[2, 3], M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])

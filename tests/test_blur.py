@@ -3,7 +3,7 @@ the blurry render against sharp renders, its gradients against central finite di
 the exposure-length helpers.
 
 Finite differences. The blurry render averages n sharp renders, each piecewise smooth in its
-inputs (CONVENTIONS.md §8). FD test scenes are redrawn until EVERY sub-frame render (each virtual
+inputs (docs/conventions.md §8). FD test scenes are redrawn until EVERY sub-frame render (each virtual
 pose and sub-frame time) has threshold margin >= MARGIN_MIN (tests/render_fixtures), and steps
 are FD_STEP; the argument of tests/reference/test_render_reference.py then applies sub-frame by
 sub-frame: a step moves any thresholded quantity by <= ~1e-5 relative, inside the margin (see MARGIN_MIN).

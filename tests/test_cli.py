@@ -78,6 +78,36 @@ def test_help_lists_the_commands(capsys):
         assert cmd in out
 
 
+COMMANDS = ("demo", "make-scene", "train", "eval", "render", "export-ply")
+
+
+def _help(argv, capsys):
+    with pytest.raises(SystemExit) as exit_info:
+        main(argv)
+    assert exit_info.value.code == 0
+    return capsys.readouterr().out
+
+
+def test_help_names_the_docs_that_explain_each_command(capsys):
+    """d2gs --help and every subcommand's --help name a docs/ page that exists, and every docs/
+    reference in the help text resolves (file and section)."""
+    from test_docs_references import DOCS_REF, docs_index, find_dangling
+
+    index = docs_index()
+    for argv in [["--help"]] + [[cmd, "--help"] for cmd in COMMANDS]:
+        out = _help(argv, capsys)
+        named = {m.group(1) for m in DOCS_REF.finditer(out)}
+        assert named, f"d2gs {' '.join(argv)} names no docs/ page:\n{out}"
+        assert not find_dangling(out, index), (argv, find_dangling(out, index))
+    top = _help(["--help"], capsys)
+    for page in ("method.md", "conventions.md", "dataset_format.md", "architecture.md"):
+        assert f"docs/{page}" in top
+    expected = {"make-scene": "dataset_format.md", "train": "method.md", "eval": "method.md",
+                "render": "conventions.md", "export-ply": "method.md", "demo": "method.md"}
+    for cmd, page in expected.items():
+        assert f"docs/{page}" in _help([cmd, "--help"], capsys), cmd
+
+
 def test_make_scene_writes_a_suite_scene_with_overrides(tmp_path):
     out = tmp_path / "room"
     assert main(["make-scene", str(out), "--preset", "photo_room", "--frames", "3", "--width", "32",

@@ -1,1 +1,1 @@
-"""Scene folders: in-memory records, reading and writing (DATASET_FORMAT.md), synthetic scenes, PLY."""
+"""Scene folders: in-memory records, reading and writing (docs/dataset_format.md), synthetic scenes, PLY."""

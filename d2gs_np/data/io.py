@@ -1,4 +1,4 @@
-"""Read and write scene folders (``../shared/DATASET_FORMAT.md``), with validation.
+"""Read and write scene folders (``docs/dataset_format.md``), with validation.
 
 On disk: ``transforms.json`` (training frames, the blurry video), optional
 ``transforms_test.json`` (evaluation views), 8-bit PNG images, masks (255 =
@@ -200,7 +200,7 @@ def _parse_frame(root, source, index, frame, defaults):
         raise ValueError(f"{label} must be a JSON object; got {frame!r}")
     for req in ("file_path", "time", "transform_matrix"):
         if frame.get(req) is None:
-            raise ValueError(f"{label}: missing required field '{req}' (see DATASET_FORMAT.md, Frames)")
+            raise ValueError(f"{label}: missing required field '{req}' (see docs/dataset_format.md §3)")
     _check_camera_model(frame, label)
     spec = _Spec()
     spec.label = label
@@ -291,7 +291,7 @@ def _decode(path, label, what, gray):
 
 # --------------------------------------------------------------------- loading
 def load_scene(path, load_images=True) -> Scene:
-    """Load a scene folder (DATASET_FORMAT.md) into a validated ``Scene``.
+    """Load a scene folder (docs/dataset_format.md) into a validated ``Scene``.
 
     path: the scene folder. load_images: if False, only metadata is read (file
     existence and PNG headers are still checked); ``image``, ``mask`` and
@@ -313,7 +313,7 @@ def load_scene(path, load_images=True) -> Scene:
     tf = root / TRANSFORMS_FILE
     if not tf.is_file():
         raise FileNotFoundError(
-            f"no {TRANSFORMS_FILE} in scene folder {root}; every scene needs one (see DATASET_FORMAT.md)"
+            f"no {TRANSFORMS_FILE} in scene folder {root}; every scene needs one (see docs/dataset_format.md §1)"
         )
 
     # 1. JSON contents
@@ -449,7 +449,7 @@ def _json_doc(frames, entries, extra):
 
 
 def write_scene(scene: Scene, path, overwrite=False) -> None:
-    """Write ``scene`` as a scene folder (DATASET_FORMAT.md).
+    """Write ``scene`` as a scene folder (docs/dataset_format.md).
 
     Training frames go to ``transforms.json``, test frames (if any) to
     ``transforms_test.json``, each image to its ``file_path`` (test frames: as

@@ -2,7 +2,7 @@
 
 All poses here are in the project's internal convention: ``cam_T_world``
 (world-to-camera, OpenCV axes: x right, y down, z forward), 4x4 float64.
-The on-disk format (``../shared/DATASET_FORMAT.md``) stores OpenGL
+The on-disk format (``docs/dataset_format.md``) stores OpenGL
 camera-to-world matrices; ``d2gs_np.data.io`` converts on load and save.
 Images are float64 (H, W, 3) in [0, 1]; masks are bool (H, W), True = dynamic.
 """

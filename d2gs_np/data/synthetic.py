@@ -22,7 +22,7 @@ around the scene centre, low-frequency sway (sums of sines, 0.5-2.5 cycles
 per clip), a faster smooth shake in position and orientation (5-9 cycles per
 clip), looking at a slowly swaying target with a slowly varying roll.
 
-Frames (METHOD.md §4): mid-exposure times ``t_k = k / (N - 1)``; exposure
+Frames (docs/method.md §4): mid-exposure times ``t_k = k / (N - 1)``; exposure
 length in normalised time ``tau = exposure_fraction / (N - 1)``. The blurry
 frame k is the mean of S sharp sub-frames at times
 ``t_k + (u_i - 0.5) tau`` with ``u_i = i / (S - 1)`` (evenly spaced,
@@ -42,7 +42,7 @@ the true camera moved by ``+-test_offset_fraction * scene_scale`` along its
 own x axis (alternating sides).
 
 Poses returned are ``cam_T_world`` (world -> camera, OpenCV axes); pixel
-(i, j) has its centre at (j + 0.5, i + 0.5) (CONVENTIONS.md §2).
+(i, j) has its centre at (j + 0.5, i + 0.5) (docs/conventions.md §2).
 """
 from __future__ import annotations
 
@@ -291,7 +291,7 @@ def build_world(config: SyntheticConfig) -> SyntheticWorld:
     cam_shake[:, 0, :] *= config.shake_scale
     rot_shake[:2, 0, :] *= config.shake_scale
     # A slower shake (row 1: cycles per clip) bends the path less inside one exposure, so the
-    # model's geodesic between the exposure endpoints (METHOD.md Eq. 9) fits it better.
+    # model's geodesic between the exposure endpoints (docs/method.md §4, Eq. 9) fits it better.
     cam_shake[:, 1, :] *= config.shake_freq_scale
     rot_shake[:2, 1, :] *= config.shake_freq_scale
     sphere_radius = np.array([0.35, 0.25])
@@ -740,7 +740,7 @@ def make_scene(preset="dynamic", seed=0, **overrides) -> Scene:
 
 
 def write_synthetic_scene(out_dir, preset="dynamic", seed=0, overwrite=False, **overrides) -> Path:
-    """Generate and write a scene folder (DATASET_FORMAT.md) with ``d2gs_np.data.io.write_scene``.
+    """Generate and write a scene folder (docs/dataset_format.md) with ``d2gs_np.data.io.write_scene``.
 
     Also writes ``synthetic_config.json`` (the generator settings, for provenance; loaders
     ignore it). Returns the folder path.

@@ -1,9 +1,9 @@
 """Pinhole cameras: intrinsics, projection, resolution scaling, axis conventions.
 
-Internal convention (CONVENTIONS.md §2): poses are ``cam_T_world``
+Internal convention (docs/conventions.md §2): poses are ``cam_T_world``
 (world -> camera), OpenCV axes (x right, y down, z forward), depth = camera z,
 pixel (row i, col j) has its centre at (j + 0.5, i + 0.5) so pixel j covers
-[j, j + 1) in continuous coordinates. Scene files (DATASET_FORMAT.md) store
+[j, j + 1) in continuous coordinates. Scene files (docs/dataset_format.md §2) store
 OpenGL/Nerfstudio camera-to-world matrices (x right, y up, looking down -z).
 """
 from __future__ import annotations

@@ -1,4 +1,4 @@
-"""Quaternions in wxyz order (CONVENTIONS.md §1), vectorised over leading axes."""
+"""Quaternions in wxyz order (docs/conventions.md §1), vectorised over leading axes."""
 from __future__ import annotations
 
 import numpy as np
@@ -24,7 +24,7 @@ def quat_normalize(q):
 
 
 def quat_to_rotmat(q):
-    """(..., 4) wxyz (normalised first, as gsplat does) -> (..., 3, 3), the matrix of CONVENTIONS.md §1."""
+    """(..., 4) wxyz (normalised first, as gsplat does) -> (..., 3, 3), the matrix of docs/conventions.md §1."""
     w, x, y, z = np.moveaxis(quat_normalize(q), -1, 0)
     R = np.stack(
         [

@@ -154,7 +154,7 @@ def se3_right_jacobian_inv(xi):
 
 
 def se3_interpolate(pose_start, pose_end, u):
-    """Geodesic T(u) = T_s exp(u log(T_s^{-1} T_e)) (METHOD.md Eq. 9).
+    """Geodesic T(u) = T_s exp(u log(T_s^{-1} T_e)) (docs/method.md §4, Eq. 9).
 
     pose_start, pose_end: (4, 4); u: scalar or (M,) -> (4, 4) or (M, 4, 4).
     u = 0 gives T_s, u = 1 gives T_e (up to rounding), u = 0.5 the geodesic midpoint.

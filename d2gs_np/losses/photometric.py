@@ -1,4 +1,4 @@
-"""Photometric loss L_render = (1 - lambda) L1 + lambda (1 - SSIM) (METHOD.md §6, Eq. 17).
+"""Photometric loss L_render = (1 - lambda) L1 + lambda (1 - SSIM) (docs/method.md §6, Eq. 17).
 
 L1 is the mean absolute difference over pixels and channels; SSIM is
 ``d2gs_np.losses.ssim`` (scikit-image's definition: 11-tap Gaussian window, 5-pixel border

@@ -13,7 +13,7 @@ Update of a block with gradient g, its k-th update (k = 1, 2, ...):
 
 which is torch.optim.Adam's (and hence 3DGS's) update up to rounding.
 
-Choices (METHOD.md leaves them open):
+Choices (the paper leaves them open; docs/method.md §8):
 - Step counts are per block: a block's bias correction and learning-rate schedule use the number
   of updates *that block* has received (blocks missing from ``grads`` are left alone, counters
   included). So a block that starts training late (the deformation after the warm-up) starts its

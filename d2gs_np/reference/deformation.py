@@ -1,4 +1,4 @@
-"""Reference DDDM deformation (METHOD.md §2): the obvious per-Gaussian loop, float64.
+"""Reference DDDM deformation (docs/method.md §2): the obvious per-Gaussian loop, float64.
 
 Same conventions as ``d2gs_np.scene.deformation`` (coefficient axis
 [a_1..a_P, f_sin_1..f_sin_L, f_cos_1..f_cos_L], quaternion residual added to the raw wxyz base

@@ -1,6 +1,6 @@
 """EWA projection of 3D Gaussians, plain vectorised NumPy: forward and hand-derived backward.
 
-Conventions are those of CONVENTIONS.md (gsplat 1.5.3's reference renderer): wxyz quaternions
+Conventions are those of docs/conventions.md §1-4 (gsplat 1.5.3's reference renderer): wxyz quaternions
 normalised inside, Sigma = R diag(s)^2 R^T with linear scales, world->camera pose with OpenCV
 axes, depth = camera z, J with the x/z, y/z clamp, eps2d dilation, det clamp, per-axis 3.33 sigma
 box, culling. Each ``dL_dX`` block in ``project_bwd`` sits under a comment quoting the forward
@@ -17,7 +17,7 @@ from d2gs_np import constants as C
 
 
 def quat_to_rotmat(q):
-    """Rotation matrices (N, 3, 3) from unit wxyz quaternions q (N, 4) (CONVENTIONS.md §1)."""
+    """Rotation matrices (N, 3, 3) from unit wxyz quaternions q (N, 4) (docs/conventions.md §1)."""
     w, x, y, z = q[:, 0], q[:, 1], q[:, 2], q[:, 3]
     R = np.stack(
         [

@@ -1,8 +1,8 @@
 """Front-to-back alpha compositing of projected Gaussians, dense NumPy: forward and backward.
 
 Every Gaussian of the given front-to-back order is evaluated on every pixel at once ((H, W)
-arrays); a pixel outside a Gaussian's 3.33 sigma box always has alpha < 1/255 (render_contract.md),
-so this dense evaluation gives the same image as the tiled one. Per pixel (CONVENTIONS.md §6):
+arrays); a pixel outside a Gaussian's 3.33 sigma box always has alpha < 1/255 (docs/conventions.md §4),
+so this dense evaluation gives the same image as the tiled one. Per pixel (docs/conventions.md §6):
 
     d = mean2d - (j + 0.5, i + 0.5)
     sigma = 0.5 (a dx^2 + c dy^2) + b dx dy

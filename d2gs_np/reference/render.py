@@ -1,7 +1,7 @@
 """Reference Gaussian splatting renderer: plain NumPy forward and hand-derived backward.
 
-``render_fwd`` / ``render_bwd`` implement the renderer contract (render_contract.md) with the
-conventions of CONVENTIONS.md (gsplat 1.5.3's reference renderer). This is the obvious version
+``render_fwd`` / ``render_bwd`` implement the renderer contract (docs/conventions.md §10) with the
+conventions of docs/conventions.md §1-8 (gsplat 1.5.3's reference renderer). This is the obvious version
 that the Numba fast path (``d2gs_np.render``) is tested against: projection of all Gaussians at
 once (``project.py``), then a dense front-to-back loop over the Gaussians, each evaluated on all
 pixels (``rasterize.py``). Meant for tiny scenes (memory O(N H W)).
@@ -86,7 +86,7 @@ def _validate(means, quats, scales, opacities, colors, cam_T_world, K, width, he
 
     if K[0, 1] != 0:
         raise ValueError(f"K must have zero skew (K[0, 1] == 0); got K[0, 1] = {K[0, 1]}. "
-                         f"The renderer's Jacobian ignores skew (CONVENTIONS.md §2)")
+                         f"The renderer's Jacobian ignores skew (docs/conventions.md §2)")
     if not (K[0, 0] > 0 and K[1, 1] > 0):
         raise ValueError(f"K must have positive focal lengths; got fx = {K[0, 0]}, fy = {K[1, 1]}")
     if n:

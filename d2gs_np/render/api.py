@@ -1,4 +1,4 @@
-"""Public fast renderer: ``render_fwd`` / ``render_bwd`` (render_contract.md).
+"""Public fast renderer: ``render_fwd`` / ``render_bwd`` (docs/conventions.md §10).
 
 Numba, tile based like gsplat: projection (prange over Gaussians, project.py), tile
 intersection lists sorted by (tile, float32 depth, Gaussian index), compositing with prange over
@@ -211,7 +211,7 @@ def _render(inputs, width, height, config, dtype):
 
 def render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth=None):
     """Gradients of L = <v_image, image> + <v_alpha, alpha> + <v_depth, depth>
-    + <v_expected_depth, expected_depth> (render_contract.md).
+    + <v_expected_depth, expected_depth> (docs/conventions.md §10).
 
     Args:
         saved: the RenderSaved of render_fwd.  v_image: (H,W,3).  v_alpha, v_depth,

@@ -8,7 +8,7 @@ from d2gs_np import constants as C
 
 @dataclass(frozen=True)
 class RenderConfig:
-    """Options of the splatter; defaults are gsplat 1.5.3's (CONVENTIONS.md).
+    """Options of the splatter; defaults are gsplat 1.5.3's (docs/conventions.md).
 
     near_plane, far_plane: camera-z culling bounds (exclusive).
     eps2d: low-pass dilation added to the 2D covariance.

@@ -1,6 +1,6 @@
 """EWA projection of 3D Gaussians to screen space: Numba forward and backward kernels.
 
-Conventions are those of CONVENTIONS.md §1-4 (gsplat 1.5.3's reference renderer):
+Conventions are those of docs/conventions.md §1-4 (gsplat 1.5.3's reference renderer):
 
 * ``R`` from the L2-normalised wxyz quaternion, ``Sigma = R diag(s)^2 R^T`` with linear scales;
 * ``p_c = R_v p + t_v`` and ``Sigma_c = R_v Sigma R_v^T`` with ``cam_T_world = [R_v | t_v]``
@@ -81,7 +81,7 @@ def make_consts(config, width, height, dtype):
 
 @njit(cache=True)
 def _quat_to_rotmat(qw, qx, qy, qz, one, two):
-    """Rotation matrix (row-major 9-tuple) of a UNIT wxyz quaternion (CONVENTIONS.md §1)."""
+    """Rotation matrix (row-major 9-tuple) of a UNIT wxyz quaternion (docs/conventions.md §1)."""
     r00 = one - two * (qy * qy + qz * qz)
     r01 = two * (qx * qy - qw * qz)
     r02 = two * (qx * qz + qw * qy)
@@ -96,7 +96,7 @@ def _quat_to_rotmat(qw, qx, qy, qz, one, two):
 
 @njit(cache=True)
 def _fov_limits(K, consts):
-    """(lim_x_neg, lim_x_pos, lim_y_neg, lim_y_pos) of the x/z, y/z clamp in J (CONVENTIONS.md §3)."""
+    """(lim_x_neg, lim_x_pos, lim_y_neg, lim_y_pos) of the x/z, y/z clamp in J (docs/conventions.md §3)."""
     half = consts[K_HALF]
     margin = consts[K_FOV_MARGIN]
     W = consts[K_WIDTH]

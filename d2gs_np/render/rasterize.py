@@ -1,6 +1,6 @@
 """Tile-based rasterisation of projected Gaussians: intersection lists, compositing fwd/bwd.
 
-Pipeline (CONVENTIONS.md §5-8, gsplat 1.5.3):
+Pipeline (docs/conventions.md §5-8, gsplat 1.5.3):
 
 1. ``_tile_rects_kernel`` (serial loop over Gaussians): the tiles ``[floor((u-rx)/ts), ceil((u+rx)/ts))
    x [floor((v-ry)/ts), ceil((v+ry)/ts))`` clamped to the grid, and their number per Gaussian.
@@ -241,7 +241,7 @@ def _rasterize_fwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
     visits only the pixels of its footprint (3.33-sigma box, then per row the interval where
     sigma <= sigma_cut), keeping per-pixel T, C, D, last contributor and a "stopped" flag. So
     every pixel still sees its Gaussians front to back and applies the exact rules of
-    CONVENTIONS.md §6; the pixels not visited are exactly those the 1/255 rule would skip.
+    docs/conventions.md §6; the pixels not visited are exactly those the 1/255 rule would skip.
 
     Outputs: image (H,W,3) = C + T_final background, depth_img (H,W) = sum w z, T_final (H,W),
     last_idx (H,W) int64 (list position of the last contributor, -1 if none), n_eval_tile

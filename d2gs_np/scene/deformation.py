@@ -1,4 +1,4 @@
-"""Dual-Domain Deformation Model (DDDM) of the dynamic Gaussians (METHOD.md §2).
+"""Dual-Domain Deformation Model (DDDM) of the dynamic Gaussians (docs/method.md §2).
 
 Each dynamic Gaussian's position, rotation and colour follow
 

@@ -1,7 +1,7 @@
 """Gaussian scene parameters: static and dynamic sets as named, unconstrained blocks.
 
 The trainable state of a scene is a plain ``dict[str, np.ndarray]`` of C-contiguous blocks whose
-keys are also the optimizer's labels (METHOD.md §2):
+keys are also the optimizer's labels (docs/method.md §2):
 
     static.means (Ns, 3)            static.log_scales (Ns, 3)      static.quats (Ns, 4) raw wxyz
     static.opacity_logits (Ns,)     static.colors (Ns, 3)
@@ -9,12 +9,12 @@ keys are also the optimizer's labels (METHOD.md §2):
     dynamic.deform_means (Nd, K, 3) dynamic.deform_quats (Nd, K, 4) dynamic.deform_colors (Nd, K, 3)
 
 with K = P + 2L (``DeformConfig.num_coefs``). The static keys are always present (possibly with
-0 rows). A scene without moving pixels has *no* ``dynamic.*`` keys (METHOD.md §9); a dynamic set
+0 rows). A scene without moving pixels has *no* ``dynamic.*`` keys (docs/method.md §9); a dynamic set
 pruned down to 0 rows keeps its keys with 0 rows, so optimizer state stays in step.
 
 Activations are explicit: scales = exp(log_scales), opacities = sigmoid(opacity_logits). Colours
 are plain RGB (no SH), stored as they are used. Quaternions are stored raw; the renderer
-normalises them (CONVENTIONS.md §1).
+normalises them (docs/conventions.md §1).
 
 All blocks of one params dict share one float dtype (float64 by default, float32 opt-in).
 """

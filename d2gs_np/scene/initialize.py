@@ -1,4 +1,4 @@
-"""Initial point clouds for the static and dynamic Gaussian sets (METHOD.md §8, §9).
+"""Initial point clouds for the static and dynamic Gaussian sets (docs/method.md §8, §9).
 
 Static points
 1. SIFT features per frame on static pixels (motion masks dilated, ``d2gs_np.features``),

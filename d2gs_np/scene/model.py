@@ -1,7 +1,7 @@
 """Scene parameters -> renderer inputs at one time, and the backward of that map.
 
 ``evaluate_fwd`` turns the unconstrained parameter blocks (``d2gs_np.scene.gaussians``) into
-what the renderer consumes (CONVENTIONS.md §1): means, raw-or-unit wxyz quats, linear scales,
+what the renderer consumes (docs/conventions.md §1): means, raw-or-unit wxyz quats, linear scales,
 post-sigmoid opacities, plain RGB colours, with the static rows first and the dynamic rows,
 deformed to time t (``d2gs_np.scene.deformation``), after them.
 

@@ -1,6 +1,6 @@
 """Initial deformation of the dynamic set from tracked motion masks.
 
-METHOD.md §8 seeds dynamic Gaussians inside the masked regions but leaves their
+docs/method.md §8 seeds dynamic Gaussians inside the masked regions but leaves their
 initial deformation open. With zero coefficients a Gaussian seeded from frame
 k sits where the object was at t_k *at every time*, occluding the background
 in all other frames, and the photometric gradient mostly lowers its opacity

@@ -1,4 +1,4 @@
-"""Progressive-resolution schedule (METHOD.md §7, the paper's Eq. 16) and downsampled targets.
+"""Progressive-resolution schedule (docs/method.md §7, the paper's Eq. 16) and downsampled targets.
 
 Training renders frame k at render scale r <= 1: the image size is
 ``geometry.camera.scaled_size(W, H, r)``, the intrinsics are scaled to that size
@@ -59,7 +59,7 @@ def _check_schedule_args(r0, kind, ramp_fraction, where):
 
 @dataclass(frozen=True)
 class ScheduleConfig:
-    """Progressive-resolution settings (METHOD.md §7).
+    """Progressive-resolution settings (docs/method.md §7).
 
     r0: render scale at step 0, in (0, 1].
     kind: one of SCHEDULE_KINDS ("cosine" is the paper's).

@@ -328,7 +328,7 @@ def _exposure_path_bend(config):
 
 
 def test_dynamic_preset_exposure_path_is_close_to_the_model_geodesic():
-    # The blur model (METHOD.md Eq. 9) moves the camera along the geodesic between the exposure
+    # The blur model (docs/method.md §4, Eq. 9) moves the camera along the geodesic between the exposure
     # endpoints. The dynamic preset's slow shake keeps the true path within 20% of the spread of
     # that geodesic at mid-exposure on every frame (measured max 17%, mean 5.7%), while the base
     # shake at 2.5x amplitude bends by up to 69% (a perfect geodesic model would then render its

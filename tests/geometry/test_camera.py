@@ -1,5 +1,5 @@
 """Tests for d2gs_np.geometry.camera: OpenGL <-> OpenCV poses, pinhole projection, intrinsics scaling
-with the +0.5 pixel-centre convention (CONVENTIONS.md §2), look_at and camera centres."""
+with the +0.5 pixel-centre convention (docs/conventions.md §2), look_at and camera centres."""
 from __future__ import annotations
 
 import numpy as np

@@ -1,4 +1,4 @@
-"""Tests for d2gs_np.geometry.quaternion (wxyz, CONVENTIONS.md §1)."""
+"""Tests for d2gs_np.geometry.quaternion (wxyz, docs/conventions.md §1)."""
 from __future__ import annotations
 
 import math

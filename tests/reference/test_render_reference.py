@@ -1,7 +1,7 @@
 """Tests of the NumPy reference renderer (d2gs_np.reference): gradients against central finite
 differences in float64, forward against independent hand computations, stiff and extreme cases.
 
-Finite differences and discontinuities. The loss is only piecewise smooth (CONVENTIONS.md §8).
+Finite differences and discontinuities. The loss is only piecewise smooth (docs/conventions.md §8).
 Every FD test uses a scene whose threshold margin (tests/render_fixtures.threshold_margins: the
 smallest relative distance of any (Gaussian, pixel) evaluation to 1/255, 0.999, 1e-4, the near
 plane, a depth-order swap or the Jacobian clamp's kink) is at least MARGIN_MIN = 1e-3, and steps
@@ -183,7 +183,7 @@ def _axis_expected(scene):
     """Closed-form render of an _axis_scene: on the axis, J = diag(fx/z, fy/z) (x = y = 0), so
     cov2d = diag((fx s/z)^2 + eps2d, (fy s/z)^2 + eps2d) and
     alpha = min(0.999, o exp(-(dx^2/cov_xx + dy^2/cov_yy)/2)) with d = (cx, cy) - pixel centre.
-    Composited front to back with the skip and stop rules of CONVENTIONS.md §6."""
+    Composited front to back with the skip and stop rules of docs/conventions.md §6."""
     K, W, H = scene["K"], scene["width"], scene["height"]
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
     jj, ii = np.meshgrid(np.arange(W), np.arange(H))
@@ -463,7 +463,7 @@ def test_projection_matches_independent_ewa():
 
 
 def test_compositing_matches_scalar_per_pixel_loop():
-    """The dense vectorised loop against a literal scalar transcription of CONVENTIONS.md §6, on a
+    """The dense vectorised loop against a literal scalar transcription of docs/conventions.md §6, on a
     saturated scene where many pixels stop early."""
     scene = rf.random_scene(np.random.default_rng(5), 16, 12, 10, sigma_px_range=(3.0, 8.0),
                             opacity_range=(0.9, 1.0))

@@ -108,7 +108,7 @@ def test_zero_coefficients_are_identity(config, t):
 
 
 def test_cos_terms_make_nonzero_offset_at_t0():
-    # D(0) = sum_l f_cos,l: not zero in general (METHOD.md §2 has no n = 0 term but the cos
+    # D(0) = sum_l f_cos,l: not zero in general (docs/method.md §2 has no n = 0 term but the cos
     # terms are 1 at t = 0). Guards against dropping or mis-indexing the cos block.
     config = DeformConfig(degree=1, order=2)
     n = 1
