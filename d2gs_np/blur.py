@@ -72,6 +72,7 @@ from d2gs_np.geometry.se3 import (
     se3_right_jacobian,
     se3_right_jacobian_inv,
 )
+from d2gs_np.scene.gaussians import DYNAMIC, STATIC
 
 __all__ = [
     "BlurConfig",
@@ -90,7 +91,7 @@ __all__ = [
 ]
 
 EXPOSURE_BLOCK = "camera.exposure_logit"
-_SCENE_PREFIXES = ("static.", "dynamic.")
+_SCENE_PREFIXES = (f"{STATIC}.", f"{DYNAMIC}.")
 _RENDER_FIELDS = ("means", "quats", "scales", "opacities", "colors")
 _OUTPUT_KEYS = ("image", "alpha", "depth", "expected_depth")
 
@@ -156,6 +157,11 @@ def virtual_poses_fwd(pose_est, xi_start, xi_end, n):
     docstring). Computed in float64.
     """
     n = _check_n(n)
+    _check_pose_args(pose_est, xi_start, xi_end)
+    return _virtual_poses_fwd(pose_est, xi_start, xi_end, n)
+
+
+def _check_pose_args(pose_est, xi_start, xi_end):
     if not isinstance(pose_est, np.ndarray) or pose_est.dtype not in (np.float32, np.float64):
         raise TypeError(f"pose_est must be a float32 or float64 numpy array; got "
                         f"{getattr(pose_est, 'dtype', type(pose_est).__name__)}")
@@ -164,6 +170,10 @@ def virtual_poses_fwd(pose_est, xi_start, xi_end, n):
     check_rigid(pose_est, "pose_est")
     _check_tangent(xi_start, "xi_start", pose_est.dtype)
     _check_tangent(xi_end, "xi_end", pose_est.dtype)
+
+
+def _virtual_poses_fwd(pose_est, xi_start, xi_end, n):
+    """``virtual_poses_fwd`` without validation (a rigid pose, finite tangents of its dtype)."""
     dtype = pose_est.dtype
     if n == 1:
         return pose_est[None].copy(), {"n": 1, "dtype": dtype}
@@ -277,10 +287,10 @@ def blur_render_fwd(params, frame_time, tau, pose_est, xi_start, xi_end, K, widt
     frame_time = _check_real(frame_time, "frame_time")
     tau = _check_real(tau, "tau", low=0.0)
     scene_params = {k: v for k, v in params.items() if k.startswith(_SCENE_PREFIXES)}
-    if "static.means" not in scene_params:
-        raise ValueError("params has no scene blocks ('static.means', ...); build them with "
+    if f"{STATIC}.means" not in scene_params:
+        raise ValueError(f"params has no scene blocks ('{STATIC}.means', ...); build them with "
                          "d2gs_np.scene.gaussians.init_params")
-    dtype = scene_params["static.means"].dtype
+    dtype = scene_params[f"{STATIC}.means"].dtype
     for name, arr in (("pose_est", pose_est), ("xi_start", xi_start), ("xi_end", xi_end), ("K", K),
                       ("background", background)):
         if not isinstance(arr, np.ndarray) or arr.dtype != dtype:
@@ -289,7 +299,24 @@ def blur_render_fwd(params, frame_time, tau, pose_est, xi_start, xi_end, K, widt
                             f"(cast it with .astype(np.{np.dtype(dtype).name}))")
 
     n = blur_config.num_virtual
-    poses, pose_saved = virtual_poses_fwd(pose_est, xi_start, xi_end, n)
+    _check_pose_args(pose_est, xi_start, xi_end)
+    return _blur_render_fwd(scene_params, frame_time, tau, pose_est, xi_start, xi_end, K, width, height, background,
+                            n, deform_config, render_config, (render_fwd, render_bwd), (evaluate_fwd, evaluate_bwd))
+
+
+def _blur_render_fwd(scene_params, frame_time, tau, pose_est, xi_start, xi_end, K, width, height, background, n,
+                     deform_config, render_config, renderer, scene_model):
+    """``blur_render_fwd`` after validation: ``scene_params`` holds only the scene blocks,
+    ``frame_time`` and ``tau`` are floats, ``renderer`` and ``scene_model`` are (fwd, bwd) pairs.
+
+    The trainer's step calls it directly with the unvalidated fast paths
+    (``render.api._render_fwd``, ``scene.model._evaluate_fwd`` and their backwards) on a model it
+    validated once; ``blur_render_bwd`` then uses those backwards too.
+    """
+    render_fwd, render_bwd = renderer
+    evaluate_fwd, evaluate_bwd = scene_model
+    dtype = scene_params[f"{STATIC}.means"].dtype
+    poses, pose_saved = _virtual_poses_fwd(pose_est, xi_start, xi_end, n)
     u = exposure_offsets(n)
     times = frame_time + (u - 0.5) * tau
     sums, radii, subs = None, None, []

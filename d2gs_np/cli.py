@@ -112,11 +112,10 @@ def _cmd_render(args):
 
     if not 0.0 <= args.time <= 1.0:
         raise ValueError(f"--time must be in [0, 1]; got {args.time}")
-    run = load_run(args.run)
-    k = int(np.argmin(np.abs(run.times - args.time)))  # nearest training frame: its camera
-    pose = _read_pose_file(args.pose) if args.pose else run.mid_pose(k)
-    K = np.asarray(run.meta["K"][k])
-    img = run.render(args.time, pose, K, run.meta["width"][k], run.meta["height"][k])
+    model = load_run(args.run).model
+    k = int(np.argmin(np.abs(model.times - args.time)))  # nearest training frame: its camera
+    pose = _read_pose_file(args.pose) if args.pose else model.mid_pose(k)
+    img = model.render(pose, args.time, model.Ks[k], model.widths[k], model.heights[k])
     save_image(args.out, img)
     print(f"wrote {args.out}")
 
@@ -124,16 +123,18 @@ def _cmd_render(args):
 def _cmd_export_ply(args):
     from d2gs_np.data.ply import write_ply
     from d2gs_np.evaluate import load_run
+    from d2gs_np.scene.gaussians import DYNAMIC, STATIC
     from d2gs_np.scene.model import evaluate_fwd
+    from d2gs_np.train.model import SCENE_PREFIXES
 
     if not 0.0 <= args.time <= 1.0:
         raise ValueError(f"--time must be in [0, 1]; got {args.time}")
-    run = load_run(args.run)
-    scene_params = {n: v for n, v in run.params.items() if n.startswith(("static.", "dynamic."))}
-    ri, _ = evaluate_fwd(scene_params, args.time, run.config.deform)
+    model = load_run(args.run).model
+    scene_params = {n: v for n, v in model.params.items() if n.startswith(SCENE_PREFIXES)}
+    ri, _ = evaluate_fwd(scene_params, args.time, model.config.deform)
     # Scales and opacities do not change with time: export the stored log-scales and logits
     # (exact, and finite even where the sigmoid saturates).
-    sets = [p for p in ("static", "dynamic") if f"{p}.means" in scene_params]
+    sets = [p for p in (STATIC, DYNAMIC) if f"{p}.means" in scene_params]
     log_scales = np.concatenate([scene_params[f"{p}.log_scales"] for p in sets])
     logits = np.concatenate([scene_params[f"{p}.opacity_logits"] for p in sets])
     write_ply(args.out, ri["means"], log_scales, ri["quats"], logits, ri["colors"])
@@ -158,11 +159,10 @@ def _cmd_demo(args):
                             n=None, resume=False)
     _cmd_train(ns)
     result = evaluate_run(out / "run")
-    run = load_run(out / "run")
+    model = load_run(out / "run").model
     scene = load_scene(scene_dir)
     ks = np.linspace(0, scene.num_frames - 1, 3).round().astype(int)
-    rows = [[scene.frames[k].image, run.render(scene.frames[k].time, run.mid_pose(k), scene.frames[k].K,
-             scene.frames[k].width, scene.frames[k].height), scene.frames[k].sharp] for k in ks]
+    rows = [[scene.frames[k].image, model.render(int(k)), scene.frames[k].sharp] for k in ks]
     save_image(out / "comparison.png", comparison_strip(rows))
     plot_error_vs_time(out / "run", out / "error_vs_time.png")
     print(json.dumps(result, indent=2))

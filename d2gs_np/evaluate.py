@@ -22,37 +22,19 @@ from d2gs_np import metrics
 from d2gs_np.data.io import load_scene
 from d2gs_np.geometry.camera import camera_center
 from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint
-from d2gs_np.train.config import ExperimentConfig
-from d2gs_np.train.trainer import CHECKPOINT_NAME, FINAL_NAME, mid_exposure_pose, render_at
+from d2gs_np.train.model import Model
+from d2gs_np.train.trainer import CHECKPOINT_NAME, FINAL_NAME
 
 
 @dataclass
 class LoadedRun:
+    """A finished (or interrupted) run: its model (``train.model.Model``: ``render``,
+    ``mid_pose``, ``mid_poses``, ``params``, ``poses_est``, ``times``) and the checkpoint's
+    record (``meta``: steps, seconds of training, ``left_out``, the scene folder)."""
+
     run_dir: Path
-    params: dict
-    config: ExperimentConfig
+    model: Model
     meta: dict
-
-    @property
-    def blur_on(self) -> bool:
-        return bool(self.meta["components"]["blur"])
-
-    @property
-    def poses_est(self):
-        return np.asarray(self.meta["poses_est"], dtype=np.float64)
-
-    @property
-    def times(self):
-        return np.asarray(self.meta["times"], dtype=np.float64)
-
-    def mid_pose(self, k: int):
-        return mid_exposure_pose(self.params, self.config, self.blur_on, self.poses_est, self.times, k)
-
-    def mid_poses(self):
-        return np.stack([self.mid_pose(k) for k in range(len(self.times))])
-
-    def render(self, t, cam_T_world, K, width, height):
-        return render_at(self.params, self.config, t, cam_T_world, K, width, height)
 
 
 def load_run(run_dir) -> LoadedRun:
@@ -64,8 +46,7 @@ def load_run(run_dir) -> LoadedRun:
     if not path.exists():
         path = run_dir / CHECKPOINT_NAME
     arrays, meta = load_checkpoint(path)
-    params = {k[len("params/"):]: v for k, v in arrays.items() if k.startswith("params/")}
-    return LoadedRun(run_dir, params, ExperimentConfig.from_dict(meta["config"]), meta)
+    return LoadedRun(run_dir, Model.from_checkpoint(arrays, meta), meta)
 
 
 def _image_metrics(pairs):
@@ -83,13 +64,13 @@ def _image_metrics(pairs):
 def evaluate(run: LoadedRun, scene) -> dict:
     """Metrics dictionary of docs/method.md §10 for a loaded run and its scene (images loaded)."""
     out = {}
-    frames = scene.frames
-    if len(frames) != len(run.times) or not np.allclose([f.time for f in frames], run.times):
-        raise ValueError(f"the scene's {len(frames)} frames do not match the {len(run.times)} frames (times) the run "
-                         "was trained on; evaluate with the scene it was trained on")
-    mids = run.mid_poses()
+    frames, model = scene.frames, run.model
+    if len(frames) != model.num_frames or not np.allclose([f.time for f in frames], model.times):
+        raise ValueError(f"the scene's {len(frames)} frames do not match the {model.num_frames} frames (times) the "
+                         "run was trained on; evaluate with the scene it was trained on")
+    mids = model.mid_poses()
     if scene.has_sharp:
-        renders = [run.render(f.time, mids[k], f.K, f.width, f.height) for k, f in enumerate(frames)]
+        renders = [model.render(mids[k], f.time, f.K, f.width, f.height) for k, f in enumerate(frames)]
         out["dvs"] = _image_metrics([(r, f.sharp) for r, f in zip(renders, frames)])
         out["input_blur"] = _image_metrics([(f.image, f.sharp) for f in frames])
     if scene.has_gt_poses and len(frames) >= 3:
@@ -122,8 +103,8 @@ def _trajectory_and_nvs(run: LoadedRun, scene, mids) -> dict:
     gt = np.stack([f.gt_cam_T_world for f in frames])
     ate = metrics.ate(mids, gt)
     rpe_t, rpe_r = metrics.rpe(mids, gt)
-    ate0 = metrics.ate(run.poses_est, gt)
-    rpe_t0, rpe_r0 = metrics.rpe(run.poses_est, gt)
+    ate0 = metrics.ate(run.model.poses_est, gt)
+    rpe_t0, rpe_r0 = metrics.rpe(run.model.poses_est, gt)
     out["trajectory"] = {"ate": float(ate), "rpe_t": float(rpe_t), "rpe_r": float(rpe_r),
                          "initial": {"ate": float(ate0), "rpe_t": float(rpe_t0), "rpe_r": float(rpe_r0)}}
     if scene.test_frames:
@@ -135,7 +116,7 @@ def _trajectory_and_nvs(run: LoadedRun, scene, mids) -> dict:
         pairs = []
         for f in scene.test_frames:
             pose = metrics.sim3_apply_to_poses(s, R, t, f.cam_T_world)
-            pairs.append((run.render(f.time, pose, f.K, f.width, f.height), f.image))
+            pairs.append((run.model.render(pose, f.time, f.K, f.width, f.height), f.image))
         out["nvs"] = _image_metrics(pairs)
     return out
 

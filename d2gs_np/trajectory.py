@@ -51,9 +51,14 @@ from d2gs_np.geometry.se3 import check_rigid, se3_inverse, se3_log
 
 __all__ = [
     "TRAJECTORY_KINDS",
+    "CAMERA",
+    "POSENET",
+    "XI_START",
+    "XI_END",
     "ACTIVATIONS",
     "TrajectoryConfig",
     "trajectory_block_names",
+    "check_trajectory",
     "init_trajectory",
     "endpoints_fwd",
     "endpoints_bwd",
@@ -61,6 +66,10 @@ __all__ = [
 ]
 
 TRAJECTORY_KINDS = ("direct", "posenet")
+CAMERA = "camera"  # block-name prefix of the per-frame camera blocks (and blur.EXPOSURE_BLOCK)
+POSENET = "posenet"  # block-name prefix of the PoseNet weights
+XI_START = f"{CAMERA}.xi_start"  # (N, 6) direct model: one row per frame
+XI_END = f"{CAMERA}.xi_end"
 ACTIVATIONS = ("tanh", "softplus")
 _NUM_INPUTS = 7  # log T̂ (6) and t (1)
 _NUM_OUTPUTS = 12  # xi_s (6) and xi_e (6)
@@ -114,10 +123,10 @@ def trajectory_block_names(config):
     """Names of the parameter blocks of this trajectory model, in a fixed order."""
     _check_config(config)
     if config.kind == "direct":
-        return ["camera.xi_start", "camera.xi_end"]
+        return [XI_START, XI_END]
     names = []
     for layer in range(config.hidden_layers + 1):
-        names += [f"posenet.W{layer}", f"posenet.b{layer}"]
+        names += [f"{POSENET}.W{layer}", f"{POSENET}.b{layer}"]
     return names
 
 
@@ -195,18 +204,18 @@ def init_trajectory(config, poses_est, times, rng, exposure_fraction=None):
             # Keep the tiny random spread where the camera did not move (a saddle otherwise).
             moving = np.linalg.norm(ve - vs, axis=1) > 2 * s
             xs[moving], xe[moving] = vs[moving], ve[moving]
-        return {"camera.xi_start": np.ascontiguousarray(xs, dtype=dtype),
-                "camera.xi_end": np.ascontiguousarray(xe, dtype=dtype)}
+        return {XI_START: np.ascontiguousarray(xs, dtype=dtype),
+                XI_END: np.ascontiguousarray(xe, dtype=dtype)}
     H, L = config.hidden_width, config.hidden_layers
     params = {}
     fan_in = _NUM_INPUTS
     for layer in range(L):
-        params[f"posenet.W{layer}"] = rng.standard_normal((fan_in, H)) / np.sqrt(fan_in)
-        params[f"posenet.b{layer}"] = np.zeros(H)
+        params[f"{POSENET}.W{layer}"] = rng.standard_normal((fan_in, H)) / np.sqrt(fan_in)
+        params[f"{POSENET}.b{layer}"] = np.zeros(H)
         fan_in = H
-    params[f"posenet.W{L}"] = rng.standard_normal((H, _NUM_OUTPUTS)) * (config.output_init_scale / np.sqrt(H))
+    params[f"{POSENET}.W{L}"] = rng.standard_normal((H, _NUM_OUTPUTS)) * (config.output_init_scale / np.sqrt(H))
     d = _unit_vectors(rng, 1)[0]
-    params[f"posenet.b{L}"] = np.concatenate([-s * d, s * d])
+    params[f"{POSENET}.b{L}"] = np.concatenate([-s * d, s * d])
     return {k: np.ascontiguousarray(v, dtype=dtype) for k, v in params.items()}
 
 
@@ -216,7 +225,10 @@ def posenet_inputs(poses_est, times):
     Mean and std are over the N frames; a std below POSENET_INPUT_STD_MIN is replaced by 1.
     Computed in float64.
     """
-    poses_est, times = _check_poses_times(poses_est, times)
+    return _posenet_inputs(*_check_poses_times(poses_est, times))
+
+
+def _posenet_inputs(poses_est, times):
     z = np.concatenate([se3_log(poses_est.astype(np.float64)), times.astype(np.float64)[:, None]], axis=1)
     mean = z.mean(axis=0)
     std = z.std(axis=0)
@@ -259,11 +271,20 @@ def _check_params(params, config, N):
         fan_in = _NUM_INPUTS
         for layer in range(L + 1):
             fan_out = _NUM_OUTPUTS if layer == L else H
-            for k, shape in ((f"posenet.W{layer}", (fan_in, fan_out)), (f"posenet.b{layer}", (fan_out,))):
+            for k, shape in ((f"{POSENET}.W{layer}", (fan_in, fan_out)), (f"{POSENET}.b{layer}", (fan_out,))):
                 if params[k].shape != shape:
                     raise ValueError(f"{k} must have shape {shape} for {config}; got {params[k].shape}")
             fan_in = fan_out
     return dtype
+
+
+def check_trajectory(params, config, poses_est, times):
+    """Raise a clear error unless ``params`` holds finite blocks of this trajectory model for the
+    N frames of ``poses_est`` (rigid, (N, 4, 4)) and ``times`` (finite, (N,)). What
+    ``endpoints_fwd`` checks on every call, for a caller that checks once (``train.model``)."""
+    _check_config(config)
+    poses_est, times = _check_poses_times(poses_est, times)
+    _check_params(params, config, poses_est.shape[0])
 
 
 def _act(a, kind):
@@ -286,24 +307,33 @@ def endpoints_fwd(params, config, frame_indices, poses_est, times):
     _check_config(config)
     poses_est, times = _check_poses_times(poses_est, times)
     N = poses_est.shape[0]
-    dtype = _check_params(params, config, N)
-    idx = _check_frame_indices(frame_indices, N)
+    _check_params(params, config, N)
+    return _endpoints_fwd(params, config, _check_frame_indices(frame_indices, N), poses_est, times)
+
+
+def _endpoints_fwd(params, config, idx, poses_est, times):
+    """``endpoints_fwd`` without validation: blocks of ``trajectory_block_names(config)`` shaped
+    for the N frames, finite; ``idx`` a 1-D int64 array in [0, N); rigid poses, finite times.
+    The trainer's step calls it on a model validated once (``check_rigid`` of every pose per
+    step is what this saves)."""
+    N = poses_est.shape[0]
+    dtype = params[trajectory_block_names(config)[0]].dtype
     if config.kind == "direct":
-        xs = params["camera.xi_start"][idx]
-        xe = params["camera.xi_end"][idx]
+        xs = params[XI_START][idx]
+        xe = params[XI_END][idx]
         return (xs, xe), {"config": config, "idx": idx, "N": N, "dtype": dtype}
-    x = posenet_inputs(poses_est, times)[idx].astype(dtype)
+    x = _posenet_inputs(poses_est, times)[idx].astype(dtype)
     L = config.hidden_layers
     acts, derivs = [x], []
     h = x
     for layer in range(L):
-        a = h @ params[f"posenet.W{layer}"] + params[f"posenet.b{layer}"]
+        a = h @ params[f"{POSENET}.W{layer}"] + params[f"{POSENET}.b{layer}"]
         h, dh = _act(a, config.activation)
         acts.append(h)
         derivs.append(dh)
-    y = h @ params[f"posenet.W{L}"] + params[f"posenet.b{L}"]
+    y = h @ params[f"{POSENET}.W{L}"] + params[f"{POSENET}.b{L}"]
     saved = {"config": config, "idx": idx, "N": N, "dtype": dtype, "acts": acts, "derivs": derivs,
-             "weights": [params[f"posenet.W{layer}"] for layer in range(L + 1)]}
+             "weights": [params[f"{POSENET}.W{layer}"] for layer in range(L + 1)]}
     return (np.ascontiguousarray(y[:, :6]), np.ascontiguousarray(y[:, 6:])), saved
 
 
@@ -326,15 +356,15 @@ def endpoints_bwd(saved, v_xi_start, v_xi_end):
         g_e = np.zeros((N, 6), dtype=dtype)
         np.add.at(g_s, idx, v_xs)
         np.add.at(g_e, idx, v_xe)
-        return {"camera.xi_start": g_s, "camera.xi_end": g_e}
+        return {XI_START: g_s, XI_END: g_e}
     L = config.hidden_layers
     acts, derivs, weights = saved["acts"], saved["derivs"], saved["weights"]
     grads = {}
     v_a = np.concatenate([v_xs, v_xe], axis=1)  # dL/d(pre-activation) of the output layer = v_y
     for layer in range(L, -1, -1):
         # forward: a_layer = acts[layer] @ W_layer + b_layer
-        grads[f"posenet.W{layer}"] = acts[layer].T @ v_a
-        grads[f"posenet.b{layer}"] = v_a.sum(axis=0)
+        grads[f"{POSENET}.W{layer}"] = acts[layer].T @ v_a
+        grads[f"{POSENET}.b{layer}"] = v_a.sum(axis=0)
         if layer > 0:
             v_h = v_a @ weights[layer].T
             v_a = v_h * derivs[layer - 1]  # acts[layer] = act(a_{layer-1})

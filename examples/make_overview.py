@@ -38,7 +38,7 @@ def main(argv=None):
     print("| frame | input dB | no blur dB | blur dB |\n|---|---|---|---|")
     for k in args.frames:
         f = scene.frames[k]
-        renders = [r.render(f.time, r.mid_pose(k), f.K, f.width, f.height) for r in runs.values()]
+        renders = [r.model.render(k) for r in runs.values()]  # at frame k's mid-exposure pose and time
         rows.append([f.image, *renders, f.sharp])
         print(f"| {k} | {psnr(f.image, f.sharp):.2f} | " + " | ".join(f"{psnr(x, f.sharp):.2f}" for x in renders)
               + " |")

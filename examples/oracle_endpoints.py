@@ -17,6 +17,7 @@ from d2gs_np.evaluate import evaluate_run
 from d2gs_np.geometry import se3_inverse, se3_log
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 from d2gs_np.train.trainer import Trainer
+from d2gs_np.trajectory import CAMERA, XI_END, XI_START
 
 
 def main():
@@ -32,11 +33,10 @@ def main():
     if not tr.components.blur:
         raise SystemExit("the blur model is off for this scene (sharp input?)")
     # Left perturbations of the estimate that land on the true endpoints: xi = log(T_true T_est^-1).
-    tr.params["camera.xi_start"] = np.stack([se3_log(f.gt_exposure_start @ se3_inverse(f.cam_T_world))
-                                             for f in scene.frames])
-    tr.params["camera.xi_end"] = np.stack([se3_log(f.gt_exposure_end @ se3_inverse(f.cam_T_world))
-                                           for f in scene.frames])
-    tr.stages = [dataclasses.replace(s, trainable=tuple(p for p in s.trainable if p != "camera.xi"))
+    tr.params = {**tr.params,
+                 XI_START: np.stack([se3_log(f.gt_exposure_start @ se3_inverse(f.cam_T_world)) for f in scene.frames]),
+                 XI_END: np.stack([se3_log(f.gt_exposure_end @ se3_inverse(f.cam_T_world)) for f in scene.frames])}
+    tr.stages = [dataclasses.replace(s, trainable=tuple(p for p in s.trainable if p != f"{CAMERA}.xi"))
                  for s in tr.stages]
     tr.run()
     m = evaluate_run(args.out)

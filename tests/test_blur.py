@@ -404,6 +404,30 @@ def test_return_aux():
     assert aux["v_means2d"].shape == (3, 12, 2) and aux["v_pose_tangents"].shape == (3, 6)
 
 
+def test_unvalidated_fast_path_is_bitwise_the_public_one():
+    # The trainer's step calls _blur_render_fwd with the private render and scene-model fast
+    # paths (validation once at the public boundary); outputs and gradients must not change.
+    from d2gs_np.blur import _blur_render_fwd
+    from d2gs_np.render.api import _render_bwd, _render_fwd
+    from d2gs_np.render.config import RenderConfig
+    from d2gs_np.scene.model import _evaluate_bwd, _evaluate_fwd
+
+    case = make_case(33, n=4, margin=0.0)
+    out, saved = blur_render_fwd(**case)  # default: the Numba renderer, validated
+    fast, fsaved = _blur_render_fwd(case["params"], case["frame_time"], case["tau"], case["pose_est"],
+                                    case["xi_start"], case["xi_end"], case["K"], W, H, case["background"], 4,
+                                    DEFORM, RenderConfig(), (_render_fwd, _render_bwd), (_evaluate_fwd, _evaluate_bwd))
+    for key in ("image", "alpha", "depth", "expected_depth", "radii", "poses", "times"):
+        np.testing.assert_array_equal(fast[key], out[key], err_msg=key)
+    v = np.random.default_rng(0).normal(size=(H, W, 3))
+    a, b = blur_render_bwd(saved, v, return_aux=True), blur_render_bwd(fsaved, v, return_aux=True)
+    for name in a[0]:
+        np.testing.assert_array_equal(b[0][name], a[0][name], err_msg=name)
+    for x, y in zip(a[1:4], b[1:4]):
+        np.testing.assert_array_equal(y, x)
+    np.testing.assert_array_equal(b[4]["v_means2d"], a[4]["v_means2d"])
+
+
 # ---------------------------------------------------------------------------------------------
 # Exposure length
 # ---------------------------------------------------------------------------------------------

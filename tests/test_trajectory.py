@@ -199,3 +199,24 @@ def test_velocity_init_is_used_and_falls_back_to_random_spread_for_a_still_camer
     np.testing.assert_allclose(spread, 2e-4, rtol=1e-12)  # the tiny symmetry-breaking spread
     with pytest.raises(ValueError, match="init"):
         TrajectoryConfig(init="zeros")
+
+
+@pytest.mark.parametrize("kind", ["direct", "posenet"])
+def test_unvalidated_fast_path_is_bitwise_the_public_one(kind):
+    # The trainer's step calls _endpoints_fwd on a model validated once (no check_rigid of every
+    # pose per step); it must compute exactly what endpoints_fwd computes.
+    from d2gs_np.trajectory import _endpoints_fwd
+
+    rng = np.random.default_rng(5)
+    poses, times = _trajectory(rng)
+    config = TrajectoryConfig(kind=kind)
+    params = _perturbed(init_trajectory(config, poses, times, rng), rng, 0.1)
+    idx = np.array([3, 0, 3])
+    (xs, xe), saved = endpoints_fwd(params, config, idx, poses, times)
+    (fxs, fxe), fsaved = _endpoints_fwd(params, config, idx.astype(np.int64), poses, times)
+    np.testing.assert_array_equal(fxs, xs)
+    np.testing.assert_array_equal(fxe, xe)
+    v = rng.normal(size=(3, 6))
+    a, b = endpoints_bwd(saved, v, -v), endpoints_bwd(fsaved, v, -v)
+    for name in a:
+        np.testing.assert_array_equal(b[name], a[name], err_msg=name)

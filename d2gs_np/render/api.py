@@ -21,6 +21,9 @@ Choices the contract leaves open (documented here):
   between ``render_fwd`` and ``render_bwd``.
 * Quaternions with norm < QUAT_NORM_MIN are rejected; opacities must lie in [0, 1]; K must
   have zero skew and positive focal lengths; scales must be >= 0 (same checks as the reference).
+* Validation is done once, at the public boundary: ``_render_fwd`` / ``_render_bwd`` are the same
+  functions without it, for a caller that validated its inputs itself (the trainer's step renders
+  8 sub-frames per step of a model validated when it was built or loaded).
 """
 from __future__ import annotations
 
@@ -172,6 +175,24 @@ def render_fwd(means, quats, scales, opacities, colors, cam_T_world, K, width, h
     """
     inputs, width, height, config, dtype = _validate_inputs(
         means, quats, scales, opacities, colors, cam_T_world, K, width, height, background, config)
+    return _render(inputs, width, height, config, dtype)
+
+
+def _render_fwd(means, quats, scales, opacities, colors, cam_T_world, K, width, height, background, config):
+    """``render_fwd`` without validation: the private fast path of a caller that validated its
+    inputs once (the trainer's step, through ``d2gs_np.blur`` and ``d2gs_np.scene.model``).
+
+    The caller guarantees what ``render_fwd`` checks: C-contiguous float arrays of one dtype and
+    the documented shapes, finite values, opacities in [0, 1], scales >= 0, quaternion norms
+    >= QUAT_NORM_MIN, K without skew, ints width, height >= 1, and a RenderConfig. Same outputs
+    to the last bit.
+    """
+    inputs = dict(means=means, quats=quats, scales=scales, opacities=opacities, colors=colors,
+                  cam_T_world=cam_T_world, K=K, background=background)
+    return _render(inputs, width, height, config, means.dtype)
+
+
+def _render(inputs, width, height, config, dtype):
     ts = int(config.tile_size)
     consts = make_consts(config, width, height, dtype)
     proj = project_fwd(inputs["means"], inputs["quats"], inputs["scales"], inputs["opacities"],
@@ -208,6 +229,19 @@ def render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth=None
     v_alpha = _check_cotangent("v_alpha", v_alpha, (H, W), dtype, f"(H, W) = ({H}, {W})")
     v_depth = _check_cotangent("v_depth", v_depth, (H, W), dtype, f"(H, W) = ({H}, {W})")
     v_ed = _check_cotangent("v_expected_depth", v_expected_depth, (H, W), dtype, f"(H, W) = ({H}, {W})")
+    return _render_grads(saved, v_image, v_alpha, v_depth, v_ed)
+
+
+def _render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth=None):
+    """``render_bwd`` without validation (the fast path beside ``_render_fwd``): the cotangents are
+    C-contiguous, finite arrays of the render's dtype and shape, or None (zero)."""
+    shape, dtype = (saved.height, saved.width), saved.dtype
+    zero = lambda x: np.zeros(shape, dtype) if x is None else x  # noqa: E731  (as _check_cotangent)
+    return _render_grads(saved, v_image, zero(v_alpha), zero(v_depth), zero(v_expected_depth))
+
+
+def _render_grads(saved, v_image, v_alpha, v_depth, v_ed):
+    dtype = saved.dtype
     inp, proj, raster, cfg = saved.inputs, saved.proj, saved.raster, saved.config
     T_final = raster["T_final"]
     depth = raster["depth"]
@@ -232,3 +266,13 @@ def render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth=None
         g["v_opac_eff"])
     return dict(means=v_means, quats=v_quats, scales=v_scales, opacities=v_opacities, colors=g["v_colors"],
                 cam_T_world=v_view, background=v_background, means2d=g["v_means2d"])
+
+
+def warm_up(config=None):
+    """Compile (or load from the Numba cache) the float64 kernels of ``render_fwd`` and
+    ``render_bwd`` on one tiny Gaussian, so that timing what follows measures work, not JIT."""
+    one = np.ones((1, 3))
+    out, saved = render_fwd(np.array([[0.0, 0.0, 2.0]]), np.array([[1.0, 0.0, 0.0, 0.0]]), 0.1 * one,
+                            np.array([0.5]), 0.5 * one, np.eye(4), np.array([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]),
+                            8, 8, np.zeros(3), config)
+    render_bwd(saved, np.ones_like(out["image"]))

@@ -139,7 +139,13 @@ def deform_fwd(base_means, base_quats, base_colors, coef_means, coef_quats, coef
     _check_block("coef_means", coef_means, (N, K, 3), dtype)
     _check_block("coef_quats", coef_quats, (N, K, 4), dtype)
     _check_block("coef_colors", coef_colors, (N, K, 3), dtype)
+    return _deform_fwd(base_means, base_quats, base_colors, coef_means, coef_quats, coef_colors, t, config)
 
+
+def _deform_fwd(base_means, base_quats, base_colors, coef_means, coef_quats, coef_colors, t, config):
+    """``deform_fwd`` without validating the blocks (the caller did: ``scene.model.evaluate_fwd``
+    checks the whole parameter dict once, the trainer's step trusts a validated model)."""
+    dtype = base_means.dtype
     b64, db64 = deform_basis(t, config)
     b = b64.astype(dtype)
     # D(t) = b(t) @ coef: (K,) @ (N, K, D) -> (N, D)
@@ -174,17 +180,23 @@ def deform_bwd(saved, v_means, v_quats, v_colors):
     Returns dict(base_means (N, 3), base_quats (N, 4), base_colors (N, 3), coef_means (N, K, 3),
     coef_quats (N, K, 4), coef_colors (N, K, 3), t (scalar of the input dtype)).
     """
+    quats = saved["quats"]
+    dtype = quats.dtype
+    N = quats.shape[0]
+    for name, v, D in (("v_means", v_means, 3), ("v_quats", v_quats, 4), ("v_colors", v_colors, 3)):
+        if v is not None:
+            _check_block(name, v, (N, D), dtype)
+    return _deform_bwd(saved, v_means, v_quats, v_colors)
+
+
+def _deform_bwd(saved, v_means, v_quats, v_colors):
+    """``deform_bwd`` without validating the cotangents (finite, of the forward's dtype and shape,
+    or None for zero)."""
     b, db_dt, quats = saved["b"], saved["db_dt"], saved["quats"]
     dtype = quats.dtype
     N = quats.shape[0]
-    cotangents = {}
-    for name, v, D in (("v_means", v_means, 3), ("v_quats", v_quats, 4), ("v_colors", v_colors, 3)):
-        if v is None:
-            v = np.zeros((N, D), dtype=dtype)
-        else:
-            _check_block(name, v, (N, D), dtype)
-        cotangents[name] = v
-    v_means, v_quats, v_colors = cotangents["v_means"], cotangents["v_quats"], cotangents["v_colors"]
+    v_means, v_quats, v_colors = (np.zeros((N, D), dtype=dtype) if v is None else v
+                                  for v, D in ((v_means, 3), (v_quats, 4), (v_colors, 3)))
 
     # q = r / |r|  =>  v_r = (v_q - q (q . v_q)) / |r|; zero where the output was the identity fallback
     v_r = (v_quats - quats * np.sum(quats * v_quats, axis=1, keepdims=True)) / saved["safe_norm"][:, None]

@@ -47,6 +47,7 @@ __all__ = [
     "num_static",
     "num_dynamic",
     "prune",
+    "select_rows",
     "append_gaussians",
 ]
 
@@ -345,16 +346,26 @@ def prune(params, keep_static, keep_dynamic=None):
     required to be None for a scene without one). A dynamic set pruned to 0 rows keeps its keys.
     Use ``d2gs_np.optim.adam_select`` with the same masks to keep the optimizer state in step.
     """
-    out = dict(params)
-    masks = {STATIC: _check_mask("keep_static", keep_static, num_static(params))}
+    keep_static = _check_mask("keep_static", keep_static, num_static(params))
     if keep_dynamic is not None:
         if not has_dynamic(params):
             raise ValueError("keep_dynamic given but the scene has no dynamic set; pass keep_dynamic=None")
-        masks[DYNAMIC] = _check_mask("keep_dynamic", keep_dynamic, num_dynamic(params))
-    for prefix, mask in masks.items():
-        for field in _fields(prefix):
-            name = f"{prefix}.{field}"
-            out[name] = np.ascontiguousarray(params[name][mask])
+        keep_dynamic = _check_mask("keep_dynamic", keep_dynamic, num_dynamic(params))
+    out = select_rows(params, STATIC, keep_static)
+    return out if keep_dynamic is None else select_rows(out, DYNAMIC, keep_dynamic)
+
+
+def select_rows(params, prefix, keep):
+    """A new params dict keeping the rows flagged True of one set (``prefix`` "static" or
+    "dynamic"); the other set's blocks are shared, not copied. ``keep`` (N_set,) bool."""
+    if prefix not in (STATIC, DYNAMIC):
+        raise ValueError(f"prefix must be {STATIC!r} or {DYNAMIC!r}; got {prefix!r}")
+    n = num_static(params) if prefix == STATIC else num_dynamic(params)
+    mask = _check_mask("keep", keep, n)
+    out = dict(params)
+    for field in _fields(prefix):
+        name = f"{prefix}.{field}"
+        out[name] = np.ascontiguousarray(params[name][mask])
     return out
 
 

@@ -13,7 +13,7 @@ from __future__ import annotations
 
 import numpy as np
 
-from d2gs_np.scene.deformation import DeformConfig, _check_time, deform_bwd, deform_fwd
+from d2gs_np.scene.deformation import DeformConfig, _check_time, _deform_bwd, _deform_fwd
 from d2gs_np.scene.gaussians import (
     DYNAMIC,
     STATIC,
@@ -45,7 +45,13 @@ def evaluate_fwd(params, t, deform_config):
     if not isinstance(deform_config, DeformConfig):
         raise TypeError(f"deform_config must be a DeformConfig; got {type(deform_config).__name__}")
     validate_params(params, deform_config)
-    t = _check_time(t)
+    return _evaluate_fwd(params, _check_time(t), deform_config)
+
+
+def _evaluate_fwd(params, t, deform_config):
+    """``evaluate_fwd`` without validation: ``params`` follows the layout (``validate_params``)
+    with K = deform_config.num_coefs, ``t`` is a finite float. The private fast path of the
+    trainer's step, whose model is validated once when it is built or loaded."""
     dynamic = has_dynamic(params)
     prefixes = (STATIC, DYNAMIC) if dynamic else (STATIC,)
 
@@ -56,7 +62,7 @@ def evaluate_fwd(params, t, deform_config):
     colors = [params[f"{STATIC}.colors"]]
     deform_saved = None
     if dynamic:
-        (d_means, d_quats, d_colors), deform_saved = deform_fwd(
+        (d_means, d_quats, d_colors), deform_saved = _deform_fwd(
             params[f"{DYNAMIC}.means"],
             params[f"{DYNAMIC}.quats"],
             params[f"{DYNAMIC}.colors"],
@@ -101,20 +107,33 @@ def evaluate_bwd(saved, v_render_inputs):
     unknown = sorted(set(v_render_inputs) - set(RENDER_FIELDS))
     if unknown:
         raise ValueError(f"v_render_inputs has unknown keys {unknown}; expected a subset of {list(RENDER_FIELDS)}")
-    Ns, dtype = saved["num_static"], saved["dtype"]
+    dtype = saved["dtype"]
     N = saved["scale"].shape[0]
-    v = {}
     for field in RENDER_FIELDS:
         shape = (N,) + _RENDER_TRAILING[field]
         x = v_render_inputs.get(field)
         if x is None:
-            x = np.zeros(shape, dtype=dtype)
+            continue
         if not isinstance(x, np.ndarray) or x.dtype != dtype:
             got = x.dtype if isinstance(x, np.ndarray) else type(x).__name__
             raise TypeError(f"v_render_inputs[{field!r}] must be a {dtype} array like the params; got {got}")
         if x.shape != shape:
             raise ValueError(f"v_render_inputs[{field!r}] must have shape {shape}; got {x.shape}")
-        v[field] = x
+        dyn = x[saved["num_static"]:]  # the deformation's backward checks its (dynamic) rows
+        if saved["deform"] is not None and field in ("means", "quats", "colors") and not np.all(np.isfinite(dyn)):
+            raise ValueError(f"v_render_inputs[{field!r}] contains NaN or inf in its dynamic rows; every entry "
+                             "must be finite")
+    return _evaluate_bwd(saved, v_render_inputs)
+
+
+def _evaluate_bwd(saved, v_render_inputs):
+    """``evaluate_bwd`` without validation (cotangents finite, of the params' dtype and shape)."""
+    Ns, dtype = saved["num_static"], saved["dtype"]
+    N = saved["scale"].shape[0]
+    v = {}
+    for field in RENDER_FIELDS:
+        x = v_render_inputs.get(field)
+        v[field] = np.zeros((N,) + _RENDER_TRAILING[field], dtype=dtype) if x is None else x
 
     v_log_scales = scale_bwd(saved["scale"], v["scales"])
     v_logits = opacity_bwd(saved["opacity"], v["opacities"])
@@ -127,7 +146,7 @@ def evaluate_bwd(saved, v_render_inputs):
     }
     v_t = dtype.type(0.0)
     if saved["deform"] is not None:
-        g = deform_bwd(saved["deform"], v["means"][Ns:], v["quats"][Ns:], v["colors"][Ns:])
+        g = _deform_bwd(saved["deform"], v["means"][Ns:], v["quats"][Ns:], v["colors"][Ns:])
         v_params.update({
             f"{DYNAMIC}.means": g["base_means"],
             f"{DYNAMIC}.log_scales": np.ascontiguousarray(v_log_scales[Ns:]),

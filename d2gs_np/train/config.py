@@ -29,7 +29,11 @@ _AUTO = ("auto", "on", "off")
 
 @dataclass(frozen=True)
 class LossConfig:
-    """Weights of the total loss (docs/method.md §6, Eq. 18). Regularisers plug in here."""
+    """Weights of the total loss (docs/method.md §6, Eq. 18): total = L_render + sum of weighted terms.
+
+    A regulariser adds its weight here and its term to ``train.terms.loss_terms`` (entered when
+    the weight is > 0); the training step does not change.
+    """
 
     lambda_ssim: float = 0.2  # L_render = (1 - lambda_ssim) L1 + lambda_ssim (1 - SSIM)
 

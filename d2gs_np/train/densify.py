@@ -7,8 +7,13 @@ steps inside [start, stop) of training:
 - mean norm > threshold and max scale <= percent_dense x extent: clone (a copy, same parameters);
 - mean norm > threshold and larger: split into two, positions drawn from the Gaussian, scales
   divided by ``split_factor`` (the original is replaced);
-new rows get zero Adam moments (``adam_extend``) and dynamic rows keep their deformation
-coefficients. The threshold is 3DGS's 2e-4 in NDC units, converted with d(ndc) = 2 d(px) / W.
+new rows get zero Adam moments and statistics (``train.rows.resize_rows``) and dynamic rows keep
+their deformation coefficients. The threshold is 3DGS's 2e-4 in NDC units, converted with
+d(ndc) = 2 d(px) / W.
+
+The statistics are per-row arrays in the training state's ``rows`` (``GRAD_SUM``,
+``GRAD_COUNT``), accumulated after every step by the ``GradientStatistics`` plugin and used and
+reset by the ``Densify`` plugin (``train/plugins.py``).
 """
 from __future__ import annotations
 
@@ -17,8 +22,8 @@ from dataclasses import dataclass
 import numpy as np
 
 from d2gs_np.geometry.quaternion import quat_to_rotmat
-from d2gs_np.optim import adam
-from d2gs_np.scene import gaussians
+from d2gs_np.scene.gaussians import DYNAMIC, STATIC
+from d2gs_np.train.rows import SETS, num_rows, resize_rows
 
 
 @dataclass(frozen=True)
@@ -44,47 +49,49 @@ class DensifyConfig:
             raise ValueError("DensifyConfig: grad_threshold_ndc and percent_dense must be > 0, split_factor > 1")
 
 
-class GradientStats:
-    """Accumulated screen-space gradient norms per set ("static", "dynamic")."""
-
-    def __init__(self, params):
-        self.sum = {p: np.zeros(self._n(params, p)) for p in ("static", "dynamic")}
-        self.count = {p: np.zeros(self._n(params, p)) for p in ("static", "dynamic")}
-
-    @staticmethod
-    def _n(params, prefix):
-        return params[f"{prefix}.means"].shape[0] if f"{prefix}.means" in params else 0
-
-    def add(self, v_means2d_full, visible, num_static):
-        """v_means2d_full (M, 2) for the rendered rows (static first, then dynamic if rendered)."""
-        norm = np.linalg.norm(v_means2d_full, axis=1) * visible
-        self.sum["static"] += norm[:num_static]
-        self.count["static"] += visible[:num_static]
-        if norm.shape[0] > num_static:
-            self.sum["dynamic"] += norm[num_static:]
-            self.count["dynamic"] += visible[num_static:]
-
-    def select(self, prefix, keep):
-        self.sum[prefix] = self.sum[prefix][keep]
-        self.count[prefix] = self.count[prefix][keep]
-
-    def mean(self, prefix):
-        return self.sum[prefix] / np.maximum(self.count[prefix], 1.0)
+GRAD_SUM = "densify/sum"  # per-row statistics (train/rows.py), checkpointed as densify/sum/<set>
+GRAD_COUNT = "densify/count"
 
 
-def densify(params, adam_state, stats: GradientStats, config: DensifyConfig, extent, width, rng):
-    """Clone / split (see the module docstring). Returns (params, adam_state, stats, info)."""
+def init_grad_stats(params) -> dict:
+    """Zero statistics for every row of both sets: {GRAD_SUM: {set: (N_set,)}, GRAD_COUNT: ...}."""
+    return {name: {p: np.zeros(num_rows(params, p)) for p in SETS} for name in (GRAD_SUM, GRAD_COUNT)}
+
+
+def add_grad_stats(rows, v_means2d_full, visible, num_static) -> dict:
+    """Statistics after one step: ``v_means2d_full`` (M, 2) screen-space mean gradients in
+    full-resolution pixels and ``visible`` (M,) 0/1 of the rendered rows (static first, then
+    dynamic if it was rendered). Returns a new dict; other statistics in ``rows`` are kept."""
+    norm = np.linalg.norm(v_means2d_full, axis=1) * visible
+    s, c = dict(rows[GRAD_SUM]), dict(rows[GRAD_COUNT])
+    s[STATIC] = s[STATIC] + norm[:num_static]
+    c[STATIC] = c[STATIC] + visible[:num_static]
+    if norm.shape[0] > num_static:
+        s[DYNAMIC] = s[DYNAMIC] + norm[num_static:]
+        c[DYNAMIC] = c[DYNAMIC] + visible[num_static:]
+    return {**rows, GRAD_SUM: s, GRAD_COUNT: c}
+
+
+def mean_grad(rows, prefix):
+    """Mean screen-space gradient norm of each row of a set over the steps it was visible."""
+    return rows[GRAD_SUM][prefix] / np.maximum(rows[GRAD_COUNT][prefix], 1.0)
+
+
+def densify(params, adam_state, rows, config: DensifyConfig, extent, width, rng):
+    """Clone / split (see the module docstring), through ``train.rows.resize_rows`` so the Adam
+    state and every per-row statistic follow; then the gradient statistics restart from zero.
+    Returns (params, adam_state, rows, info) with info = {"cloned": int, "split": int}."""
     threshold = config.grad_threshold_ndc * 2.0 / float(width)
     info = {"cloned": 0, "split": 0}
-    total = sum(GradientStats._n(params, p) for p in ("static", "dynamic"))
-    for prefix in ("static", "dynamic"):
-        n = GradientStats._n(params, prefix)
+    total = sum(num_rows(params, p) for p in SETS)
+    for prefix in SETS:
+        n = num_rows(params, prefix)
         if n == 0:
             continue
         budget = config.max_gaussians - total
         if budget <= 0:
             break
-        grad = stats.mean(prefix)
+        grad = mean_grad(rows, prefix)
         scales = np.exp(params[f"{prefix}.log_scales"])
         big = scales.max(axis=1) > config.percent_dense * extent
         hot = grad > threshold
@@ -98,28 +105,22 @@ def densify(params, adam_state, stats: GradientStats, config: DensifyConfig, ext
             split_idx = np.intersect1d(split_idx, keep)
         fields = [k[len(prefix) + 1:] for k in params if k.startswith(prefix + ".")]
         new = {f"{prefix}.{f}": params[f"{prefix}.{f}"][np.concatenate([clone_idx, split_idx, split_idx])].copy()
-                for f in fields}
+               for f in fields}
         if split_idx.size:
             # Two children per split Gaussian, sampled from it, smaller by split_factor.
             s = scales[split_idx]
             R = quat_to_rotmat(params[f"{prefix}.quats"][split_idx])
             m = len(clone_idx)
             for c in range(2):
-                rows = slice(m + c * len(split_idx), m + (c + 1) * len(split_idx))
+                sl = slice(m + c * len(split_idx), m + (c + 1) * len(split_idx))
                 offset = np.einsum("nij,nj->ni", R, rng.normal(size=s.shape) * s)
-                new[f"{prefix}.means"][rows] += offset
-                new[f"{prefix}.log_scales"][rows] -= np.log(config.split_factor)
-        params = gaussians.append_gaussians(params, new)
-        adam_state = adam.adam_extend(adam_state, prefix, len(clone_idx) + 2 * len(split_idx))
-        # Remove the split originals.
+                new[f"{prefix}.means"][sl] += offset
+                new[f"{prefix}.log_scales"][sl] -= np.log(config.split_factor)
+        # New rows appended, the split originals removed.
         keep = np.ones(n + len(clone_idx) + 2 * len(split_idx), dtype=bool)
         keep[split_idx] = False
-        keep_s = keep if prefix == "static" else np.ones(GradientStats._n(params, "static"), bool)
-        keep_d = keep if prefix == "dynamic" else (
-            np.ones(GradientStats._n(params, "dynamic"), bool) if gaussians.has_dynamic(params) else None)
-        params = gaussians.prune(params, keep_s, keep_d)
-        adam_state = adam.adam_select(adam_state, prefix, keep)
+        params, adam_state, rows = resize_rows(params, adam_state, rows, prefix, keep=keep, new=new)
         info["cloned"] += int(len(clone_idx))
         info["split"] += int(len(split_idx))
         total += len(clone_idx) + len(split_idx)
-    return params, adam_state, GradientStats(params), info
+    return params, adam_state, {**rows, **init_grad_stats(params)}, info

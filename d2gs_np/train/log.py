@@ -42,9 +42,13 @@ class Stopwatch:
 
 
 class RunLog:
-    def __init__(self, run_dir, quiet: bool = False, resume: bool = False):
+    """The run's log; ``extra_fields`` are columns after LOG_FIELDS (the trainer adds one per loss
+    term, ``loss_<name>``, the term's unweighted value)."""
+
+    def __init__(self, run_dir, quiet: bool = False, resume: bool = False, extra_fields=()):
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.fields = tuple(LOG_FIELDS) + tuple(f for f in extra_fields if f not in LOG_FIELDS)
         self.rows: list = []
         self.notes: list = []  # (seconds, message): what was left out and why, stage changes, ...
         self.quiet = quiet
@@ -54,7 +58,7 @@ class RunLog:
             self.rows, self.notes = data.get("rows", []), data.get("notes", [])
         if not resume or not self._csv_path.exists():
             with open(self._csv_path, "w", newline="") as f:
-                csv.writer(f).writerow(LOG_FIELDS)
+                csv.writer(f).writerow(self.fields)
 
     def note(self, message: str):
         """A decision or event in words (also printed)."""
@@ -63,10 +67,10 @@ class RunLog:
             print(f"[d2gs] {message}", flush=True)
 
     def row(self, **values):
-        row = {k: values.get(k) for k in LOG_FIELDS}
+        row = {k: values.get(k) for k in self.fields}
         self.rows.append(row)
         with open(self._csv_path, "a", newline="") as f:
-            csv.writer(f).writerow(["" if row[k] is None else row[k] for k in LOG_FIELDS])
+            csv.writer(f).writerow(["" if row[k] is None else row[k] for k in self.fields])
 
     def progress(self, step: int, total: int, seconds: float, loss: float, psnr: float, stage: str):
         if self.quiet:
@@ -87,9 +91,9 @@ class RunLog:
         self.rows = [r for r in self.rows if r["step"] is not None and r["step"] < step]
         with open(self._csv_path, "w", newline="") as f:
             w = csv.writer(f)
-            w.writerow(LOG_FIELDS)
+            w.writerow(self.fields)
             for row in self.rows:
-                w.writerow(["" if row.get(k) is None else row[k] for k in LOG_FIELDS])
+                w.writerow(["" if row.get(k) is None else row[k] for k in self.fields])
 
     def save(self):
         rows = [{k: _finite_or_none(v) for k, v in r.items()} for r in self.rows]  # strict JSON: no NaN/inf

@@ -91,8 +91,8 @@ def test_no_dynamic_set_does_no_deformation(monkeypatch):
     def forbidden(*args, **kwargs):
         raise AssertionError("deformation evaluated for a scene without a dynamic set")
 
-    monkeypatch.setattr(model, "deform_fwd", forbidden)
-    monkeypatch.setattr(model, "deform_bwd", forbidden)
+    monkeypatch.setattr(model, "_deform_fwd", forbidden)  # the names evaluate_fwd / evaluate_bwd call
+    monkeypatch.setattr(model, "_deform_bwd", forbidden)
     out, saved = evaluate_fwd(params, 0.3, config)
     np.testing.assert_array_equal(out["means"], params["static.means"])
     v_params, v_t = evaluate_bwd(saved, random_cotangents(rng, 6))

@@ -1,11 +1,11 @@
 """Densification: which Gaussians are cloned or split, what the children look like, and that the
-optimizer state and statistics stay in step."""
+optimizer state and statistics stay in step (through train.rows.resize_rows)."""
 import numpy as np
 import pytest
 
 from d2gs_np.optim import adam
 from d2gs_np.scene.gaussians import init_params
-from d2gs_np.train.densify import DensifyConfig, GradientStats, densify
+from d2gs_np.train.densify import GRAD_COUNT, GRAD_SUM, DensifyConfig, add_grad_stats, densify, init_grad_stats
 
 
 def _params(rng):
@@ -21,14 +21,14 @@ def test_clone_small_split_large_only_above_threshold():
     rng = np.random.default_rng(0)
     p = _params(rng)
     state = adam.adam_init(p)
-    stats = GradientStats(p)
+    stats = init_grad_stats(p)
     cfg = DensifyConfig(enabled=True, grad_threshold_ndc=1e-3, percent_dense=0.01)
     width = 100
     thr = 1e-3 * 2 / width
     g = np.zeros((9, 2))
     g[[0, 3], 0] = 2 * thr  # static 0 (small) and 3 (large) are hot; the rest cold
     g[[6], 0] = 2 * thr  # dynamic 0 (scale from init: small or large, both handled)
-    stats.add(g, np.ones(9), num_static=6)
+    stats = add_grad_stats(stats, g, np.ones(9), num_static=6)
     before = {k: v.copy() for k, v in p.items()}
     out, st, stats2, info = densify(p, state, stats, cfg, extent=1.0, width=width, rng=np.random.default_rng(1))
     assert info["cloned"] + info["split"] == 3
@@ -44,14 +44,14 @@ def test_clone_small_split_large_only_above_threshold():
     assert nd > 3
     for name, arr in out.items():
         assert st["m"][name].shape == arr.shape, name
-    assert stats2.sum["static"].shape == (ns,) and stats2.sum["dynamic"].shape == (nd,)
+    assert stats2[GRAD_SUM]["static"].shape == (ns,) and stats2[GRAD_SUM]["dynamic"].shape == (nd,)
+    assert not any(v.any() for per in (stats2[GRAD_SUM], stats2[GRAD_COUNT]) for v in per.values())  # restarted
 
 
 def test_budget_caps_growth():
     rng = np.random.default_rng(2)
     p = _params(rng)
-    stats = GradientStats(p)
-    stats.add(np.ones((9, 2)), np.ones(9), num_static=6)
+    stats = add_grad_stats(init_grad_stats(p), np.ones((9, 2)), np.ones(9), num_static=6)
     cfg = DensifyConfig(enabled=True, max_gaussians=10)
     out, _, _, info = densify(p, adam.adam_init(p), stats, cfg, extent=1.0, width=100, rng=rng)
     assert out["static.means"].shape[0] + out["dynamic.means"].shape[0] <= 10  # clones and splits add one row each
@@ -63,3 +63,17 @@ def test_config_validation():
         DensifyConfig(start_fraction=0.8, stop_fraction=0.5)
     with pytest.raises(ValueError, match="split_factor"):
         DensifyConfig(split_factor=1.0)
+
+
+def test_statistics_accumulate_per_set_and_a_static_only_render_leaves_the_dynamic_rows():
+    rng = np.random.default_rng(3)
+    p = _params(rng)
+    stats = init_grad_stats(p)
+    g = rng.normal(size=(9, 2))
+    vis = np.array([1, 0, 1, 1, 1, 1, 1, 0, 1], float)
+    stats = add_grad_stats(stats, g, vis, num_static=6)
+    np.testing.assert_array_equal(stats[GRAD_SUM]["static"], np.linalg.norm(g, axis=1)[:6] * vis[:6])
+    np.testing.assert_array_equal(stats[GRAD_COUNT]["dynamic"], vis[6:])
+    again = add_grad_stats(stats, g[:6], vis[:6], num_static=6)  # warm-up: only the static set rendered
+    np.testing.assert_array_equal(again[GRAD_COUNT]["dynamic"], vis[6:])
+    np.testing.assert_array_equal(again[GRAD_COUNT]["static"], 2 * vis[:6])

@@ -3,6 +3,7 @@ need (and never calls the skipped code), resumes exactly, respects the time budg
 rejects bad input before doing any work."""
 import dataclasses
 import json
+import shutil
 
 import numpy as np
 import pytest
@@ -51,7 +52,10 @@ def test_sharp_scene_leaves_out_blur_and_never_calls_it(sharp_scene, tmp_path, m
     def forbidden(*a, **k):
         raise AssertionError("blur model called for a sharp scene")
 
+    import d2gs_np.train.model as train_model
     monkeypatch.setattr(blur_model, "blur_render_fwd", forbidden)
+    monkeypatch.setattr(blur_model, "_blur_render_fwd", forbidden)
+    monkeypatch.setattr(train_model, "_blur_render_fwd", forbidden)  # the name the training forward calls
     tr = Trainer(sharp_scene, _config(iters=4), tmp_path / "run")
     tr.run()
     assert not tr.components.blur
@@ -65,8 +69,9 @@ def test_static_scene_leaves_out_dynamic_set_and_never_deforms(static_scene, tmp
         raise AssertionError("deformation evaluated for a scene with no moving pixels")
 
     monkeypatch.setattr(deformation, "deform_fwd", forbidden)
+    monkeypatch.setattr(deformation, "_deform_fwd", forbidden)
     import d2gs_np.scene.model as model
-    monkeypatch.setattr(model, "deform_fwd", forbidden, raising=False)
+    monkeypatch.setattr(model, "_deform_fwd", forbidden)  # the name evaluate_fwd and the fast path call
     tr = Trainer(static_scene, _config(iters=20), tmp_path / "run")
     tr.run()
     assert not tr.components.dynamic
@@ -242,37 +247,31 @@ def test_densification_adds_gaussians_and_keeps_state_consistent(dynamic_scene, 
     assert any("densified" in n for n in tr.log.notes)
     for name, p in tr.params.items():
         assert tr.adam_state["m"][name].shape == p.shape, name
-    assert tr.grad_stats.sum["static"].shape[0] == tr.params["static.means"].shape[0]
+    from d2gs_np.train.densify import GRAD_COUNT, GRAD_SUM
+    for name in (GRAD_SUM, GRAD_COUNT):
+        for prefix in ("static", "dynamic"):
+            assert tr.state.rows[name][prefix].shape[0] == tr.params[f"{prefix}.means"].shape[0], (name, prefix)
 
 
 def test_resume_is_exact_with_densification(dynamic_scene, tmp_path):
     from d2gs_np.train.densify import DensifyConfig
 
     dens = DensifyConfig(enabled=True, every=3, start_fraction=0.0, stop_fraction=1.0, grad_threshold_ndc=1e-6)
-    cfg = _config(iters=10).replace(densify=dens)
+    cfg = _config(iters=10, checkpoint_every=5).replace(densify=dens)
     full = Trainer(dynamic_scene, cfg, tmp_path / "full")
     full.run()
-    part = Trainer(dynamic_scene, cfg, tmp_path / "part")
-    for step in range(5):  # densifies at step 3; statistics accumulate on steps 3 and 4 after it
-        part.step(step)
-        part.step_index = step + 1
-        if step == 3:
-            part.params, part.adam_state, part.grad_stats, _ = densify_like_run(part, step)
-    part.checkpoint()
+    # The run as it was after step 5 (densified at step 3; statistics of step 4 accumulated since),
+    # resumed in another folder.
+    (tmp_path / "part").mkdir()
+    for name in ("checkpoint.npz", "config.json", "log.json", "log.csv"):
+        shutil.copy(tmp_path / "full" / name, tmp_path / "part" / name)
     resumed = Trainer(dynamic_scene, cfg, tmp_path / "part", resume=True)
+    assert resumed.step_index == 5
+    assert any(v.any() for v in resumed.state.rows["densify/count"].values()), "statistics were not restored"
     resumed.run()
     assert full.num_gaussians() > 0
     for name in full.params:
         np.testing.assert_array_equal(resumed.params[name], full.params[name], err_msg=name)
-
-
-def densify_like_run(tr, step):
-    """The densification call the run loop makes at ``step``."""
-    from d2gs_np.train.densify import densify
-
-    tc = tr.config.train
-    return densify(tr.params, tr.adam_state, tr.grad_stats, tr.config.densify, tr.extent,
-                   max(f.width for f in tr.frames), np.random.default_rng((tc.seed, step, 7)))
 
 
 def test_heldout_is_evaluated_before_pruning_and_densification(dynamic_scene, tmp_path, monkeypatch):
@@ -280,18 +279,101 @@ def test_heldout_is_evaluated_before_pruning_and_densification(dynamic_scene, tm
     # children apart and costs dB for a while, and eval_every shares multiples with the densify
     # period, so evaluating after densification would log only those transients.
     from d2gs_np.train.densify import DensifyConfig
+    from d2gs_np.train.plugins import Plugin
 
     dens = DensifyConfig(enabled=True, every=4, start_fraction=0.0, stop_fraction=1.0, grad_threshold_ndc=1e-9)
     cfg = _config(iters=9, eval_every=4).replace(densify=dens)
-    tr = Trainer(dynamic_scene, cfg, tmp_path / "run")
-    seen = []
-    monkeypatch.setattr(tr, "heldout_psnr", lambda: seen.append(tr.num_gaussians()) or 20.0)
-    counts = []
-    tr.hooks.append(lambda t, info: counts.append(t.num_gaussians()))  # after the Adam step
+
+    class Count(Plugin):  # the number of Gaussians after all other plugins of the step
+        name = "count"
+
+        def on_step(self, state):
+            counts.append(state.model.num_gaussians())
+            return state
+
+    counts, seen = [], []
+    tr = Trainer(dynamic_scene, cfg, tmp_path / "run", plugins=[Count()])
+    evaluate = next(p for p in tr.plugins if p.name == "evaluate")
+    monkeypatch.setattr(evaluate, "heldout_psnr", lambda model: seen.append(model.num_gaussians()) or 20.0)
+    after_adam, step = [], tr.step
+
+    def step_then_count(*args):  # the number of Gaussians the Adam step left
+        record = step(*args)
+        after_adam.append(tr.num_gaussians())
+        return record
+
+    monkeypatch.setattr(tr, "step", step_then_count)
     tr.run()
     assert any("densified" in n for n in tr.log.notes)
-    assert seen == [counts[0], counts[4], counts[8]], (seen, counts)
-    assert counts[4] < counts[5], "the test needs a densification at step 4"
+    assert seen == [after_adam[0], after_adam[4], after_adam[8]], (seen, after_adam)
+    assert after_adam[4] < counts[4], "the test needs a densification at step 4"
+
+
+def test_plugins_run_in_order_and_their_state_is_checkpointed_for_an_exact_resume(dynamic_scene, tmp_path):
+    # A plugin that changes the model with its own random state (as a pose solver or a new
+    # densification rule would): resuming from a checkpoint must continue it exactly.
+    from d2gs_np.train.plugins import Plugin
+
+    class Jitter(Plugin):
+        name = "jitter"
+
+        def __init__(self):
+            self.rng = np.random.default_rng(7)
+            self.calls = 0
+
+        def on_step(self, state):
+            self.calls += 1
+            if state.step % 2:
+                return state
+            p = dict(state.params)
+            p["static.colors"] = p["static.colors"] + 1e-3 * self.rng.normal(size=p["static.colors"].shape)
+            return state.with_params(p)
+
+        def state_dict(self):
+            return {"rng": json.dumps(self.rng.bit_generator.state), "calls": self.calls,
+                    "seen": np.arange(self.calls)}
+
+        def load_state_dict(self, d):
+            self.rng.bit_generator.state = json.loads(d["rng"])
+            self.calls = d["calls"]
+            assert np.array_equal(d["seen"], np.arange(self.calls))
+
+    cfg = _config(iters=8, checkpoint_every=3)
+    full = Trainer(dynamic_scene, cfg, tmp_path / "full", plugins=[Jitter()])
+    assert [p.name for p in full.plugins][-1] == "jitter"
+    full.run()
+    (tmp_path / "part").mkdir()
+    for name in ("checkpoint.npz", "config.json", "log.json", "log.csv"):
+        shutil.copy(tmp_path / "full" / name, tmp_path / "part" / name)
+    jitter = Jitter()
+    resumed = Trainer(dynamic_scene, cfg, tmp_path / "part", plugins=[jitter], resume=True)
+    assert resumed.step_index == 6 and jitter.calls == 6
+    resumed.run()
+    for name in full.params:
+        np.testing.assert_array_equal(resumed.params[name], full.params[name], err_msg=name)
+
+
+def test_a_loss_term_added_to_the_list_enters_the_total_the_gradient_and_the_log(sharp_scene, tmp_path):
+    from d2gs_np.train.terms import TermGrads
+
+    class OpacityPull:  # a toy regulariser on parameters: weight * mean(opacity_logits)
+        name, weight = "pull", 0.5
+
+        def fwd(self, x):
+            logits = x.model.params["static.opacity_logits"]
+            return float(np.mean(logits)), logits.shape[0]
+
+        def bwd(self, n):
+            return TermGrads(render={}, params={"static.opacity_logits": np.full(n, self.weight / n)})
+
+    cfg = _config(iters=3, progressive=False, warmup_fraction=0.0, deform_fraction=0.0)
+    plain, pulled = Trainer(sharp_scene, cfg, tmp_path / "a"), Trainer(sharp_scene, cfg, tmp_path / "b")
+    pulled.terms.append(OpacityPull())
+    before = pulled.params["static.opacity_logits"].copy()
+    a, b = plain.step(0), pulled.step(0)
+    assert b["loss"] == a["loss"] + 0.5 * b["loss_pull"] and b["loss_pull"] == float(np.mean(before))
+    assert not np.array_equal(plain.params["static.opacity_logits"], pulled.params["static.opacity_logits"])
+    np.testing.assert_array_equal(plain.params["static.colors"], pulled.params["static.colors"])
 
 
 # ------------------------------------------------------------- time budget: a finished schedule
@@ -315,8 +397,8 @@ def test_without_a_budget_the_schedule_reads_the_step(dynamic_scene, tmp_path):
     tr = Trainer(dynamic_scene, cfg, tmp_path / "run")
     tr.run()
     for r in tr.log.rows:
-        assert r["scale"] == round(tr.scale_at(r["step"]), 4)
-        assert r["stage"] == tr.stage_at(r["step"]).name
+        assert r["scale"] == round(tr.planner.scale_at(r["step"]), 4)
+        assert r["stage"] == tr.planner.stage_at(r["step"]).name
 
 
 # ------------------------------------------------------------- pruning rules in the trainer
@@ -325,7 +407,14 @@ def test_prune_removes_oversized_and_escaped_gaussians_and_keeps_state_in_step(d
     ns, nd = tr.params["static.means"].shape[0], tr.params["dynamic.means"].shape[0]
     p = dict(tr.params)
     big = np.array(p["static.log_scales"])
-    big[0] = np.log(0.5 * tr.size_extent)  # over the 0.1 x extent rule
+    from d2gs_np.train.plugins import Prune
+    prune = Prune(tr.config, tr.extent, [f.mask for f in tr.frames])
+    prune.on_init(tr.model)  # measures the scene's size from the initial points
+    assert prune.extent >= tr.extent
+    resumed = Prune(tr.config, 1.0, [])
+    resumed.load_state_dict(prune.state_dict())  # a resumed run keeps the measured size
+    assert resumed.extent == prune.extent
+    big[0] = np.log(0.5 * prune.extent)  # over the 0.1 x extent rule
     p["static.log_scales"] = big
     # move dynamic Gaussian 0 far from every mask: the top-left corner region of frame 0's view,
     # at the depth of its seed
@@ -340,7 +429,7 @@ def test_prune_removes_oversized_and_escaped_gaussians_and_keeps_state_in_step(d
     p["dynamic.means"] = d
     p["dynamic.deform_means"] = coef
     tr.params = p
-    removed = tr.prune()
+    tr.state, removed = prune.prune(tr.state)
     assert removed >= 2
     assert tr.params["static.means"].shape[0] <= ns - 1 and tr.params["dynamic.means"].shape[0] <= nd - 1
     assert not np.any(np.all(tr.params["static.log_scales"] == big[0], axis=1))
@@ -350,7 +439,7 @@ def test_prune_removes_oversized_and_escaped_gaussians_and_keeps_state_in_step(d
 
 
 def test_size_extent_follows_the_scene_when_the_camera_barely_moves():
-    from d2gs_np.train.trainer import scene_extent, size_extent
+    from d2gs_np.train.optimise import scene_extent, size_extent
 
     rng = np.random.default_rng(0)
     # forward-facing: camera centres within 0.1 of the origin, points on a wall 5 units away

@@ -1,0 +1,112 @@
+"""What a run models, decided once from the scene and the config (docs/method.md §9).
+
+``decide_components`` leaves out what a scene does not need and says why in the run log: no
+moving pixels, no dynamic set (and no deformation); sharp input, no blur model (n = 1 at the
+given poses, no endpoint model); a learned exposure length only where it has an effect.
+
+The optional parts of the method are loss terms (``train/terms.py``) and step plugins
+(``train/plugins.py``); ``left_out`` lists those the run does not have, by what it has, so the
+run log and ``metrics.json`` never claim a part that did not run (and a part that is added is
+dropped from the list without touching this module's callers).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+from typing import Callable, Optional
+
+from d2gs_np.data.scene import Scene
+from d2gs_np.train.config import ExperimentConfig
+
+__all__ = ["Components", "decide_components", "OPTIONAL_TERMS", "OPTIONAL_PLUGINS", "composition_notes"]
+
+# Regularisers of docs/method.md §6, by loss-term name: left out unless a term of that name is in the loss.
+OPTIONAL_TERMS = {"ts": "L_ts", "gs": "L_gs", "reproj": "L_reproj", "freq": "L_freq"}
+# Optional step plugins, by plugin name -> the component they are (docs/method.md §5).
+OPTIONAL_PLUGINS = {"pose_solver": "pose_refinement"}
+
+
+@dataclass(frozen=True)
+class Components:
+    """What this run models; decided from the scene and the config (docs/method.md §9)."""
+
+    dynamic: bool
+    blur: bool
+    learn_exposure: bool
+    exposure_fraction: float  # used when not learned
+
+    def left_out(self, terms=(), plugins=()) -> list:
+        """Names of the parts of the method this run does not have: the sets and models the scene
+        did not need, the optional plugins not among ``plugins`` and the regularisers not among
+        ``terms`` (names of the run's plugins and loss terms)."""
+        out = []
+        if not self.dynamic:
+            out += ["dynamic_set", "deformation"]
+        if not self.blur:
+            out += ["blur_model", "trajectory_model"]
+        out += [part for name, part in OPTIONAL_PLUGINS.items() if name not in plugins]
+        out += [f"loss_{name}" for name in OPTIONAL_TERMS if name not in terms]
+        return out
+
+
+def composition_notes(terms=(), plugins=()) -> list:
+    """Run-log lines on the optional parts: which ran and which did not (``left_out``)."""
+    notes = []
+    if "pose_solver" not in plugins:
+        notes.append("pose refinement (Gauss-Newton on reprojection residuals): not run (not part of this version)")
+    missing = [label for name, label in OPTIONAL_TERMS.items() if name not in terms]
+    loss = " + ".join("L_render" if t == "photometric" else OPTIONAL_TERMS.get(t, t) for t in terms) or "L_render"
+    if missing:
+        notes.append(f"regularisers {', '.join(missing)}: not applied (not part of this version); loss = {loss}")
+    else:
+        notes.append(f"loss = {loss}")
+    return notes
+
+
+def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Callable] = None) -> Components:
+    """Apply docs/method.md §9: leave out what the scene does not need, and say why (``note``)."""
+    tc = config.train
+    say = note if note is not None else (lambda m: None)
+    if tc.dynamic == "off":
+        dynamic = False
+        say("dynamic set: off (config train.dynamic = off)")
+    elif not scene.has_masks:
+        dynamic = tc.dynamic == "on"
+        if dynamic:
+            raise ValueError("train.dynamic = on needs motion masks, but the scene has none; add masks/ or use auto")
+        say("dynamic set: left out (the scene has no motion masks)")
+    elif not scene.has_moving_pixels:
+        dynamic = False
+        say("dynamic set: left out (the motion masks contain no moving pixels), and with it the deformation model")
+    else:
+        dynamic = True
+        say("dynamic set: on (motion masks mark moving pixels)")
+
+    ef = scene.exposure_fraction
+    if tc.blur == "off":
+        blur, learn = False, False
+        say("blur model: off (config train.blur = off); n = 1 sharp camera at the given poses")
+    elif tc.blur == "auto" and ef is not None and ef == 0.0:
+        blur, learn = False, False
+        say("blur model: left out (scene exposure_fraction = 0: sharp input); n = 1, no endpoint model")
+    elif config.blur.num_virtual == 1:
+        blur, learn = False, False
+        say("blur model: left out (blur.num_virtual = 1)")
+    else:
+        blur = True
+        if tc.learn_exposure == "on" or (tc.learn_exposure == "auto" and ef is None):
+            if not dynamic:
+                # tau only moves the sub-frame times, which only the dynamic set sees.
+                learn = False
+                say("blur model: on; exposure length not learned (no dynamic set, so tau has no effect)")
+            else:
+                learn = True
+                why = "config train.learn_exposure = on" if tc.learn_exposure == "on" else \
+                    "the scene gives no exposure_fraction"
+                say(f"blur model: on, n = {config.blur.num_virtual}, exposure length learned ({why})")
+        else:
+            learn = False
+            if ef is None:
+                raise ValueError("train.learn_exposure = off but the scene has no exposure_fraction; use auto or on")
+            say(f"blur model: on, n = {config.blur.num_virtual} virtual views, exposure_fraction = {ef} from the scene")
+        say(f"trajectory model: {config.trajectory.kind}")
+    return Components(dynamic=dynamic, blur=blur, learn_exposure=learn, exposure_fraction=float(ef or 0.0))

@@ -1,0 +1,298 @@
+"""The model a run trains: Gaussians, camera state, frame times and components in one record.
+
+The trainer trains it, and evaluation, the command line and notebooks use it, all through the
+same ``render`` and ``mid_pose`` (docs/method.md §4, §10). It holds plain arrays:
+
+- ``params``: the named blocks Adam trains (docs/method.md §2, §4): the scene (``static.*``,
+  ``dynamic.*``) and, with the blur model, the endpoint model (``camera.xi_start`` /
+  ``camera.xi_end`` or ``posenet.*``) and a learned exposure length (``camera.exposure_logit``).
+- camera state: ``poses_est`` (N, 4, 4), the given mid-exposure estimates, never changed (the
+  'initial' trajectory of evaluation); ``poses_ref`` (N, 4, 4), the reference poses T̂_k the
+  endpoints perturb, a copy of ``poses_est`` until a pose solver refines them (docs/method.md
+  §5); intrinsics ``Ks`` (N, 3, 3) and image sizes of the training frames.
+- ``times`` (N,), ``components`` (what the run models, ``train/components.py``) and the config.
+
+The mid-exposure pose of frame k is the geodesic midpoint of its exposure endpoints with the blur
+model, and T̂_k without it (where n = 1 renders).
+
+Validation happens once: ``validate()`` checks every block, pose, time and intrinsic matrix, and
+``from_scene`` / ``from_checkpoint`` call it. The training forward of a frame
+(``frame_render_fwd`` / ``frame_render_bwd``) trusts a validated model and runs the private,
+unvalidated paths of the trajectory, blur, scene and render modules: checking the blocks of
+every sub-frame render of every step cost a measurable share of the step (the closing note of
+the trainer split). Anything that writes the model outside the optimiser (a pose solver
+plugin) calls ``validate()`` on what it wrote. The model is immutable; ``replace`` returns a
+changed copy sharing unchanged arrays.
+"""
+from __future__ import annotations
+
+import dataclasses
+import numbers
+import time
+from dataclasses import dataclass
+
+import numpy as np
+
+from d2gs_np import blur as blur_model
+from d2gs_np import trajectory as traj_model
+from d2gs_np.blur import EXPOSURE_BLOCK, _blur_render_fwd, blur_render_bwd
+from d2gs_np.geometry.camera import check_intrinsics
+from d2gs_np.geometry.se3 import check_rigid, se3_exp, se3_interpolate
+from d2gs_np.render import render_fwd
+from d2gs_np.render.api import _render_bwd, _render_fwd
+from d2gs_np.scene import gaussians
+from d2gs_np.scene.gaussians import DYNAMIC, STATIC
+from d2gs_np.scene.initialize import initialize_points
+from d2gs_np.scene.model import RENDER_FIELDS, _evaluate_bwd, _evaluate_fwd, evaluate_fwd
+from d2gs_np.scene.motion_init import initialize_deformation
+from d2gs_np.train.components import Components
+from d2gs_np.train.config import ExperimentConfig
+
+__all__ = ["Model", "SCENE_PREFIXES", "frame_render_fwd", "frame_render_bwd"]
+
+SCENE_PREFIXES = (f"{STATIC}.", f"{DYNAMIC}.")
+PARAMS_KEY = "params/"  # checkpoint array keys of the blocks
+POSES_REF_KEY = "camera/poses_ref"
+
+
+@dataclass(frozen=True, eq=False)
+class Model:
+    params: dict  # block name -> array (module docstring)
+    config: ExperimentConfig
+    components: Components
+    times: np.ndarray  # (N,) mid-exposure normalised times of the training frames
+    poses_est: np.ndarray  # (N, 4, 4) given cam_T_world estimates
+    poses_ref: np.ndarray  # (N, 4, 4) reference cam_T_world the endpoints perturb
+    Ks: np.ndarray  # (N, 3, 3) intrinsics of the training frames
+    widths: tuple  # (N,) ints
+    heights: tuple  # (N,) ints
+
+    # ------------------------------------------------------------------ construction
+    @classmethod
+    def from_scene(cls, scene, config: ExperimentConfig, components: Components, note=None) -> "Model":
+        """The initial model of a scene (docs/method.md §8): initial static and dynamic points
+        (``scene/initialize.py``), motion from mask tracks (``scene/motion_init.py``), the endpoint
+        model and the exposure length. One seeded generator (``config.train.seed``) draws all of it,
+        in this order."""
+        say = note if note is not None else (lambda m: None)
+        rng = np.random.default_rng(config.train.seed)
+        frames = scene.frames
+        times = np.array([f.time for f in frames], dtype=np.float64)
+        poses = np.stack([f.cam_T_world for f in frames]).astype(np.float64)
+        t0 = time.perf_counter()
+        s_pts, s_col, d_pts, d_col, info = initialize_points(scene, config.init, rng)
+        if not components.dynamic:
+            d_pts, d_col = None, None
+        params = gaussians.init_params(s_pts, s_col, d_pts, d_col, deform_config=config.deform, rng=rng)
+        if d_pts is not None and config.motion_init.enabled:
+            means, coefs, minfo = initialize_deformation(
+                scene, d_pts, info["dynamic_source_frames"], info["dynamic_source_pixels"], config.deform,
+                config.motion_init)
+            params[f"{DYNAMIC}.means"] = means
+            params[f"{DYNAMIC}.deform_means"] = coefs
+            say(f"dynamic motion initialised from {minfo['num_tracks']} mask tracks "
+                f"({minfo['num_tracked_seeds']} of {len(means)} seeds tracked)")
+        say(f"initialised {gaussians.num_static(params)} static and {gaussians.num_dynamic(params)} "
+            f"dynamic Gaussians in {time.perf_counter() - t0:.1f}s ({_short(info)})")
+        if components.blur:
+            params.update(traj_model.init_trajectory(
+                config.trajectory, poses, times, rng,
+                exposure_fraction=None if components.learn_exposure else components.exposure_fraction))
+            if components.learn_exposure:
+                params.update(blur_model.init_exposure())
+        return cls(params=params, config=config, components=components, times=times, poses_est=poses,
+                   poses_ref=poses.copy(), Ks=np.stack([np.asarray(f.K, dtype=np.float64) for f in frames]),
+                   widths=tuple(int(f.width) for f in frames),
+                   heights=tuple(int(f.height) for f in frames)).validate()
+
+    def to_checkpoint(self):
+        """(arrays, meta) of the model, for ``train.checkpoint.save_checkpoint`` (which the trainer
+        extends with its own state)."""
+        arrays = {f"{PARAMS_KEY}{n}": v for n, v in self.params.items()}
+        arrays[POSES_REF_KEY] = self.poses_ref
+        meta = {"config": self.config.to_dict(), "components": dataclasses.asdict(self.components),
+                "poses_est": self.poses_est.tolist(), "times": self.times.tolist(),
+                "K": [K.tolist() for K in self.Ks], "width": list(self.widths), "height": list(self.heights)}
+        return arrays, meta
+
+    @classmethod
+    def from_checkpoint(cls, arrays: dict, meta: dict) -> "Model":
+        """Inverse of ``to_checkpoint`` (checkpoints written before the camera state had
+        ``poses_ref`` load with ``poses_ref = poses_est``); validated."""
+        params = {k[len(PARAMS_KEY):]: v for k, v in arrays.items() if k.startswith(PARAMS_KEY)}
+        poses_est = np.asarray(meta["poses_est"], dtype=np.float64)
+        poses_ref = np.array(arrays.get(POSES_REF_KEY, poses_est), dtype=np.float64)
+        return cls(params=params, config=ExperimentConfig.from_dict(meta["config"]),
+                   components=Components(**meta["components"]), times=np.asarray(meta["times"], dtype=np.float64),
+                   poses_est=poses_est, poses_ref=poses_ref, Ks=np.asarray(meta["K"], dtype=np.float64),
+                   widths=tuple(int(w) for w in meta["width"]),
+                   heights=tuple(int(h) for h in meta["height"])).validate()
+
+    def replace(self, **changes) -> "Model":
+        """A copy with some fields changed (``params=...``, ``poses_ref=...``); not validated."""
+        return dataclasses.replace(self, **changes)
+
+    def validate(self) -> "Model":
+        """Raise a clear error unless every part is consistent and finite; returns the model."""
+        N = len(self.times)
+        for name, value, shape in (("times", self.times, (N,)), ("poses_est", self.poses_est, (N, 4, 4)),
+                                   ("poses_ref", self.poses_ref, (N, 4, 4)), ("Ks", self.Ks, (N, 3, 3))):
+            if not isinstance(value, np.ndarray) or value.dtype != np.float64 or value.shape != shape \
+                    or not value.flags.c_contiguous:
+                raise ValueError(f"Model.{name} must be a C-contiguous float64 array of shape {shape}; got "
+                                 f"{getattr(value, 'dtype', type(value).__name__)} {np.shape(value)}")
+        if N < 1 or not np.all(np.isfinite(self.times)):
+            raise ValueError(f"Model.times must hold N >= 1 finite times; got {self.times}")
+        check_rigid(self.poses_est, "Model.poses_est")
+        check_rigid(self.poses_ref, "Model.poses_ref")
+        for k in range(N):
+            check_intrinsics(self.Ks[k], f"Model.Ks[{k}]")
+        for name, sizes in (("widths", self.widths), ("heights", self.heights)):
+            if len(sizes) != N or not all(isinstance(v, numbers.Integral) and v >= 1 for v in sizes):
+                raise ValueError(f"Model.{name} must hold {N} ints >= 1; got {sizes}")
+        scene = {n: v for n, v in self.params.items() if n.startswith(SCENE_PREFIXES)}
+        gaussians.validate_params(scene, self.config.deform)
+        if gaussians.has_dynamic(scene) != self.components.dynamic:
+            raise ValueError(f"components.dynamic = {self.components.dynamic} but the params "
+                             f"{'have' if gaussians.has_dynamic(scene) else 'lack'} the dynamic set")
+        camera = []
+        if self.components.blur:
+            camera = traj_model.trajectory_block_names(self.config.trajectory)
+            traj_model.check_trajectory(self.params, self.config.trajectory, self.poses_ref, self.times)
+            if self.components.learn_exposure:
+                camera.append(EXPOSURE_BLOCK)
+                blur_model.exposure_fwd(self.params, N)
+        extra = sorted(set(self.params) - set(scene) - set(camera))
+        if extra:
+            raise ValueError(f"params has blocks {extra} that this model ({self.components}) does not use; a new "
+                             "kind of block needs its place in train/model.py (validate, render) first")
+        return self
+
+    # ------------------------------------------------------------------ queries
+    @property
+    def num_frames(self) -> int:
+        return len(self.times)
+
+    @property
+    def background(self) -> np.ndarray:
+        """(3,) float64 background colour of every render."""
+        return np.asarray(self.config.train.background, dtype=np.float64)
+
+    def num_gaussians(self) -> int:
+        return gaussians.num_static(self.params) + gaussians.num_dynamic(self.params)
+
+    def exposure_tau(self) -> float:
+        """Exposure length in normalised time: learned, from the scene, or 0 without the blur model."""
+        if not self.components.blur:
+            return 0.0
+        if self.components.learn_exposure:
+            return float(blur_model.exposure_fwd(self.params, self.num_frames)[0])
+        return blur_model.exposure_from_scene(self.components.exposure_fraction, self.num_frames)
+
+    def mid_pose(self, k: int) -> np.ndarray:
+        """Mid-exposure cam_T_world (4, 4) of training frame k: the geodesic midpoint of its
+        optimised exposure endpoints with the blur model, the reference pose without it."""
+        k = self._frame(k)
+        if not self.components.blur:
+            return np.array(self.poses_ref[k], dtype=np.float64)
+        (xs, xe), _ = traj_model._endpoints_fwd(self.params, self.config.trajectory, np.array([k], dtype=np.int64),
+                                                self.poses_ref, self.times)
+        return se3_interpolate(se3_exp(xs[0]) @ self.poses_ref[k], se3_exp(xe[0]) @ self.poses_ref[k], 0.5)
+
+    def mid_poses(self) -> np.ndarray:
+        """(N, 4, 4) mid-exposure poses of all training frames."""
+        return np.stack([self.mid_pose(k) for k in range(self.num_frames)])
+
+    def render(self, view, t=None, K=None, width=None, height=None) -> np.ndarray:
+        """Sharp render (H, W, 3) of the scene at time t.
+
+        view: a training frame index k (its mid-exposure pose; t, K and the size default to the
+            frame's), or a (4, 4) cam_T_world pose (then t, K, width and height are required).
+        """
+        if isinstance(view, numbers.Integral) and not isinstance(view, bool):
+            k = self._frame(view)
+            pose = self.mid_pose(k)
+            t = self.times[k] if t is None else t
+            K = self.Ks[k] if K is None else K
+            width = self.widths[k] if width is None else width
+            height = self.heights[k] if height is None else height
+        else:
+            pose = view
+            if t is None or K is None or width is None or height is None:
+                raise ValueError("Model.render(pose, t, K, width, height): a pose needs the time, the intrinsics and "
+                                 "the image size; or pass a training frame index for its own")
+        scene = {n: v for n, v in self.params.items() if n.startswith(SCENE_PREFIXES)}
+        ri, _ = evaluate_fwd(scene, float(t), self.config.deform)
+        out, _ = render_fwd(ri["means"], ri["quats"], ri["scales"], ri["opacities"], ri["colors"],
+                            np.asarray(pose, dtype=np.float64), np.asarray(K, dtype=np.float64), int(width),
+                            int(height), self.background, self.config.render)
+        return out["image"]
+
+    def _frame(self, k) -> int:
+        if isinstance(k, bool) or not isinstance(k, numbers.Integral) or not 0 <= k < self.num_frames:
+            raise ValueError(f"frame index must be an int in [0, {self.num_frames}); got {k!r}")
+        return int(k)
+
+
+# ---------------------------------------------------------------------------------------------
+# The training forward and backward of one frame
+# ---------------------------------------------------------------------------------------------
+
+
+def frame_render_fwd(model: Model, k: int, K, width: int, height: int, static_only: bool = False):
+    """What frame k's target is compared with, at one size of the progressive schedule.
+
+    With the blur model the mean of n renders along the exposure (docs/method.md §4), else one
+    sharp render at the reference pose. ``static_only`` renders only the static set (warm-up).
+    K (3, 3) is the frame's intrinsics scaled to width x height. Trusts a validated model (module
+    docstring). Returns (out, saved): out as ``blur.blur_render_fwd`` / ``render.render_fwd``.
+    """
+    cfg, params = model.config, model.params
+    prefixes = (f"{STATIC}.",) if static_only else SCENE_PREFIXES
+    scene = {n: v for n, v in params.items() if n.startswith(prefixes)}
+    t = float(model.times[k])
+    saved = {"blur": model.components.blur, "ratio": width / model.widths[k]}  # render px -> full-res px
+    if model.components.blur:
+        (xs, xe), saved["trajectory"] = traj_model._endpoints_fwd(
+            params, cfg.trajectory, np.array([k], dtype=np.int64), model.poses_ref, model.times)
+        saved["exposure"] = None
+        if model.components.learn_exposure:
+            tau, saved["exposure"] = blur_model.exposure_fwd(params, model.num_frames)
+            tau = float(tau)
+        else:
+            tau = blur_model.exposure_from_scene(model.components.exposure_fraction, model.num_frames)
+        out, saved["render"] = _blur_render_fwd(
+            scene, t, tau, model.poses_ref[k], xs[0], xe[0], K, width, height, model.background, cfg.blur.num_virtual,
+            cfg.deform, cfg.render, (_render_fwd, _render_bwd), (_evaluate_fwd, _evaluate_bwd))
+    else:
+        ri, saved["scene"] = _evaluate_fwd(scene, t, cfg.deform)
+        out, saved["render"] = _render_fwd(ri["means"], ri["quats"], ri["scales"], ri["opacities"], ri["colors"],
+                                           model.poses_ref[k], K, width, height, model.background, cfg.render)
+    return out, saved
+
+
+def frame_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth=None):
+    """Backward of ``frame_render_fwd``: (v_params, aux). v_params is keyed by block (every block
+    the forward used, dense); aux["v_means2d"] (M, 2) is the screen-space gradient of each rendered
+    Gaussian's mean in full-resolution pixels (summed over sub-frames), for densification."""
+    cot = (v_image, v_alpha, v_depth, v_expected_depth)
+    if saved["blur"]:
+        v_p, v_xs, v_xe, v_tau, aux = blur_render_bwd(saved["render"], *cot, return_aux=True)
+        v_means2d = aux["v_means2d"].sum(axis=0) * saved["ratio"]
+        v_p = dict(v_p)
+        v_p.update(traj_model.endpoints_bwd(saved["trajectory"], v_xs[None], v_xe[None]))
+        if saved["exposure"] is not None:
+            v_p.update(blur_model.exposure_bwd(saved["exposure"], v_tau))
+    else:
+        g = _render_bwd(saved["render"], *cot)
+        v_means2d = g["means2d"] * saved["ratio"]
+        v_p, _ = _evaluate_bwd(saved["scene"], {n: g[n] for n in RENDER_FIELDS})
+    return v_p, {"v_means2d": v_means2d}
+
+
+def _short(info: dict) -> str:
+    items = []
+    for k, v in info.items():
+        if isinstance(v, (int, float, np.integer, np.floating)):
+            items.append(f"{k}={v:.3g}" if isinstance(v, (float, np.floating)) else f"{k}={v}")
+    return ", ".join(items[:6])

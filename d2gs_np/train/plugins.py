@@ -1,0 +1,190 @@
+"""Step plugins: what runs after the optimiser step, in order, on the training state.
+
+A plugin has a ``name``, ``on_step(state) -> state`` (``train/state.py``), and, when it keeps
+anything between steps, ``state_dict()`` / ``load_state_dict(d)``: the trainer checkpoints it
+(arrays under ``plugins/<name>/<key>``, other values as JSON), so a resumed run is exact even
+when the plugin changes the model. ``rows(params)`` declares per-row statistics it keeps in
+``state.rows`` (zero at the start); any change in the number of Gaussians goes through
+``state.resize_rows`` so parameters, Adam state and statistics stay in step. ``timed = False``
+pauses the training stopwatch around the plugin (evaluation is not training time). Periodic
+plugins fire when the schedule step enters a new period (``state.entered_period``), so they
+follow a time budget (docs/method.md §7).
+
+The default list (``default_plugins``), in order:
+1. ``Evaluate``: held-out PSNR on the model the optimiser produced, before pruning and
+   densification change it;
+2. ``GradientStatistics``: accumulates densification's screen-space gradients (before pruning
+   removes rows);
+3. ``Prune``: transparent, oversized and escaped Gaussians (``train/prune.py``);
+4. ``Densify``: clone and split (``train/densify.py``).
+Plugins passed to the trainer run after these; a pose solver (docs/method.md §5, name
+"pose_solver") or a nearest-neighbour refresh for L_ts is one more plugin.
+"""
+from __future__ import annotations
+
+from typing import Optional
+
+import numpy as np
+
+from d2gs_np.scene import gaussians
+from d2gs_np.scene.gaussians import DYNAMIC, STATIC
+from d2gs_np.train import prune as prune_rules
+from d2gs_np.train.config import ExperimentConfig
+from d2gs_np.train.densify import add_grad_stats, densify, init_grad_stats
+from d2gs_np.train.log import psnr_from_mse
+from d2gs_np.train.optimise import size_extent
+from d2gs_np.train.state import TrainState, entered_period
+
+__all__ = ["Plugin", "Evaluate", "GradientStatistics", "Prune", "Densify", "default_plugins"]
+
+
+class Plugin:
+    """Base class: does nothing, keeps nothing (see the module docstring)."""
+
+    name = "plugin"
+    timed = True  # counts as training time
+
+    def rows(self, params) -> dict:
+        return {}
+
+    def on_init(self, model):
+        """Once, on a fresh run, with the initial model (not on resume: keep what it measured in
+        ``state_dict``)."""
+
+    def on_step(self, state: TrainState) -> TrainState:
+        return state
+
+    def state_dict(self) -> dict:
+        return {}
+
+    def load_state_dict(self, state: dict):
+        pass
+
+
+class Evaluate(Plugin):
+    """Held-out PSNR every ``every`` steps and at the last: sharp renders at the optimised
+    mid-exposure poses against the sharp frames (if the scene has them), on ``num_frames`` evenly
+    spaced frames at full resolution. Recorded as ``heldout_psnr`` (None without sharp frames)."""
+
+    name = "evaluate"
+    timed = False
+
+    def __init__(self, scene, every: int, num_frames: int):
+        self.scene, self.every, self.num_frames = scene, every, num_frames
+
+    def on_step(self, state):
+        if not (self.every and (state.step % self.every == 0 or state.last)):
+            return state
+        return state.replace(record={**state.record, "heldout_psnr": self.heldout_psnr(state.model)})
+
+    def heldout_psnr(self, model) -> Optional[float]:
+        if not self.scene.has_sharp:
+            return None
+        n = len(self.scene.frames)
+        idx = np.unique(np.linspace(0, n - 1, self.num_frames).round().astype(int))
+        mses = [float(np.mean((model.render(int(k)) - self.scene.frames[k].sharp) ** 2)) for k in idx]
+        return psnr_from_mse(float(np.mean(mses)))
+
+
+class GradientStatistics(Plugin):
+    """Adds the step's screen-space mean gradients (full-resolution pixels) of the Gaussians
+    visible in every sub-frame to densification's statistics (``train/densify.py``)."""
+
+    name = "gradient_statistics"
+
+    def rows(self, params):
+        return init_grad_stats(params)
+
+    def on_step(self, state):
+        if "v_means2d" not in state.aux:  # a step without loss
+            return state
+        v = state.aux["v_means2d"]
+        visible = (np.asarray(state.aux["radii"]).reshape(len(v), -1) > 0).all(axis=1)
+        return state.replace(rows=add_grad_stats(state.rows, v, visible.astype(np.float64), state.aux["num_static"]))
+
+
+class Prune(Plugin):
+    """Every ``train.prune_every`` steps until 90 % of the run: remove transparent and oversized
+    Gaussians, and dynamic ones that escaped their motion masks (``train/prune.py``)."""
+
+    name = "prune"
+
+    def __init__(self, config: ExperimentConfig, extent: float, masks):
+        # the oversized rule's unit: the camera extent until on_init measures the scene's size
+        # (optimise.size_extent) from the initial points
+        self.config, self.extent = config, extent
+        self.masks = list(masks)  # (H, W) bool per frame, or None each
+        self.has_masks = all(m is not None for m in self.masks)  # as Scene.has_masks
+
+    def on_init(self, model):
+        self.extent = size_extent(model.poses_est, model.params[f"{STATIC}.means"], self.extent)
+
+    def state_dict(self):
+        return {"extent": float(self.extent)}
+
+    def load_state_dict(self, state):
+        self.extent = float(state.get("extent", self.extent))
+
+    def on_step(self, state):
+        tc = self.config.train
+        if entered_period(state, tc.prune_every) and state.sched < int(0.9 * tc.iters):
+            state, _ = self.prune(state)
+        return state
+
+    def prune(self, state):
+        """(state, number removed) with the rules applied once."""
+        thr, pc, p = self.config.train.prune_opacity, self.config.prune, state.params
+        keep = {STATIC: ~(prune_rules.transparent(p[f"{STATIC}.opacity_logits"], thr) | prune_rules.oversized(
+            p[f"{STATIC}.log_scales"], self.extent, pc.max_scale_fraction))}
+        if gaussians.has_dynamic(p):
+            drop = prune_rules.transparent(p[f"{DYNAMIC}.opacity_logits"], thr) | prune_rules.oversized(
+                p[f"{DYNAMIC}.log_scales"], self.extent, pc.max_scale_fraction)
+            if self.has_masks:
+                m = state.model
+                drop |= prune_rules.escaped(p[f"{DYNAMIC}.means"], p[f"{DYNAMIC}.deform_means"], m.times,
+                                            m.mid_poses(), m.Ks, self.masks, self.config.deform, pc)
+            keep[DYNAMIC] = ~drop
+        removed = int(sum((~k).sum() for k in keep.values()))
+        if removed:
+            for prefix, k in keep.items():
+                state = state.resize_rows(prefix, keep=k)
+        return state, removed
+
+
+class Densify(Plugin):
+    """Every ``densify.every`` steps inside [start, stop) of the run: clone and split
+    (``train/densify.py``), with a generator seeded by (seed, step) so a resumed run draws the same
+    children; notes what it did."""
+
+    name = "densify"
+
+    def __init__(self, config: ExperimentConfig, extent: float, width: int, note=None):
+        self.config, self.extent, self.width = config, extent, width
+        self.note = note if note is not None else (lambda m: None)
+
+    def on_step(self, state):
+        dc, total = self.config.densify, self.config.train.iters
+        if not (entered_period(state, dc.every) and dc.start_fraction * total <= state.sched < dc.stop_fraction * total):
+            return state
+        rng = np.random.default_rng((self.config.train.seed, state.step, 7))
+        params, adam_state, rows, info = densify(state.params, state.adam, state.rows, dc, self.extent, self.width, rng)
+        state = state.replace(model=state.model.replace(params=params), adam=adam_state, rows=rows)
+        if info["cloned"] or info["split"]:
+            self.note(f"step {state.step}: densified (cloned {info['cloned']}, split {info['split']}) -> "
+                      f"{state.model.num_gaussians()} Gaussians")
+        return state
+
+
+def default_plugins(scene, config: ExperimentConfig, extent: float, note=None) -> list:
+    """The plugins a run has by its config, in order (module docstring)."""
+    tc = config.train
+    plugins = []
+    if tc.eval_every:
+        plugins.append(Evaluate(scene, tc.eval_every, tc.eval_frames))
+    if config.densify.enabled:
+        plugins.append(GradientStatistics())
+    if tc.prune_every:
+        plugins.append(Prune(config, extent, [f.mask for f in scene.frames]))
+    if config.densify.enabled:
+        plugins.append(Densify(config, extent, max(f.width for f in scene.frames), note))
+    return plugins
