@@ -54,7 +54,8 @@ from pathlib import Path
 import numpy as np
 
 from d2gs_np.data.scene import Scene
-from d2gs_np.data.synthetic import _as_times, _check_view, _eval_sines, _pixel_rays, _sines, render_clip
+from d2gs_np.data.synthetic import (_as_times, _check_view, _eval_sines, _pixel_rays, _sines, preset_overrides,
+                                     render_clip)
 from d2gs_np.geometry.camera import look_at
 from d2gs_np.geometry.se3 import se3_exp
 from d2gs_np.geometry.so3 import so3_exp
@@ -533,18 +534,7 @@ def pose_errors(num_frames, rot_rms_deg, trans_rms, drift, rng):
 
 def resolve(preset, seed=None, **overrides) -> SuiteConfig:
     """SuiteConfig of a suite preset name (or a SuiteConfig) with ``seed`` and field overrides."""
-    if isinstance(preset, SuiteConfig):
-        base = preset
-    elif preset in SUITE:
-        base = SUITE[preset]
-    else:
-        raise ValueError(f"unknown suite preset {preset!r}; choose one of {sorted(SUITE)}")
-    fields = {f.name for f in dataclasses.fields(SuiteConfig)}
-    unknown = sorted(set(overrides) - fields)
-    if unknown:
-        raise TypeError(f"unknown SuiteConfig override(s) {unknown}; valid fields: {sorted(fields)}")
-    if seed is not None:
-        overrides = dict(overrides, seed=seed)
+    base, overrides = preset_overrides(SuiteConfig, SUITE, preset, seed, overrides, what="suite preset")
     if overrides.get("exposure_fraction", base.exposure_fraction) == 0.0:
         overrides.setdefault("subframes", 1)  # a sharp video is rendered once per frame
     if "num_frames" in overrides:  # fewer frames than test views: one test view per frame at most

@@ -180,19 +180,26 @@ PRESETS = {
 }
 
 
-def _resolve_config(preset, seed, overrides):
-    if isinstance(preset, SyntheticConfig):
+def preset_overrides(cls, presets, preset, seed, overrides, what="preset"):
+    """(base config, overrides) of a preset name or a ``cls`` instance, with ``seed`` folded into the
+    overrides; unknown names and override fields are errors that list the valid ones."""
+    if isinstance(preset, cls):
         base = preset
-    elif preset in PRESETS:
-        base = PRESETS[preset]
+    elif preset in presets:
+        base = presets[preset]
     else:
-        raise ValueError(f"unknown preset {preset!r}; choose one of {sorted(PRESETS)} or pass a SyntheticConfig")
-    fields = {f.name for f in dataclasses.fields(SyntheticConfig)}
+        raise ValueError(f"unknown {what} {preset!r}; choose one of {sorted(presets)} or pass a {cls.__name__}")
+    fields = {f.name for f in dataclasses.fields(cls)}
     unknown = sorted(set(overrides) - fields)
     if unknown:
-        raise TypeError(f"unknown SyntheticConfig override(s) {unknown}; valid fields: {sorted(fields)}")
+        raise TypeError(f"unknown {cls.__name__} override(s) {unknown}; valid fields: {sorted(fields)}")
     if seed is not None:
         overrides = dict(overrides, seed=seed)
+    return base, overrides
+
+
+def _resolve_config(preset, seed, overrides):
+    base, overrides = preset_overrides(SyntheticConfig, PRESETS, preset, seed, overrides)
     return dataclasses.replace(base, **overrides)
 
 
