@@ -3,10 +3,11 @@
 Three checks, each able to fail on its own:
 
 1. A fixed-seed run (dynamic set, blur model, progressive resolution, pruning, densification,
-   held-out evaluation) gives the same final parameters and metrics, to the last bit, as
-   recorded from the trainer before it was split into model, loss terms and plugins
-   (``PINNED``). A change meant to alter the numbers (a new default, a new rule) regenerates
-   them with ``python tests/train/test_split_equivalence.py`` and says so in its commit.
+   held-out evaluation) gives the metrics recorded from the trainer before it was split into
+   model, loss terms and plugins (``PINNED``), within ``PSNR_TOL`` / ``ATE_RTOL``; on the machine
+   kind that recorded them (``PINNED["machine"]``) also the same final parameters to the last bit.
+   A change meant to alter the numbers (a new default, a new rule) regenerates them with
+   ``python tests/train/test_split_equivalence.py`` and says so in its commit.
 2. The same run interrupted mid-way (its checkpoint copied to a new folder) and resumed ends
    with bitwise the same parameters: everything that shapes later steps (parameters, Adam
    moments and counts, per-Gaussian densification statistics, the schedule clock) is
@@ -41,14 +42,26 @@ from d2gs_np.train.trainer import Trainer
 TINY = dict(width=48, height=27, num_frames=6)
 ITERS = 16
 
-# Recorded from the trainer before the split (commit e604e94) on the reference machine, then again when
+# Recorded from the trainer before the split (commit e604e94), then again when
 # the oversized pruning rule moved to the scene extent (the pre-split trainer with that change and the
 # split one give the same examples/bench_step.py numbers and parameter hash).
 PINNED = {
-    "params_sha256": "4b1096d540a8f05fbdc757b369a1335029ab8bcac9bec00cd39db9c878bce788",
-    "dvs_psnr": 16.898659615898563,
-    "ate": 0.012487476519035064,
+    "params_sha256": "348951f47d4555b5014835a76950bb93db9e96465ee5b0bec3ea5647ca0f089e",
+    "dvs_psnr": 16.893098365775472,
+    "ate": 0.012487532193158615,
+    "machine": "730346383275",  # machine_kind() of the AMD EPYC machine that recorded them
 }
+# The same code recorded on the earlier reference machine (another CPU kind): params_sha256
+# 4b1096d5..., dvs_psnr 16.898659615898563, ate 0.012487476519035064.
+# The last bits are not portable across CPU kinds: NumPy's SIMD exp/log/sum kernels and LLVM's
+# code for the Numba kernels differ between instruction sets, and 16 steps with pruning and
+# densification amplify one-ulp differences. Measured between the two recordings above:
+# 5.6e-3 dB in dvs_psnr and 4.5e-6 relative in ate, with a
+# different parameter hash. The tolerances are about ten times that spread; the hash is compared
+# only on the machine kind that recorded it. Bitwise determinism on one machine is checked by
+# the resume test and the written-out step below, which compare exactly.
+PSNR_TOL = 0.05  # dB
+ATE_RTOL = 5e-5
 
 
 @pytest.fixture(scope="module")
@@ -89,9 +102,35 @@ def pinned_values(scene, run_dir) -> dict:
             "ate": m["trajectory"]["ate"]}
 
 
+def machine_kind() -> str:
+    """A short digest of what decides the last bits of a run: the CPU's instruction-set flags
+    (Linux), NumPy's SIMD dispatch and the NumPy and Numba versions."""
+    import platform
+
+    import numba
+
+    flags = ""
+    try:
+        with open("/proc/cpuinfo") as f:
+            flags = next((line for line in f if line.startswith("flags")), "")
+    except OSError:
+        pass
+    simd = ""
+    try:
+        from numpy._core._multiarray_umath import __cpu_features__ as feats
+        simd = ",".join(sorted(k for k, v in feats.items() if v))
+    except ImportError:
+        pass
+    key = "|".join([platform.machine(), " ".join(sorted(flags.split()[2:])), simd, np.__version__, numba.__version__])
+    return hashlib.sha256(key.encode()).hexdigest()[:12]
+
+
 def test_a_fixed_seed_run_gives_the_pinned_numbers(scene, full_run):
     got = pinned_values(scene, full_run)
-    assert got == PINNED, f"the trainer's numbers changed: got {got}, pinned {PINNED}"
+    assert abs(got["dvs_psnr"] - PINNED["dvs_psnr"]) <= PSNR_TOL, f"dvs_psnr changed: got {got}, pinned {PINNED}"
+    assert abs(got["ate"] - PINNED["ate"]) <= ATE_RTOL * PINNED["ate"], f"ate changed: got {got}, pinned {PINNED}"
+    if machine_kind() == PINNED["machine"]:
+        assert got["params_sha256"] == PINNED["params_sha256"], f"the trainer's numbers changed: got {got}"
 
 
 def test_a_run_resumed_mid_way_ends_bitwise_like_the_uninterrupted_one(scene, full_run, tmp_path):
@@ -185,4 +224,4 @@ if __name__ == "__main__":  # print the values to pin
     s = make_scene("dynamic", 0, **TINY)
     d = Path(tempfile.mkdtemp()) / "run"
     Trainer(s, pinned_config(checkpoint_every=10), d).run()
-    print(pinned_values(s, d))
+    print({**pinned_values(s, d), "machine": machine_kind()})
