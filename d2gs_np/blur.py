@@ -76,6 +76,8 @@ from d2gs_np.scene.gaussians import DYNAMIC, STATIC
 
 __all__ = [
     "BlurConfig",
+    "N_SCHEDULES",
+    "views_at_scale",
     "EXPOSURE_BLOCK",
     "exposure_offsets",
     "subframe_times",
@@ -96,20 +98,49 @@ _RENDER_FIELDS = ("means", "quats", "scales", "opacities", "colors")
 _OUTPUT_KEYS = ("image", "alpha", "depth", "expected_depth")
 
 
+N_SCHEDULES = ("fixed", "scale")
+
+
 @dataclass(frozen=True)
 class BlurConfig:
     """Blur formation settings.
 
     num_virtual: n, number of virtual sub-frames averaged per blurry frame (>= 1; 1 = sharp
         camera at the estimated pose, see the module docstring). Default 8 (docs/method.md §4).
+    n_schedule: how many of them a training render at render scale r uses
+        (``views_at_scale``): "fixed", n at every scale; "scale", fewer while the progressive
+        schedule renders small images, so the virtual views stay as far apart in pixels as n
+        views are at full resolution (the blur's length in pixels scales with r).
     """
 
     num_virtual: int = 8
+    n_schedule: str = "fixed"
 
     def __post_init__(self):
         n = self.num_virtual
         if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
             raise ValueError(f"BlurConfig.num_virtual must be an int >= 1; got {n!r}")
+        if self.n_schedule not in N_SCHEDULES:
+            raise ValueError(f"BlurConfig.n_schedule must be one of {N_SCHEDULES}; got {self.n_schedule!r}")
+
+
+def views_at_scale(n, scale, schedule="fixed"):
+    """Number of virtual views a render at scale r in (0, 1] uses (``BlurConfig.n_schedule``).
+
+    "fixed": n. "scale": 1 + ceil(r (n - 1)), at least 2 and at most n: the n views of a blur
+    L full-resolution pixels long are L / (n - 1) pixels apart; at scale r the blur is r L pixels
+    long, and 1 + ceil(r (n - 1)) views keep the spacing at or below L / (n - 1). n = 1 (no blur
+    model) stays 1. Example, n = 8: r = 0.2 -> 3, r = 0.5 -> 5, r = 1 -> 8.
+    """
+    n = _check_n(n)
+    if isinstance(scale, bool) or not isinstance(scale, numbers.Real) or not (0.0 < scale <= 1.0):
+        raise ValueError(f"scale must be a real number in (0, 1]; got {scale!r}")
+    if schedule not in N_SCHEDULES:
+        raise ValueError(f"n schedule must be one of {N_SCHEDULES}; got {schedule!r}")
+    if schedule == "fixed" or n <= 2:
+        return n
+    # the tiny slack keeps exact scales (r (n - 1) an integer up to rounding) from taking one view too many
+    return int(min(n, max(2, 1 + math.ceil(scale * (n - 1) - 1e-9))))
 
 
 # ---------------------------------------------------------------------------------------------

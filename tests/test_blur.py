@@ -31,6 +31,7 @@ from d2gs_np.blur import (
     virtual_poses,
     virtual_poses_bwd,
     virtual_poses_fwd,
+    views_at_scale,
 )
 from d2gs_np.geometry import matrix_grad_to_left_tangent, se3_exp, se3_interpolate, se3_inverse, se3_log
 from d2gs_np.scene.deformation import DeformConfig
@@ -455,3 +456,34 @@ def test_learned_exposure_init_range_and_gradient():
         # tau ~ 0.05: FD round-off ~1e-16 * 0.05 / 1e-6 ~ 1e-11, truncation ~h^2 ~ 1e-12
         np.testing.assert_allclose(g, fd, rtol=1e-7, atol=1e-10)
     assert exposure_fwd(init_exposure(0.25), 5)[0] == pytest.approx(0.25 / 4, rel=1e-14)
+
+
+# ---------------------------------------------------------------------------------------------
+# Virtual views per render scale (BlurConfig.n_schedule)
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("n", [2, 3, 5, 8, 16, 33])
+def test_views_at_scale_keep_the_pixel_spacing_of_full_resolution(n):
+    for r in np.linspace(0.05, 1.0, 96):
+        m = views_at_scale(n, float(r), "scale")
+        assert 2 <= m <= n
+        # spacing of m views over a blur r*L long is at most the full-resolution spacing L / (n - 1) ...
+        assert r / (m - 1) <= 1.0 / (n - 1) + 1e-12
+        # ... and one view fewer would not be (m is the least such count), except at the floor of 2
+        if m > 2:
+            assert r / (m - 2) > 1.0 / (n - 1)
+    assert views_at_scale(n, 1.0, "scale") == n
+    assert views_at_scale(n, 0.3, "fixed") == n
+
+
+def test_views_at_scale_examples_and_errors():
+    assert [views_at_scale(8, r, "scale") for r in (0.2, 0.5, 1.0)] == [3, 5, 8]
+    assert views_at_scale(1, 0.2, "scale") == 1  # no blur model stays a single sharp view
+    for bad in (0.0, -0.1, 1.5, float("nan")):
+        with pytest.raises(ValueError, match="scale"):
+            views_at_scale(8, bad, "scale")
+    with pytest.raises(ValueError, match="n schedule"):
+        views_at_scale(8, 0.5, "linear")
+    with pytest.raises(ValueError, match="n_schedule"):
+        BlurConfig(n_schedule="sometimes")

@@ -108,5 +108,8 @@ def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Cal
             if ef is None:
                 raise ValueError("train.learn_exposure = off but the scene has no exposure_fraction; use auto or on")
             say(f"blur model: on, n = {config.blur.num_virtual} virtual views, exposure_fraction = {ef} from the scene")
+        if config.blur.n_schedule == "scale":
+            say(f"virtual views follow the render scale r: 1 + ceil(r (n - 1)) of n = {config.blur.num_virtual} "
+                "(blur.n_schedule = scale)")
         say(f"trajectory model: {config.trajectory.kind}")
     return Components(dynamic=dynamic, blur=blur, learn_exposure=learn, exposure_fraction=float(ef or 0.0))

@@ -242,7 +242,8 @@ class Model:
 def frame_render_fwd(model: Model, k: int, K, width: int, height: int, static_only: bool = False):
     """What frame k's target is compared with, at one size of the progressive schedule.
 
-    With the blur model the mean of n renders along the exposure (docs/method.md §4), else one
+    With the blur model the mean of n renders along the exposure (docs/method.md §4; fewer at a
+    small render scale with ``blur.n_schedule = "scale"``, ``blur.views_at_scale``), else one
     sharp render at the reference pose. ``static_only`` renders only the static set (warm-up).
     K (3, 3) is the frame's intrinsics scaled to width x height. Trusts a validated model (module
     docstring). Returns (out, saved): out as ``blur.blur_render_fwd`` / ``render.render_fwd``.
@@ -261,8 +262,9 @@ def frame_render_fwd(model: Model, k: int, K, width: int, height: int, static_on
             tau = float(tau)
         else:
             tau = blur_model.exposure_from_scene(model.components.exposure_fraction, model.num_frames)
+        n = blur_model.views_at_scale(cfg.blur.num_virtual, min(1.0, width / model.widths[k]), cfg.blur.n_schedule)
         out, saved["render"] = _blur_render_fwd(
-            scene, t, tau, model.poses_ref[k], xs[0], xe[0], K, width, height, model.background, cfg.blur.num_virtual,
+            scene, t, tau, model.poses_ref[k], xs[0], xe[0], K, width, height, model.background, n,
             cfg.deform, cfg.render, (_render_fwd, _render_bwd), (_evaluate_fwd, _evaluate_bwd))
     else:
         ri, saved["scene"] = _evaluate_fwd(scene, t, cfg.deform)

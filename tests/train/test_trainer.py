@@ -459,3 +459,24 @@ def test_size_extent_follows_the_scene_when_the_camera_barely_moves():
     assert size_extent(poses, 0.01 * pts, 10.0) == 10.0
     # no points: the camera extent
     assert size_extent(poses, np.zeros((0, 3)), cam) == cam
+
+
+def test_n_schedule_renders_fewer_views_at_small_scales_and_n_at_full(dynamic_scene, tmp_path, monkeypatch):
+    calls = []
+    real = blur_model._blur_render_fwd
+
+    def spy(*args, **kwargs):
+        calls.append((args[7], args[10]))  # (render width, n)
+        return real(*args, **kwargs)
+
+    from d2gs_np.train import model as model_module
+    monkeypatch.setattr(model_module, "_blur_render_fwd", spy)
+    cfg = _config(iters=12, warmup_fraction=0.0, deform_fraction=0.0)
+    cfg = cfg.replace(blur=dataclasses.replace(cfg.blur, n_schedule="scale"),
+                      schedule=dataclasses.replace(cfg.schedule, r0=0.2, ramp_fraction=0.5))
+    Trainer(dynamic_scene, cfg, tmp_path / "run").run()
+    width = dynamic_scene.frames[0].width
+    assert calls, "the blur model was never called"
+    for w, n in calls:
+        assert n == blur_model.views_at_scale(8, min(1.0, w / width), "scale")
+    assert min(n for _, n in calls) < 8 and calls[-1] == (width, 8)
