@@ -2,7 +2,10 @@
 
 Every row records the step, the seconds of training so far (JIT warm-up and
 evaluation excluded, see ``Stopwatch``), the loss and train PSNR, and, on
-evaluation steps, held-out PSNR. Rows are appended to ``RUN/log.csv`` as they
+evaluation steps, held-out PSNR; also the render scale, the number of Gaussians,
+the progress of the schedule (``schedule_step / iters``: with a time budget it runs
+ahead of ``step / iters`` and reaches 1 when the budget is spent) and the number of
+virtual views the step rendered (1 without the blur model). Rows are appended to ``RUN/log.csv`` as they
 come (so a crash keeps them) and the whole history is rewritten atomically to
 ``RUN/log.json`` at checkpoints.
 """
@@ -18,7 +21,8 @@ from pathlib import Path
 
 from d2gs_np.train.checkpoint import atomic_write_text
 
-LOG_FIELDS = ("step", "seconds", "stage", "loss", "train_psnr", "heldout_psnr", "scale", "num_gaussians")
+LOG_FIELDS = ("step", "seconds", "stage", "loss", "train_psnr", "heldout_psnr", "scale", "num_gaussians", "progress",
+              "views")
 
 
 class Stopwatch:
@@ -72,18 +76,23 @@ class RunLog:
         with open(self._csv_path, "a", newline="") as f:
             csv.writer(f).writerow(["" if row[k] is None else row[k] for k in self.fields])
 
-    def progress(self, step: int, total: int, seconds: float, loss: float, psnr: float, stage: str):
+    def progress(self, step: int, total: int, seconds: float, loss: float, psnr: float, stage: str,
+                 fraction=None):
+        """The progress bar; ``fraction`` is the schedule's progress in [0, 1] (default step/total),
+        from which the time left is estimated."""
         if self.quiet:
             return
         width = 24
-        done = int(width * step / max(total, 1))
+        frac = min(1.0, step / max(total, 1) if fraction is None else fraction)
+        done = int(width * frac)
         bar = "#" * done + "-" * (width - done)
         rate = step / seconds if seconds > 0 else float("nan")
+        left = seconds * (1.0 - frac) / frac if frac > 0 else float("nan")
         msg = (f"\r[{bar}] {step}/{total} {stage:>8s} loss {loss:.4f} psnr {psnr:5.2f} dB "
-               f"{seconds:6.1f}s ({rate:.1f} it/s)")
+               f"{seconds:6.1f}s ({rate:.1f} it/s, ~{left:.0f}s left)")
         sys.stdout.write(msg)
         sys.stdout.flush()
-        if step >= total:
+        if step >= total or frac >= 1.0:
             sys.stdout.write("\n")
 
     def truncate(self, step: int):

@@ -26,6 +26,7 @@ from typing import Optional
 
 import numpy as np
 
+from d2gs_np.blur import views_at_scale
 from d2gs_np.data.scene import Scene
 from d2gs_np.optim import adam
 from d2gs_np.render.api import warm_up
@@ -161,8 +162,10 @@ class Trainer:
         plan = self.planner.plan(step, step if sched is None else sched)
         state, k = self.state, plan.frame
         tgt = self.cache.get(k, plan.scale)
+        views = views_at_scale(self.config.blur.num_virtual, min(1.0, tgt.width / self.frames[k].width),
+                               self.config.blur.n_schedule) if state.model.components.blur else 1
         record = {"step": step, "frame": k, "stage": plan.stage.name, "scale": plan.scale, "width": tgt.width,
-                  "height": tgt.height}
+                  "height": tgt.height, "views": views}
         # Moving pixels carry no loss while only the static set is rendered (warm-up stage).
         ignore = tgt.mask if (plan.stage.static_only and tgt.mask is not None) else None
         loss_mask = None if ignore is None else (~ignore).astype(state.params[f"{STATIC}.means"].dtype)
@@ -248,9 +251,10 @@ class Trainer:
             seconds = self.stopwatch.seconds()
             self.log.row(step=state.step, seconds=round(seconds, 4), stage=state.stage.name, loss=info["loss"],
                          train_psnr=info["train_psnr"], heldout_psnr=heldout, scale=round(info["scale"], 4),
-                         num_gaussians=self.num_gaussians(),
-                         **{f"loss_{t.name}": info.get(f"loss_{t.name}") for t in self.terms})
-            self.log.progress(self.step_index, tc.iters, seconds, info["loss"], info["train_psnr"], state.stage.name)
+                         num_gaussians=self.num_gaussians(), progress=round(min(1.0, (state.sched + 1) / tc.iters), 4),
+                         views=info.get("views"), **{f"loss_{t.name}": info.get(f"loss_{t.name}") for t in self.terms})
+            self.log.progress(self.step_index, tc.iters, seconds, info["loss"], info["train_psnr"], state.stage.name,
+                              fraction=min(1.0, (state.sched + 1) / tc.iters))
 
     # ------------------------------------------------------------------ checkpoints
     def checkpoint(self, final: bool = False):

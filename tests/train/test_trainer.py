@@ -390,6 +390,11 @@ def test_a_time_budget_buys_a_finished_schedule(dynamic_scene, tmp_path):
     stages_seen = {r["stage"] for r in rows}
     assert stages_seen == {"warmup", "deform", "joint"}, stages_seen
     assert any("schedule complete" in str(n) for n in tr.log.notes)
+    # the log states the progress the budget bought at each row: ahead of step/iters, never back
+    progress = [r["progress"] for r in rows]
+    assert all(b >= a for a, b in zip(progress, progress[1:]))
+    assert progress[-1] > 0.95 and progress[-1] > 10 * rows[-1]["step"] / 10000
+    assert {r["views"] for r in rows} == {8}  # blur model on, n_schedule fixed
 
 
 def test_without_a_budget_the_schedule_reads_the_step(dynamic_scene, tmp_path):
