@@ -74,11 +74,11 @@ def test_help_lists_the_commands(capsys):
     with pytest.raises(SystemExit):
         main(["--help"])
     out = capsys.readouterr().out
-    for cmd in ("demo", "make-scene", "train", "eval", "render", "export-ply"):
+    for cmd in COMMANDS:
         assert cmd in out
 
 
-COMMANDS = ("demo", "make-scene", "train", "eval", "render", "export-ply")
+COMMANDS = ("demo", "make-scene", "train", "eval", "report", "render", "export-ply")
 
 
 def _help(argv, capsys):
@@ -103,7 +103,7 @@ def test_help_names_the_docs_that_explain_each_command(capsys):
     for page in ("method.md", "conventions.md", "dataset_format.md", "architecture.md"):
         assert f"docs/{page}" in top
     expected = {"make-scene": "dataset_format.md", "train": "method.md", "eval": "method.md",
-                "render": "conventions.md", "export-ply": "method.md", "demo": "method.md"}
+                "render": "conventions.md", "export-ply": "method.md", "demo": "method.md", "report": "method.md"}
     for cmd, page in expected.items():
         assert f"docs/{page}" in _help([cmd, "--help"], capsys), cmd
 
@@ -116,3 +116,56 @@ def test_make_scene_writes_a_suite_scene_with_overrides(tmp_path):
     assert (cfg["family"], cfg["exposure_fraction"], cfg["subframes"], cfg["rot_noise_deg"]) == \
         ("photo_room", 0.0, 1, 0.0)
     assert main(["make-scene", str(out), "--preset", "photo_room", "--frames", "3"]) == 2  # exists, no --overwrite
+
+
+def _report_images(page):
+    import base64
+    import re
+
+    import cv2
+    uris = re.findall(r'src="data:image/png;base64,([^"]+)"', page)
+    return [cv2.imdecode(np.frombuffer(base64.b64decode(u), np.uint8), cv2.IMREAD_COLOR) for u in uris]
+
+
+def test_report_is_one_self_contained_html_file(trained, tmp_path):
+    _, run = trained
+    out = tmp_path / "rep" / "r.html"
+    assert main(["report", str(run), "--out", str(out), "--frames", "2"]) == 0
+    page = out.read_text()
+    assert page.startswith("<!DOCTYPE html>") and page.rstrip().endswith("</html>")
+    assert "src=\"http" not in page and "src='http" not in page  # nothing fetched from a server
+    images = _report_images(page)
+    # 2 frames x (input, render, truth) + their 3 zoomed crops each, the novel views, 2 plots
+    assert len(images) >= 2 * 6 + 2 and all(im is not None and im.size > 0 for im in images)
+    m = json.loads((run / "metrics.json").read_text())
+    assert f"{m['dvs']['psnr']:.2f}" in page and f"{m['input_blur']['psnr']:.2f}" in page
+    assert "pose_refinement" in page  # what was left out is said
+    for section in ("Metrics", "Error against wall-clock time", "Camera trajectories", "Pictures"):
+        assert section in page
+
+
+def test_report_side_by_side_needs_out_and_names_both_runs(trained, tmp_path, capsys):
+    _, run = trained
+    assert main(["report", str(run), str(run)]) == 2
+    assert "--out" in capsys.readouterr().err
+    assert main(["report", str(tmp_path / "norun")]) == 2
+    assert "norun" in capsys.readouterr().err
+
+
+def test_zoom_crop_finds_the_detailed_region():
+    from d2gs_np.html_report import zoom_crop
+
+    img = np.full((40, 60, 3), 0.5)
+    rng = np.random.default_rng(0)
+    img[24:36, 40:56] = rng.uniform(size=(12, 16, 3))  # the only texture
+    crops, (y0, x0, side) = zoom_crop(img, [img, img * 0], fraction=0.25, zoom=3)
+    assert side == 10 and crops[0].shape == (30, 30, 3) and not crops[1].any()
+    assert 24 - side < y0 <= 36 and 40 - side < x0 <= 56  # the crop overlaps the textured block
+
+
+def test_demo_quick_writes_the_report(tmp_path):
+    out = tmp_path / "demo"
+    assert main(["demo", "--quick", "--out", str(out), "--iters", "12"]) == 0
+    page = (out / "report.html").read_text()
+    assert "deblurred render" in page and (out / "run" / "metrics.json").exists()
+    assert main(["demo", "--quick", "--out", str(out), "--preset", "nope"]) == 2
