@@ -1,4 +1,4 @@
-"""Command line: ``d2gs {demo, make-scene, train, eval, report, render, export-ply}``.
+"""Command line: ``d2gs {demo, make-scene, train, eval, report, experiment, render, export-ply}``.
 
 Every command validates its inputs before starting work and exits with a
 one-line error (status 2) naming the problem. Each command's help names the
@@ -191,6 +191,25 @@ def _cmd_report(args):
     print(f"wrote {path}")
 
 
+def _cmd_experiment(args):
+    from d2gs_np.experiments import run_experiment
+
+    if args.budget is None and args.iters is None:
+        raise ValueError("give --budget SECONDS or --iters N per cell")
+    cmd = "d2gs experiment " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""
+    records = run_experiment(args.name, args.out, args.scenes, args.seeds, budget=args.budget, iters=args.iters,
+                             size=args.size, jobs=args.jobs, threads=args.threads, scheduler=args.scheduler,
+                             retries=args.retries, config_path=args.config, variants=args.variants,
+                             frames=args.frames, command=cmd)
+    out = Path(args.out)
+    print((out / f"{args.name}.md").read_text())
+    failed = [r for r in records if r["status"] != "ok"]
+    print(f"wrote {out / (args.name + '.md')}, {out / (args.name + '.csv')}, {out / (args.name + '_error_vs_time.png')}")
+    if failed:
+        raise ValueError(f"{len(failed)} of {len(records)} cells failed: "
+                         + "; ".join(f"{r['scene']}/{r['variant']}/s{r['seed']}: {r['error']}" for r in failed))
+
+
 DEMO_SCENE = {"num_frames": 12, "width": 160, "height": 90}
 DEMO_ITERS = 600  # about 3.3 minutes on 2 cores with the blur model (n = 8), measured
 DEMO_QUICK_SCENE = {"num_frames": 6, "width": 96, "height": 54}
@@ -298,6 +317,30 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--out", default=None, help="output HTML (default RUN/report.html for one run)")
     rp.add_argument("--frames", type=int, default=3, help="frames shown per run (default 3)")
     rp.set_defaults(func=_cmd_report)
+
+    ex = sub.add_parser("experiment", help="run a sweep of training runs on Dask and write one table "
+                        "(docs/method.md §10)",
+                        description="Run an experiment (baselines, progressive, virtual-views, suite) over scenes "
+                                    "and seeds: every cell an independent run in OUT/runs, in parallel on Dask's "
+                                    "local process pool or on a dask.distributed cluster (--scheduler). Finished "
+                                    "cells are never recomputed; failed ones are retried, then reported. Writes "
+                                    "OUT/NAME.md, NAME.csv and NAME_error_vs_time.png. Baselines and metrics: "
+                                    "docs/method.md §10.")
+    ex.add_argument("name", help="baselines | progressive | virtual-views | suite")
+    ex.add_argument("--out", required=True, help="output folder (scenes, runs, table)")
+    ex.add_argument("--scenes", nargs="+", required=True, help="suite scenes or regression presets")
+    ex.add_argument("--seeds", nargs="+", type=int, default=[0])
+    ex.add_argument("--variants", nargs="+", default=None, help="only these variants of the experiment")
+    ex.add_argument("--budget", type=float, default=None, help="seconds of training per cell")
+    ex.add_argument("--iters", type=int, default=None, help="steps per cell (default: the config's)")
+    ex.add_argument("--size", type=float, default=1.0, help="image size factor on the scene's default size")
+    ex.add_argument("--frames", type=int, default=None, help="frames per scene (default: the scene's)")
+    ex.add_argument("--jobs", type=int, default=1, help="cells at once on the local scheduler (default 1)")
+    ex.add_argument("--threads", type=int, default=1, help="Numba threads per cell (default 1)")
+    ex.add_argument("--scheduler", default=None, help="address of a dask.distributed scheduler (default: local)")
+    ex.add_argument("--retries", type=int, default=1, help="retries of a failed cell (default 1)")
+    ex.add_argument("--config", default=None, help="base experiment config JSON for every cell")
+    ex.set_defaults(func=_cmd_experiment)
 
     x = sub.add_parser("export-ply", help="export the Gaussians at a time in the standard 3DGS PLY layout "
                        "(docs/method.md §2)",

@@ -80,6 +80,7 @@ def evaluate(run: LoadedRun, scene) -> dict:
             out["trajectory"] = {"skipped": str(e)}
     out["train_seconds"] = float(run.meta["seconds"])
     out["steps"] = int(run.meta["step"])
+    out["num_gaussians"] = int(model.num_gaussians())
     out["left_out"] = list(run.meta["left_out"])
     return out
 

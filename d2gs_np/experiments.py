@@ -1,0 +1,326 @@
+"""Experiments: named sweeps of independent training runs, run in parallel on Dask (docs/method.md §10).
+
+An experiment is a list of variants; a sweep crosses it with scenes and seeds into cells. Each
+cell is one run with its own folders (``OUT/scenes/<scene>_s<seed>_<kind>``,
+``OUT/runs/<scene>_s<seed>_<variant>``): it makes its scene (if not there), trains with the
+variant's config, evaluates, and writes ``RUN/metrics.json``. A cell whose metrics exist is
+never recomputed (resume); a cell that raises is retried ``retries`` times and then reported as
+failed in the table and the return value, never silently dropped.
+
+Variants (``EXPERIMENTS``):
+- ``baselines``: the full method; no blur model (n = 1, no pose refinement: the paper's
+  GaussianFlow row); a two-stage baseline (``d2gs_np/baselines.py``: each frame deconvolved
+  with a kernel from the given poses, then trained without the blur model); the sharp-input
+  upper bound (sharp frames, true poses).
+- ``progressive``: the paper's Table VI: no progressive resolution, linear, exponential, cosine.
+- ``virtual-views``: n in {1, 2, 4, 8, 16}: quality against time.
+- ``suite``: what ``examples/suite.py`` runs (sharp / blurry with true poses, with and without
+  the blur model / blurry with the given noisy poses).
+A variant is a name, config overrides (a nested dict merged into the config's JSON form, so a
+variant is data and every key is checked by ``ExperimentConfig.from_dict``), scene overrides
+(``SuiteConfig`` fields, e.g. exposure 0 or true poses) and an optional preprocessing of the
+scene (``two_stage``).
+
+Scheduling: ``scheduler=None`` runs the cells on Dask's local process pool (``jobs`` processes,
+no set-up); ``scheduler="ADDRESS"`` submits them to a running ``dask.distributed`` scheduler
+(``Client(ADDRESS)``), so a lab runs the same command on its cluster; a
+``distributed.Client`` object may be passed too (tests use a ``LocalCluster``). Cells only
+read and write their own folders under ``OUT``, which every worker must see (a shared file
+system on a cluster).
+
+Outputs: ``OUT/<name>.csv`` (a row per cell), ``OUT/<name>.md`` (the table, with the command),
+``OUT/<name>_error_vs_time.png`` (held-out PSNR against training seconds, every cell).
+"""
+from __future__ import annotations
+
+import copy
+import csv
+import json
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+__all__ = ["Variant", "EXPERIMENTS", "run_cell", "run_experiment", "experiment_cells"]
+
+
+@dataclass(frozen=True)
+class Variant:
+    name: str
+    config: dict = field(default_factory=dict)  # nested overrides of ExperimentConfig.to_dict()
+    scene: dict = field(default_factory=dict)  # scene generator overrides (SuiteConfig / SyntheticConfig fields)
+    two_stage: bool = False  # deconvolve the frames first (d2gs_np/baselines.py), then train without blur
+
+    @property
+    def scene_kind(self) -> str:
+        """The folder name part that identifies the scene this variant trains on."""
+        parts = [f"{k}{v}" for k, v in sorted(self.scene.items())] or ["given"]
+        return "_".join(parts).replace(".", "p") + ("_rl" if self.two_stage else "")
+
+
+_TRUE_POSES = {"rot_noise_deg": 0.0, "trans_noise": 0.0}
+_SHARP = {"exposure_fraction": 0.0, **_TRUE_POSES}
+
+EXPERIMENTS = {
+    "baselines": (
+        Variant("full"),
+        Variant("noblur", config={"train": {"blur": "off"}}),
+        Variant("two_stage", config={"train": {"blur": "off"}}, two_stage=True),
+        Variant("sharp_bound", scene=_SHARP),
+    ),
+    "progressive": (
+        Variant("none", config={"train": {"progressive": False}}),
+        Variant("linear", config={"schedule": {"kind": "linear"}}),
+        Variant("exponential", config={"schedule": {"kind": "exponential"}}),
+        Variant("cosine", config={"schedule": {"kind": "cosine"}}),
+    ),
+    "virtual-views": tuple(
+        Variant(f"n{n}", config={"train": {"blur": "off"}} if n == 1 else {"blur": {"num_virtual": n}})
+        for n in (1, 2, 4, 8, 16)),
+    "suite": (
+        Variant("sharp", scene=_SHARP),
+        Variant("blur", scene=_TRUE_POSES),
+        Variant("noblur", scene=_TRUE_POSES, config={"train": {"blur": "off"}}),
+        Variant("noisy"),
+    ),
+}
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def variant_config(variant: Variant, base=None, **train):
+    """The ExperimentConfig of a variant: ``base`` (default config) with the variant's overrides and
+    then ``train`` field overrides (budget, iters, seed, quiet). Unknown keys raise here."""
+    from d2gs_np.train.config import ExperimentConfig
+
+    d = (base or ExperimentConfig()).to_dict()
+    d = _merge(d, variant.config)
+    d = _merge(d, {"train": train})
+    return ExperimentConfig.from_dict(d)
+
+
+def _scene_overrides(scene: str, variant: Variant, size: float) -> dict:
+    from d2gs_np.data.suite import SUITE
+
+    o = dict(variant.scene)
+    if scene not in SUITE:  # regression presets name their fields differently
+        if "trans_noise" in o:
+            o["trans_noise_fraction"] = o.pop("trans_noise")
+        if o.get("exposure_fraction") == 0.0:
+            o["subframes"] = 1
+    if size != 1.0:
+        base_w, base_h = (240, 135)
+        o.update(width=max(16, int(round(base_w * size))), height=max(16, int(round(base_h * size))))
+    return o
+
+
+def scene_folder(out, scene, variant: Variant, seed, size=1.0) -> Path:
+    return Path(out) / "scenes" / (f"{scene}_s{seed}_{variant.scene_kind}" + ("" if size == 1.0 else f"_x{size:g}"))
+
+
+def _make_scene(out, scene, variant, seed, size, frames) -> Path:
+    from d2gs_np.baselines import deblur_scene
+    from d2gs_np.data.suite import SUITE, write_suite_scene
+    from d2gs_np.data.synthetic import write_synthetic_scene
+
+    folder = scene_folder(out, scene, variant, seed, size)
+    done = folder.with_suffix(".done")
+    if done.exists():
+        return folder
+    o = _scene_overrides(scene, variant, size)
+    if frames:
+        o["num_frames"] = frames
+    raw = folder.with_name(folder.name + "_raw") if variant.two_stage else folder
+    if scene in SUITE:
+        write_suite_scene(raw, scene, seed, overwrite=True, **o)
+    else:
+        write_synthetic_scene(raw, scene, seed, overwrite=True, **o)
+    if variant.two_stage:
+        rep = deblur_scene(raw, folder, overwrite=True)
+        (folder / "deblur_report.json").write_text(json.dumps(rep, indent=1) + "\n")
+    done.write_text("ok\n")
+    return folder
+
+
+def run_cell(out, scene, variant: Variant, seed, budget=None, iters=None, size=1.0, threads=1, config_path=None,
+             frames=None) -> dict:
+    """Make the scene, train, evaluate one cell (module docstring); returns its record. Runs in a
+    worker; imports inside so a worker process starts light."""
+    import numba
+
+    numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+    from d2gs_np.data.io import load_scene
+    from d2gs_np.evaluate import evaluate_run
+    from d2gs_np.train.config import ExperimentConfig
+    from d2gs_np.train.trainer import Trainer
+
+    run_dir = Path(out) / "runs" / f"{scene}_s{seed}_{variant.name}"
+    metrics_path = run_dir / "metrics.json"
+    if not metrics_path.exists():
+        base = ExperimentConfig.load(config_path) if config_path else None
+        train = {"quiet": True, "seed": int(seed), "time_budget": budget}
+        if iters:
+            train["iters"] = int(iters)
+        cfg = variant_config(variant, base, **train)  # config errors before any scene is made
+        sdir = _make_scene(out, scene, variant, seed, size, frames)
+        t0 = time.perf_counter()
+        Trainer(load_scene(sdir), cfg, run_dir).run()
+        wall = time.perf_counter() - t0
+        result = evaluate_run(run_dir)
+        result["wall_seconds"] = wall
+        tmp = metrics_path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(result, indent=1, allow_nan=False, default=lambda x: None) + "\n")
+        tmp.replace(metrics_path)  # a finished cell is marked done atomically
+    return {"scene": scene, "variant": variant.name, "seed": int(seed), "run": str(run_dir), "status": "ok",
+            **flatten(json.loads(metrics_path.read_text()))}
+
+
+def _cell_with_retries(retries, *args, **kwargs):
+    last = None
+    for attempt in range(retries + 1):
+        try:
+            rec = run_cell(*args, **kwargs)
+            rec["attempts"] = attempt + 1
+            return rec
+        except Exception:  # reported below with its traceback; a cell never disappears
+            last = traceback.format_exc()
+    scene, variant, seed = args[1], args[2], args[3]
+    return {"scene": scene, "variant": variant.name, "seed": int(seed), "status": "failed", "attempts": retries + 1,
+            "error": last.strip().splitlines()[-1], "traceback": last}
+
+
+def flatten(m: dict) -> dict:
+    def g(*keys):
+        d = m
+        for k in keys:
+            if not isinstance(d, dict) or k not in d:
+                return None
+            d = d[k]
+        return d
+    return {
+        "dvs_psnr": g("dvs", "psnr"), "dvs_ssim": g("dvs", "ssim"), "input_psnr": g("input_blur", "psnr"),
+        "input_ssim": g("input_blur", "ssim"), "nvs_psnr": g("nvs", "psnr"), "nvs_ssim": g("nvs", "ssim"),
+        "ate": g("trajectory", "ate"), "ate_initial": g("trajectory", "initial", "ate"),
+        "num_gaussians": g("num_gaussians"), "steps": g("steps"), "train_seconds": g("train_seconds"),
+        "wall_seconds": g("wall_seconds"),
+    }
+
+
+def experiment_cells(name: str, scenes, seeds, variants=None):
+    """(scene, Variant, seed) cells of an experiment, optionally restricted to named variants."""
+    if name not in EXPERIMENTS:
+        raise ValueError(f"unknown experiment {name!r}; choose from {sorted(EXPERIMENTS)}")
+    vs = EXPERIMENTS[name]
+    if variants:
+        known = [v.name for v in vs]
+        bad = sorted(set(variants) - set(known))
+        if bad:
+            raise ValueError(f"experiment {name!r} has no variant(s) {bad}; its variants are {known}")
+        vs = tuple(v for v in vs if v.name in variants)
+    return [(s, v, int(seed)) for s in scenes for seed in seeds for v in vs]
+
+
+def _check_scenes(scenes):
+    from d2gs_np.data.suite import SUITE
+    from d2gs_np.data.synthetic import PRESETS
+
+    bad = sorted(set(scenes) - set(SUITE) - set(PRESETS))
+    if bad or not scenes:
+        raise ValueError(f"unknown scene(s) {bad or scenes}; choose suite scenes {sorted(SUITE)} or regression "
+                         f"presets {sorted(PRESETS)}")
+
+
+def run_experiment(name: str, out, scenes, seeds=(0,), budget: Optional[float] = None, iters: Optional[int] = None,
+                   size: float = 1.0, jobs: int = 1, threads: int = 1, scheduler=None, retries: int = 1,
+                   config_path=None, variants=None, frames=None, command: str = "") -> list:
+    """Run an experiment's cells (module docstring); returns the records (failed cells included,
+    ``status == "failed"``) and writes the table, CSV and plot."""
+    _check_scenes(scenes)
+    if budget is None and not iters:
+        raise ValueError("give a time budget (seconds per cell) or a number of steps per cell")
+    if budget is not None and not budget > 0:
+        raise ValueError(f"budget must be > 0 seconds; got {budget}")
+    if jobs < 1 or threads < 1 or retries < 0 or size <= 0:
+        raise ValueError(f"jobs and threads must be >= 1, retries >= 0, size > 0; got {jobs}, {threads}, {retries}, "
+                         f"{size}")
+    if config_path is not None and not Path(config_path).exists():
+        raise FileNotFoundError(f"config file {config_path} does not exist")
+    cells = experiment_cells(name, scenes, seeds, variants)
+    base = None
+    if config_path is not None:
+        from d2gs_np.train.config import ExperimentConfig
+        base = ExperimentConfig.load(config_path)
+    for _, v, _ in cells:  # every variant's config is valid before any cell starts
+        variant_config(v, base)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    kw = dict(budget=budget, iters=iters, size=size, threads=threads, config_path=config_path, frames=frames)
+    records = _run_cells(cells, str(out), retries, kw, jobs, scheduler)
+    order = {(s, v.name, sd): i for i, (s, v, sd) in enumerate(cells)}
+    records.sort(key=lambda r: order[(r["scene"], r["variant"], r["seed"])])
+    write_outputs(name, out, records, command)
+    return records
+
+
+def _run_cells(cells, out, retries, kw, jobs, scheduler):
+    import dask
+
+    tasks = [dask.delayed(_cell_with_retries, pure=False)(retries, out, s, v, sd, **kw) for s, v, sd in cells]
+    if scheduler is None:
+        return list(dask.compute(*tasks, scheduler="processes", num_workers=jobs))
+    from distributed import Client
+
+    client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+    try:
+        return list(dask.compute(*tasks, scheduler=client))
+    finally:
+        if client is not scheduler:
+            client.close()
+
+
+def _fmt(x, spec=".2f"):
+    return "" if x is None else format(x, spec)
+
+
+def table(records) -> str:
+    lines = ["| scene | seed | variant | status | input dB | DVS PSNR dB | DVS SSIM | NVS PSNR dB | NVS SSIM | "
+             "ATE initial -> trained | Gaussians | steps | train s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in records:
+        status = r["status"] if r["status"] == "ok" else f"FAILED: {r.get('error', '')}"
+        lines.append(
+            f"| {r['scene']} | {r['seed']} | {r['variant']} | {status} | {_fmt(r.get('input_psnr'))} | "
+            f"{_fmt(r.get('dvs_psnr'))} | {_fmt(r.get('dvs_ssim'), '.3f')} | {_fmt(r.get('nvs_psnr'))} | "
+            f"{_fmt(r.get('nvs_ssim'), '.3f')} | {_fmt(r.get('ate_initial'), '.4f')} -> {_fmt(r.get('ate'), '.4f')} | "
+            f"{_fmt(r.get('num_gaussians'), 'd')} | {_fmt(r.get('steps'), 'd')} | {_fmt(r.get('train_seconds'), '.0f')} |")
+    return "\n".join(lines)
+
+
+def write_outputs(name, out, records, command=""):
+    out = Path(out)
+    fields = ["scene", "seed", "variant", "status", "attempts", "input_psnr", "dvs_psnr", "dvs_ssim", "nvs_psnr",
+              "nvs_ssim", "ate_initial", "ate", "num_gaussians", "steps", "train_seconds", "wall_seconds", "run",
+              "error"]
+    with open(out / f"{name}.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(records)
+    md = table(records)
+    (out / f"{name}.md").write_text((f"`{command}`\n\n" if command else "") + md + "\n")
+    ok = [r for r in records if r["status"] == "ok"]
+    if ok:
+        from d2gs_np.report import plot_error_vs_time
+
+        plot_error_vs_time([r["run"] for r in ok], out / f"{name}_error_vs_time.png",
+                           labels=[f"{r['scene']}/{r['variant']}/s{r['seed']}" for r in ok],
+                           title=f"{name}: held-out PSNR against training seconds")
+    return md

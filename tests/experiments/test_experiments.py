@@ -1,0 +1,90 @@
+"""Experiments: every variant is a valid config, a sweep runs on a two-worker LocalCluster and on the
+local process pool, failed cells are retried and reported, finished cells are never recomputed."""
+import json
+
+import pytest
+
+from d2gs_np import experiments as ex
+
+TINY = dict(size=40 / 240, frames=4, iters=3, threads=1)
+
+
+def test_every_variant_of_every_experiment_is_a_valid_config():
+    for name, variants in ex.EXPERIMENTS.items():
+        assert len({v.name for v in variants}) == len(variants), name
+        for v in variants:
+            cfg = ex.variant_config(v, iters=7)
+            assert cfg.train.iters == 7
+    vv = {v.name: ex.variant_config(v) for v in ex.EXPERIMENTS["virtual-views"]}
+    assert vv["n16"].blur.num_virtual == 16 and vv["n1"].train.blur == "off"
+    prog = {v.name: ex.variant_config(v) for v in ex.EXPERIMENTS["progressive"]}
+    assert not prog["none"].train.progressive and prog["linear"].schedule.kind == "linear"
+    with pytest.raises(ValueError, match="bogus"):
+        ex.variant_config(ex.Variant("x", config={"train": {"bogus": 1}}))
+
+
+def test_bad_requests_fail_before_any_cell(tmp_path):
+    with pytest.raises(ValueError, match="unknown experiment"):
+        ex.run_experiment("nope", tmp_path, ["dynamic"], iters=2)
+    with pytest.raises(ValueError, match="unknown scene"):
+        ex.run_experiment("baselines", tmp_path, ["atlantis"], iters=2)
+    with pytest.raises(ValueError, match="no variant"):
+        ex.run_experiment("baselines", tmp_path, ["dynamic"], iters=2, variants=["full", "magic"])
+    with pytest.raises(ValueError, match="budget"):
+        ex.run_experiment("baselines", tmp_path, ["dynamic"])
+    assert not (tmp_path / "runs").exists()
+
+
+@pytest.fixture(scope="module")
+def cluster():
+    distributed = pytest.importorskip("distributed")
+    with distributed.LocalCluster(n_workers=2, threads_per_worker=1, processes=False, dashboard_address=None) as c:
+        with distributed.Client(c) as client:
+            yield client
+
+
+def test_a_sweep_on_a_two_worker_cluster_retries_reports_and_resumes(tmp_path, cluster, monkeypatch):
+    calls = []
+    real = ex.run_cell
+
+    def flaky(out, scene, variant, seed, **kw):
+        calls.append(variant.name)
+        if variant.name == "n2" and calls.count("n2") == 1:
+            raise RuntimeError("transient failure")  # the retry succeeds
+        if variant.name == "n4":
+            raise RuntimeError("always fails")
+        return real(out, scene, variant, seed, **kw)
+
+    monkeypatch.setattr(ex, "run_cell", flaky)  # workers are threads of this process (processes=False)
+    recs = ex.run_experiment("virtual-views", tmp_path, ["dynamic"], [0], variants=["n1", "n2", "n4"],
+                             scheduler=cluster, retries=1, **TINY)
+    by = {r["variant"]: r for r in recs}
+    assert [r["variant"] for r in recs] == ["n1", "n2", "n4"]  # in the experiment's order
+    assert by["n1"]["status"] == "ok" and by["n1"]["attempts"] == 1
+    assert by["n2"]["status"] == "ok" and by["n2"]["attempts"] == 2
+    assert by["n4"]["status"] == "failed" and "always fails" in by["n4"]["error"] and by["n4"]["attempts"] == 2
+    assert by["n1"]["steps"] == 3 and by["n1"]["dvs_psnr"] is not None
+    md = (tmp_path / "virtual-views.md").read_text()
+    assert "FAILED" in md and "always fails" in md
+    assert (tmp_path / "virtual-views.csv").read_text().count("\n") == 4
+    assert (tmp_path / "virtual-views_error_vs_time.png").exists()
+    # resume: finished cells are not recomputed (their metrics files are untouched)
+    m1 = tmp_path / "runs" / "dynamic_s0_n1" / "metrics.json"
+    stamp = m1.stat().st_mtime_ns
+    monkeypatch.setattr(ex, "run_cell", real)
+    again = ex.run_experiment("virtual-views", tmp_path, ["dynamic"], [0], variants=["n1", "n2"], scheduler=cluster,
+                              **TINY)
+    assert all(r["status"] == "ok" for r in again) and m1.stat().st_mtime_ns == stamp
+    assert json.loads(m1.read_text())["steps"] == 3
+
+
+def test_baselines_on_the_local_process_pool(tmp_path):
+    recs = ex.run_experiment("baselines", tmp_path, ["dynamic"], [0], jobs=2, **TINY)
+    by = {r["variant"]: r for r in recs}
+    assert set(by) == {"full", "noblur", "two_stage", "sharp_bound"}
+    assert all(r["status"] == "ok" for r in recs), [r.get("traceback") for r in recs]
+    two = json.loads((tmp_path / "runs" / "dynamic_s0_two_stage" / "metrics.json").read_text())
+    assert "blur_model" in two["left_out"]  # the deconvolved frames are trained as sharp input
+    sharp = json.loads((tmp_path / "runs" / "dynamic_s0_sharp_bound" / "metrics.json").read_text())
+    assert sharp["input_blur"]["psnr"] is None or sharp["input_blur"].get("identical") or \
+        sharp["input_blur"]["psnr"] > by["full"]["input_psnr"]  # sharp inputs: far closer to the truth
