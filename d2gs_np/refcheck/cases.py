@@ -19,7 +19,7 @@ from d2gs_np import constants as C
 from d2gs_np.refcheck.scenes import camera_scene, random_scene, safe_random_scene, threshold_margins
 from d2gs_np.render.config import RenderConfig
 
-__all__ = ["Case", "CASES", "DEFAULT_CASES", "build_case", "render_case_inputs"]
+__all__ = ["Case", "CASES", "DEFAULT_CASES", "DEFAULT_CASES_F32", "build_case", "render_case_inputs"]
 
 KINDS = ("render", "blur", "deform")
 
@@ -308,6 +308,11 @@ CASES = {
     "deform": _deform,
 }
 DEFAULT_CASES = tuple(CASES)
+# A float32 export leaves out extreme_anisotropy: its 2D covariance has condition number ~6e6,
+# so float32 (eps 6e-8) keeps no correct digit of its determinant; any float32 port fails it
+# (ours gives conics off by 1e17). It can still be exported in float32 by name.
+FLOAT64_ONLY = ("extreme_anisotropy",)
+DEFAULT_CASES_F32 = tuple(c for c in CASES if c not in FLOAT64_ONLY)
 
 
 def build_case(name):

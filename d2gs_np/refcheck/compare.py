@@ -132,16 +132,20 @@ def compare_quantity(case, quantity, ours, theirs, rtol, integer_atol=0):
                "" if ok or peak > 0 else "ours is all zero: theirs must be within rtol absolutely")
 
 
-def compare_dirs(ours_dir, theirs_dir, rtol=None, cases=None):
+def compare_dirs(ours_dir, theirs_dir, rtol=None, cases=None, tolerances=None):
     """Compare every (selected) case; returns (rows, ok).
 
     rtol: None (documented defaults), a float (every float quantity), or a (global, {quantity:
     rtol}) pair from ``parse_rtol``. cases: names to compare (default all of the export).
+    tolerances: "float64" or "float32", the set of default tolerances (default: the export's
+    dtype; "float32" for a float32 implementation run on a float64 export).
     """
     index = read_index(ours_dir)
     if not Path(theirs_dir).is_dir():
         raise FileNotFoundError(f"results folder {theirs_dir} does not exist")
-    dtype = np.dtype(index["dtype"])
+    if tolerances not in (None, "float64", "float32"):
+        raise ValueError(f"tolerances must be 'float64' or 'float32'; got {tolerances!r}")
+    dtype = np.dtype(index["dtype"] if tolerances is None else tolerances)
     glob, per = (rtol if isinstance(rtol, tuple) else (rtol, {}))
     names = [e["name"] for e in index["cases"]]
     for name in cases or ():

@@ -12,7 +12,7 @@ from pathlib import Path
 
 import numpy as np
 
-from d2gs_np.refcheck.cases import DEFAULT_CASES, build_case
+from d2gs_np.refcheck.cases import DEFAULT_CASES, DEFAULT_CASES_F32, build_case
 from d2gs_np.refcheck.compute import compute, resolve_renderer
 from d2gs_np.refcheck.io import case_entry, case_path, read_case, read_index, write_case, write_index, write_results
 
@@ -36,7 +36,8 @@ def _cast(arrays, dtype):
 
 
 def export(directory, cases=None, dtype="float64", log=print):
-    """Write the cases (default: all of ``DEFAULT_CASES``) and ``cases.json`` into ``directory``.
+    """Write the cases (default: ``DEFAULT_CASES``, or ``DEFAULT_CASES_F32`` for float32) and
+    ``cases.json`` into ``directory``.
 
     Inputs and upstream gradients are stored in ``dtype``; our outputs and gradients are always
     computed in float64 from those stored values (for float32, from the float32 inputs widened
@@ -44,7 +45,8 @@ def export(directory, cases=None, dtype="float64", log=print):
     Returns the list of cases.json entries.
     """
     dtype = _check_dtype(dtype)
-    names = list(DEFAULT_CASES if not cases else cases)
+    default = DEFAULT_CASES if dtype == np.float64 else DEFAULT_CASES_F32
+    names = list(default if not cases else cases)
     for name in names:  # every name is checked before any work
         if name not in DEFAULT_CASES:
             raise ValueError(f"unknown refcheck case {name!r}; known cases: {', '.join(DEFAULT_CASES)}")
