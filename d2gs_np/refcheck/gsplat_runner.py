@@ -1,0 +1,198 @@
+"""``d2gs refcheck gsplat``: gsplat 1.5.3's PyTorch reference on the render cases (docs/refcheck.md §7).
+
+Optional: needs ``torch`` and ``gsplat==1.5.3`` (the ``gsplat`` extra), imported lazily; CPU,
+float64, autograd for every gradient (independent of our hand-derived backward).
+
+What runs is gsplat's own pure-PyTorch code wherever it runs on a CPU:
+``_quat_scale_to_covar_preci`` (covariance), ``_fully_fused_projection`` (world to camera, EWA
+projection with the clamped Jacobian, eps2d dilation, conics, radii, culling, antialiasing
+compensation) and ``_isect_tiles`` (tile lists sorted by tile and float32 depth bits). gsplat's
+torch rasterizer (``_rasterize_to_pixels``) cannot run on a CPU: it calls the CUDA kernel
+``rasterize_to_indices_in_range`` and the ``nerfacc`` package. The per-pixel compositing is
+therefore written here in torch, from the rules of gsplat's CUDA rasterizer as
+docs/conventions.md §6 states them (alpha = min(0.999, o exp(-sigma)); skip when sigma < 0 or
+alpha < 1/255; stop, exclusively, when T (1 - alpha) <= 1e-4), over each tile's sorted list
+from ``_isect_tiles``; its gradients come from autograd.
+
+Blur and deformation cases have no gsplat counterpart and are not run.
+"""
+from __future__ import annotations
+
+import time
+from pathlib import Path
+
+import numpy as np
+
+from d2gs_np import constants as C
+from d2gs_np.geometry.se3 import matrix_grad_to_left_tangent
+from d2gs_np.refcheck.io import case_path, read_case, read_index, write_results
+
+__all__ = ["GsplatUnavailable", "gsplat_status", "run_gsplat"]
+
+GSPLAT_VERSION = "1.5.3"
+
+
+class GsplatUnavailable(RuntimeError):
+    """torch or gsplat cannot be imported (the message says why and how to install them)."""
+
+
+def _import():
+    try:
+        import torch
+    except Exception as e:  # ImportError, or a broken install raising OSError
+        raise GsplatUnavailable(f"torch cannot be imported ({type(e).__name__}: {e}); install the optional "
+                                f"extra with: pip install -e '.[gsplat]' (torch and gsplat=={GSPLAT_VERSION})") from e
+    try:
+        import gsplat
+        from gsplat.cuda import _torch_impl as impl
+    except Exception as e:
+        raise GsplatUnavailable(f"gsplat cannot be imported ({type(e).__name__}: {e}); install it with: "
+                                f"pip install gsplat=={GSPLAT_VERSION}") from e
+    version = getattr(gsplat, "__version__", "unknown")
+    if version != GSPLAT_VERSION:
+        raise GsplatUnavailable(f"gsplat {version} is installed; the conventions followed are those of "
+                                f"{GSPLAT_VERSION} (docs/conventions.md): pip install gsplat=={GSPLAT_VERSION}")
+    return torch, impl
+
+
+def gsplat_status():
+    """(True, version text) when torch and gsplat import, else (False, the reason)."""
+    try:
+        torch, _ = _import()
+    except GsplatUnavailable as e:
+        return False, str(e)
+    return True, f"torch {torch.__version__}, gsplat {GSPLAT_VERSION}"
+
+
+def _composite(torch, means2d, conics, opacities, colors, depths, offsets, flatten_ids, width, height,
+               tile_size):
+    """Front-to-back compositing of one camera (autograd through every kept term).
+
+    means2d (N,2), conics (N,3), opacities (N,), colors (N,3), depths (N,) tensors; offsets
+    (th, tw) start of each tile's run in flatten_ids (sorted by tile, then float32 depth).
+    Returns image (H,W,3) without background, depth (H,W), T_final (H,W).
+    """
+    dt = means2d.dtype
+    th, tw = offsets.shape
+    n_isect = flatten_ids.shape[0]
+    starts = offsets.reshape(-1).tolist()
+    ends = starts[1:] + [n_isect]
+    rgb_rows, d_rows, t_rows = [], [], []
+    img = [[None] * tw for _ in range(th)]
+    for ty in range(th):
+        for tx in range(tw):
+            x0, y0 = tx * tile_size, ty * tile_size
+            x1, y1 = min(x0 + tile_size, width), min(y0 + tile_size, height)
+            ys, xs = torch.meshgrid(torch.arange(y0, y1, dtype=dt), torch.arange(x0, x1, dtype=dt), indexing="ij")
+            px = torch.stack([xs.reshape(-1), ys.reshape(-1)], -1) + C.PIXEL_CENTER_OFFSET  # (P, 2)
+            t = ty * tw + tx
+            ids = flatten_ids[starts[t]:ends[t]].long()
+            P = px.shape[0]
+            if ids.numel() == 0:
+                img[ty][tx] = (torch.zeros(P, 3, dtype=dt), torch.zeros(P, dtype=dt), torch.ones(P, dtype=dt))
+                continue
+            d = px[None, :, :] - means2d[ids][:, None, :]  # (M, P, 2): pixel - mean (sigma is even in d)
+            c = conics[ids]
+            sigma = (0.5 * (c[:, 0:1] * d[..., 0] ** 2 + c[:, 2:3] * d[..., 1] ** 2)
+                     + c[:, 1:2] * d[..., 0] * d[..., 1])
+            alpha = torch.clamp_max(opacities[ids][:, None] * torch.exp(-sigma), C.ALPHA_MAX)  # (M, P)
+            with torch.no_grad():  # the discrete decisions, held fixed in the backward
+                valid = (sigma >= 0) & (alpha >= C.ALPHA_THRESHOLD)
+                a_eff = torch.where(valid, alpha, torch.zeros_like(alpha))
+                T_after = torch.cumprod(1 - a_eff, dim=0)
+                stop = valid & (T_after <= C.TRANSMITTANCE_MIN)
+                stopped_before = (torch.cumsum(stop.to(torch.int64), dim=0) - stop.to(torch.int64)) > 0
+                keep = valid & ~stop & ~stopped_before
+            a = torch.where(keep, alpha, torch.zeros_like(alpha))
+            T_incl = torch.cumprod(1 - a, dim=0)
+            T_excl = torch.cat([torch.ones(1, P, dtype=dt), T_incl[:-1]], 0)
+            w = a * T_excl  # (M, P)
+            rgb = w.T @ colors[ids]  # (P, 3)
+            dep = w.T @ depths[ids]
+            img[ty][tx] = (rgb, dep, T_incl[-1])
+    for ty in range(th):
+        rows_rgb, rows_d, rows_t = [], [], []
+        for tx in range(tw):
+            x0, y0 = tx * tile_size, ty * tile_size
+            h, w_ = min(tile_size, height - y0), min(tile_size, width - x0)
+            rgb, dep, T = img[ty][tx]
+            rows_rgb.append(rgb.reshape(h, w_, 3))
+            rows_d.append(dep.reshape(h, w_))
+            rows_t.append(T.reshape(h, w_))
+        rgb_rows.append(torch.cat(rows_rgb, 1))
+        d_rows.append(torch.cat(rows_d, 1))
+        t_rows.append(torch.cat(rows_t, 1))
+    return torch.cat(rgb_rows, 0), torch.cat(d_rows, 0), torch.cat(t_rows, 0)
+
+
+def _run_render_case(torch, impl, inp, cot):
+    f64 = lambda k: torch.tensor(np.asarray(inp[k], np.float64), dtype=torch.float64, requires_grad=True)  # noqa
+    means, quats, scales = f64("means"), f64("quats"), f64("scales")
+    opacities, colors, viewmats, backgrounds = f64("opacities"), f64("colors"), f64("viewmats"), f64("backgrounds")
+    Ks = torch.tensor(np.asarray(inp["Ks"], np.float64))
+    W, H, ts = int(inp["width"]), int(inp["height"]), int(inp["tile_size"])
+    aa = bool(inp["antialiased"])
+    covars, _ = impl._quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=False)
+    radii, means2d, depths, conics, comp = impl._fully_fused_projection(
+        means, covars, viewmats, Ks, W, H, eps2d=float(inp["eps2d"]), near_plane=float(inp["near_plane"]),
+        far_plane=float(inp["far_plane"]), calc_compensations=aa)
+    means2d.retain_grad()
+    opac = opacities[None] * comp if aa else opacities[None].expand(1, -1)
+    tw, th = -(-W // ts), -(-H // ts)
+    _, isect_ids, flatten_ids = impl._isect_tiles(means2d.detach(), radii, depths.detach(), ts, tw, th)
+    offsets = impl._isect_offset_encode(isect_ids, 1, tw, th)[0]
+    rgb, dep, T = _composite(torch, means2d[0], conics[0], opac[0], colors, depths[0], offsets, flatten_ids, W, H, ts)
+    image = rgb + T[..., None] * backgrounds[0]
+    alpha = 1 - T
+    ed = dep / torch.clamp_min(alpha, C.EXPECTED_DEPTH_ALPHA_MIN)
+    t = lambda k: torch.tensor(np.asarray(cot[k], np.float64))  # noqa: E731
+    loss = ((t("image")[0] * image).sum() + (t("alpha")[0, ..., 0] * alpha).sum()
+            + (t("depth")[0, ..., 0] * dep).sum() + (t("expected_depth")[0, ..., 0] * ed).sum())
+    loss.backward()
+    culled = (radii[0] <= 0).any(-1).numpy()
+    m2d, con = means2d.detach().numpy().copy(), conics.detach().numpy().copy()
+    m2d[0, culled] = 0.0  # our convention (docs/conventions.md §4): culled Gaussians report 0
+    con[0, culled] = 0.0
+    g = lambda x: (np.zeros(tuple(x.shape)) if x.grad is None else x.grad.numpy().copy())  # noqa: E731
+    outputs = {"image": image.detach().numpy()[None], "alpha": alpha.detach().numpy()[None, ..., None],
+               "depth": dep.detach().numpy()[None, ..., None], "expected_depth": ed.detach().numpy()[None, ..., None],
+               "radii": radii.numpy().astype(np.int32), "means2d": m2d, "depths": depths.detach().numpy(),
+               "conics": con}
+    G = g(viewmats)
+    grads = {"means": g(means), "quats": g(quats), "scales": g(scales), "opacities": g(opacities),
+             "colors": g(colors), "viewmats": G,
+             "viewmats_tangent": matrix_grad_to_left_tangent(np.asarray(inp["viewmats"][0], np.float64), G[0])[None],
+             "backgrounds": g(backgrounds), "means2d": g(means2d)}
+    return outputs, grads
+
+
+def run_gsplat(export_dir, out_dir, cases=None, log=print):
+    """Run gsplat's reference on the render cases of an export; write their results to out_dir.
+
+    Returns the names of the cases run (blur and deformation cases are listed as not covered).
+    Raises GsplatUnavailable (before any work) when torch or gsplat cannot be imported.
+    """
+    index = read_index(export_dir)
+    torch, impl = _import()
+    names = [e["name"] for e in index["cases"]]
+    for name in cases or ():
+        if name not in names:
+            raise ValueError(f"case {name!r} is not in {export_dir}; it has: {', '.join(names)}")
+    Path(out_dir).mkdir(parents=True, exist_ok=True)
+    done = []
+    for entry in index["cases"]:
+        name = entry["name"]
+        if cases and name not in cases:
+            continue
+        if entry["kind"] != "render":
+            if log:
+                log(f"[refcheck gsplat] {name}: not covered (gsplat has no {entry['kind']} model)")
+            continue
+        t0 = time.perf_counter()
+        data = read_case(case_path(export_dir, name))
+        outputs, grads = _run_render_case(torch, impl, data["in"], data["cot"])
+        write_results(out_dir, name, outputs, grads)
+        done.append(name)
+        if log:
+            log(f"[refcheck gsplat] {name}: ran in {time.perf_counter() - t0:.1f}s")
+    return done
