@@ -21,6 +21,7 @@ FORMAT = "d2gs_np-refcheck"
 VERSION = 1
 SECTIONS = ("in", "cot", "out", "grad")
 INDEX = "cases.json"
+DOCUMENTATION = "docs/refcheck.md §3"
 
 
 def case_path(directory, name):
@@ -97,7 +98,7 @@ def case_entry(case, outputs, gradients, inputs, cotangents):
 def write_index(directory, dtype, entries):
     """Write ``directory/cases.json``."""
     index = {"format": FORMAT, "version": VERSION, "dtype": str(np.dtype(dtype)),
-             "golden_dtype": "float64", "documentation": "docs/refcheck.md", "cases": entries}
+             "golden_dtype": "float64", "documentation": DOCUMENTATION, "cases": entries}
     path = Path(directory) / INDEX
     tmp = path.with_name(INDEX + ".tmp")
     tmp.write_text(json.dumps(index, indent=1))

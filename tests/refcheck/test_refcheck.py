@@ -277,7 +277,8 @@ def test_loader_example_in_the_docs_runs(golden):
     code = re.search(r"```python\n(.*?)```", section, re.S).group(1)
     assert len(code.strip().splitlines()) <= 14
     ns = {"folder": str(golden)}
-    exec(compile(code, "docs/refcheck.md §8", "exec"), ns)
+    where = "docs/refcheck.md §8"
+    exec(compile(code, where, "exec"), ns)
     first = json.loads((golden / "cases.json").read_text())["cases"][0]["name"]
     ref = read_case(golden / f"{first}.npz")
     for sec in ("in", "cot", "out", "grad"):
