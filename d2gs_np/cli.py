@@ -203,10 +203,11 @@ def _cmd_refcheck_gsplat(args):
 
     out = args.out if args.out else str(Path(args.dir) / "gsplat")
     try:
-        covered = run_gsplat(args.dir, out, cases=args.cases)
+        covered = run_gsplat(args.dir, out, cases=args.cases, dtype=args.dtype)
     except GsplatUnavailable as e:
         raise ValueError(str(e)) from None
-    rows, ok = compare_dirs(args.dir, out, rtol=parse_rtol(args.rtol), cases=covered)
+    rows, ok = compare_dirs(args.dir, out, rtol=parse_rtol(args.rtol), cases=covered,
+                            tolerances="float32" if args.dtype == "float32" else None)
     print(format_table(rows))
     if not ok:
         raise _Failed("refcheck gsplat: gsplat's reference differs beyond the tolerances (see the table)")
@@ -363,6 +364,8 @@ def build_parser() -> argparse.ArgumentParser:
     gs.add_argument("dir")
     gs.add_argument("--out", default=None, help="where gsplat's results go (default DIR/gsplat)")
     gs.add_argument("--rtol", nargs="+", default=None, help="as for compare")
+    gs.add_argument("--dtype", choices=["float64", "float32"], default="float64",
+                    help="gsplat's working dtype (float32: held to the float32 tolerances)")
     gs.add_argument("--cases", nargs="+", default=None, help=cases_help)
     gs.set_defaults(func=_cmd_refcheck_gsplat)
     return p

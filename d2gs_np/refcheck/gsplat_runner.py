@@ -1,7 +1,8 @@
 """``d2gs refcheck gsplat``: gsplat 1.5.3's PyTorch reference on the render cases (docs/refcheck.md §7).
 
 Optional: needs ``torch`` and ``gsplat==1.5.3`` (the ``gsplat`` extra), imported lazily; CPU,
-float64, autograd for every gradient (independent of our hand-derived backward).
+float64 (or float32 on request), autograd for every gradient (independent of our hand-derived
+backward).
 
 What runs is gsplat's own pure-PyTorch code wherever it runs on a CPU:
 ``_quat_scale_to_covar_preci`` (covariance), ``_fully_fused_projection`` (world to camera, EWA
@@ -125,11 +126,12 @@ def _composite(torch, means2d, conics, opacities, colors, depths, offsets, flatt
     return torch.cat(rgb_rows, 0), torch.cat(d_rows, 0), torch.cat(t_rows, 0)
 
 
-def _run_render_case(torch, impl, inp, cot):
-    f64 = lambda k: torch.tensor(np.asarray(inp[k], np.float64), dtype=torch.float64, requires_grad=True)  # noqa
-    means, quats, scales = f64("means"), f64("quats"), f64("scales")
-    opacities, colors, viewmats, backgrounds = f64("opacities"), f64("colors"), f64("viewmats"), f64("backgrounds")
-    Ks = torch.tensor(np.asarray(inp["Ks"], np.float64))
+def _run_render_case(torch, impl, inp, cot, dtype=np.float64):
+    tdt = torch.float64 if np.dtype(dtype) == np.float64 else torch.float32
+    leaf = lambda k: torch.tensor(np.asarray(inp[k], dtype), dtype=tdt, requires_grad=True)  # noqa: E731
+    means, quats, scales = leaf("means"), leaf("quats"), leaf("scales")
+    opacities, colors, viewmats, backgrounds = leaf("opacities"), leaf("colors"), leaf("viewmats"), leaf("backgrounds")
+    Ks = torch.tensor(np.asarray(inp["Ks"], dtype))
     W, H, ts = int(inp["width"]), int(inp["height"]), int(inp["tile_size"])
     aa = bool(inp["antialiased"])
     covars, _ = impl._quat_scale_to_covar_preci(quats, scales, compute_covar=True, compute_preci=False)
@@ -145,7 +147,7 @@ def _run_render_case(torch, impl, inp, cot):
     image = rgb + T[..., None] * backgrounds[0]
     alpha = 1 - T
     ed = dep / torch.clamp_min(alpha, C.EXPECTED_DEPTH_ALPHA_MIN)
-    t = lambda k: torch.tensor(np.asarray(cot[k], np.float64))  # noqa: E731
+    t = lambda k: torch.tensor(np.asarray(cot[k], dtype))  # noqa: E731
     loss = ((t("image")[0] * image).sum() + (t("alpha")[0, ..., 0] * alpha).sum()
             + (t("depth")[0, ..., 0] * dep).sum() + (t("expected_depth")[0, ..., 0] * ed).sum())
     loss.backward()
@@ -153,7 +155,7 @@ def _run_render_case(torch, impl, inp, cot):
     m2d, con = means2d.detach().numpy().copy(), conics.detach().numpy().copy()
     m2d[0, culled] = 0.0  # our convention (docs/conventions.md §4): culled Gaussians report 0
     con[0, culled] = 0.0
-    g = lambda x: (np.zeros(tuple(x.shape)) if x.grad is None else x.grad.numpy().copy())  # noqa: E731
+    g = lambda x: (np.zeros(tuple(x.shape), dtype) if x.grad is None else x.grad.numpy().copy())  # noqa: E731
     outputs = {"image": image.detach().numpy()[None], "alpha": alpha.detach().numpy()[None, ..., None],
                "depth": dep.detach().numpy()[None, ..., None], "expected_depth": ed.detach().numpy()[None, ..., None],
                "radii": radii.numpy().astype(np.int32), "means2d": m2d, "depths": depths.detach().numpy(),
@@ -161,18 +163,23 @@ def _run_render_case(torch, impl, inp, cot):
     G = g(viewmats)
     grads = {"means": g(means), "quats": g(quats), "scales": g(scales), "opacities": g(opacities),
              "colors": g(colors), "viewmats": G,
-             "viewmats_tangent": matrix_grad_to_left_tangent(np.asarray(inp["viewmats"][0], np.float64), G[0])[None],
+             "viewmats_tangent": matrix_grad_to_left_tangent(np.asarray(inp["viewmats"][0], dtype).astype(np.float64),
+                                                             G[0].astype(np.float64))[None],
              "backgrounds": g(backgrounds), "means2d": g(means2d)}
     return outputs, grads
 
 
-def run_gsplat(export_dir, out_dir, cases=None, log=print):
+def run_gsplat(export_dir, out_dir, cases=None, dtype="float64", log=print):
     """Run gsplat's reference on the render cases of an export; write their results to out_dir.
 
+    dtype: "float64" (default: the reference) or "float32" (gsplat's torch code in float32, a
+    float32 implementation to hold to the float32 tolerances).
     Returns the names of the cases run (blur and deformation cases are listed as not covered).
     Raises GsplatUnavailable (before any work) when torch or gsplat cannot be imported.
     """
     index = read_index(export_dir)
+    if str(dtype) not in ("float64", "float32"):
+        raise ValueError(f"dtype must be 'float64' or 'float32'; got {dtype!r}")
     torch, impl = _import()
     names = [e["name"] for e in index["cases"]]
     for name in cases or ():
@@ -190,7 +197,7 @@ def run_gsplat(export_dir, out_dir, cases=None, log=print):
             continue
         t0 = time.perf_counter()
         data = read_case(case_path(export_dir, name))
-        outputs, grads = _run_render_case(torch, impl, data["in"], data["cot"])
+        outputs, grads = _run_render_case(torch, impl, data["in"], data["cot"], np.dtype(str(dtype)))
         write_results(out_dir, name, outputs, grads)
         done.append(name)
         if log:
