@@ -218,6 +218,28 @@ def _opacity_extremes():
                    "gradient through the clamp), colours and background outside [0, 1]", scene, seed=24)
 
 
+def _opacity_cutoff():
+    """Opacities 1e-3 (relative) above and below the 1/255 cut-off, each Gaussian's mean exactly on
+    a pixel centre (sigma = 0 there, so that pixel's alpha is the opacity itself): the ones above
+    are composited on their centre pixel only, the ones below nowhere; a wider opaque Gaussian
+    behind them all. Every decision keeps a 1e-3 margin, far above float32 rounding."""
+    W = H = 16
+    f, cx = 16.0, 8.0
+    K = np.array([[f, 0.0, cx], [0.0, f, cx], [0.0, 0.0, 1.0]])
+    uv = np.array([(3.5, 3.5), (10.5, 4.5), (5.5, 11.5), (12.5, 12.5), (8.5, 8.5)])
+    z = np.array([2.0, 2.5, 3.0, 3.5, 6.0])
+    means = np.stack([(uv[:, 0] - cx) * z / f, (uv[:, 1] - cx) * z / f, z], axis=1)  # exact in binary
+    cut = C.ALPHA_THRESHOLD
+    opacities = np.array([cut * (1 + 1e-3), cut * (1 - 1e-3), cut * (1 + 1e-2), cut * (1 - 1e-2), 0.7])
+    scales = np.array([[0.1, 0.12, 0.1], [0.15, 0.1, 0.1], [0.1, 0.1, 0.2], [0.2, 0.15, 0.1], [1.5, 1.2, 1.0]])
+    rng = np.random.default_rng(29)
+    scene = dict(means=means, quats=np.tile([1.0, 0.0, 0.0, 0.0], (5, 1)), scales=scales, opacities=opacities,
+                 colors=rng.uniform(size=(5, 3)), cam_T_world=np.eye(4), K=K, width=W, height=H,
+                 background=np.array([0.2, 0.3, 0.4]))
+    return _render("opacity_cutoff", "opacities 1e-3 and 1e-2 above and below the 1/255 cut-off, means on pixel "
+                   "centres: one pixel or none each", scene, seed=29)
+
+
 def _covering_image():
     rng = np.random.default_rng(25)
     p_c = np.array([[0.0, 0.0, 2.0], [0.05, -0.02, 3.0]])
@@ -302,6 +324,7 @@ CASES = {
     "near_plane": _near_plane,
     "flat_covariance": _flat_covariance,
     "opacity_extremes": _opacity_extremes,
+    "opacity_cutoff": _opacity_cutoff,
     "covering_image": _covering_image,
     "many_on_one_pixel": _many_on_one_pixel,
     "blur": _blur,

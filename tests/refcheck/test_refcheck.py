@@ -239,6 +239,20 @@ def test_many_on_one_pixel_stops_after_916(golden):
     np.testing.assert_allclose(1 - data["out"]["alpha"][0, 0, 0, 0], 0.99**916, rtol=1e-12)
 
 
+def test_opacity_cutoff_case_composites_only_above_the_cutoff():
+    """Gaussians 0 and 2 (opacity above 1/255) are composited on their centre pixel only, with
+    alpha = opacity (sigma = 0 there) and T = 1 (nearest); 1 and 3 (below) nowhere."""
+    from d2gs_np.refcheck import compute
+
+    case = build_case("opacity_cutoff")
+    _, grads = compute(case.kind, case.inputs, case.cotangents)
+    used = np.any(grads["colors"] != 0, axis=1)
+    np.testing.assert_array_equal(used, [True, False, True, False, True])
+    o = case.inputs["opacities"]
+    np.testing.assert_allclose(grads["colors"][0], o[0] * case.cotangents["image"][0, 3, 3], rtol=1e-14)
+    assert case.margins["view0"]["alpha_threshold"] == pytest.approx(1e-3, rel=1e-6)
+
+
 def test_blur_case_virtual_poses_run_from_start_to_end(golden):
     from d2gs_np.geometry.se3 import se3_exp
 
@@ -299,7 +313,7 @@ def test_cli_export_compare_and_exit_codes(tmp_path, capsys):
     assert names == list(DEFAULT_CASES)
     assert main(["refcheck", "compare", str(gold), str(gold)]) == 0
     out = capsys.readouterr().out
-    assert re.search(r"(\d+) quantities in 17 cases: \1 passed, 0 failed", out)
+    assert re.search(rf"(\d+) quantities in {len(DEFAULT_CASES)} cases: \1 passed, 0 failed", out)
     theirs = tmp_path / "theirs"
     shutil.copytree(gold, theirs)
     _edit(theirs, "deform", "grad.t", lambda a: a * (1 + 1e-6))
