@@ -229,7 +229,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "docs/dataset_format.md.",
         epilog="Documentation (in the source repository): docs/method.md (the method, equations and choices), "
                "docs/conventions.md (renderer conventions), docs/dataset_format.md (scene folders), "
-               "docs/architecture.md (code layout). Each command's --help names its page.")
+               "docs/architecture.md (code layout), docs/refcheck.md (checking a faster port). Each command's --help "
+               "names its page.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     d = sub.add_parser("demo", help="make a small built-in blurry dynamic scene, train, evaluate, plot "
