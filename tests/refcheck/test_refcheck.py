@@ -99,7 +99,8 @@ def test_one_gradient_entry_off_by_1e_6_relative_fails_naming_it(golden, tmp_pat
 def test_pose_tangent_and_endpoint_gradients_are_checked(golden, tmp_path):
     theirs = _copy_results(golden, tmp_path / "theirs")
     _edit(theirs, "blur", "grad.xi_end", lambda a: a * (1 + 1e-6))
-    _edit(theirs, "tile_border", "grad.viewmats_tangent", lambda a: a + np.array([[0, 0, 0, 0, 0, 1e-6]]) * np.abs(a).max())
+    nudge = np.array([[0, 0, 0, 0, 0, 1e-6]])
+    _edit(theirs, "tile_border", "grad.viewmats_tangent", lambda a: a + nudge * np.abs(a).max())
     rows, _ = compare_dirs(golden, theirs)
     assert {(r.case, r.quantity) for r in _failed(rows)} == {("blur", "grad.xi_end"),
                                                             ("tile_border", "grad.viewmats_tangent")}
