@@ -224,7 +224,8 @@ def build_parser() -> argparse.ArgumentParser:
                     "docs/dataset_format.md.",
         epilog="Documentation (in the source repository): docs/method.md (the method, equations and choices), "
                "docs/conventions.md (renderer conventions), docs/dataset_format.md (scene folders), "
-               "docs/architecture.md (code layout). Each command's --help names its page.")
+               "docs/architecture.md (code layout), docs/refcheck.md (checking a faster port). Each command's --help "
+               "names its page.")
     sub = p.add_subparsers(dest="command", required=True, metavar="COMMAND")
 
     d = sub.add_parser("demo", help="make a small built-in blurry dynamic scene, train, evaluate, write "
@@ -351,13 +352,22 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--time", type=float, required=True)
     x.add_argument("out", help="output .ply")
     x.set_defaults(func=_cmd_export_ply)
+    from d2gs_np.refcheck.cli import add_refcheck_parser  # the reference-check kit (docs/refcheck.md)
+    add_refcheck_parser(sub)
     return p
+
+
+class CheckFailed(Exception):
+    """A check ran and failed (``d2gs refcheck compare``): exit status 1, unlike a usage error's 2."""
 
 
 def main(argv=None):
     args = build_parser().parse_args(argv)
     try:
         args.func(args)
+    except CheckFailed as e:
+        print(f"d2gs {e}", file=sys.stderr)
+        return 1
     except (ValueError, TypeError, FileNotFoundError) as e:
         print(f"d2gs {args.command}: error: {e}", file=sys.stderr)
         return 2

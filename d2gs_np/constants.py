@@ -73,3 +73,21 @@ POSENET_INPUT_STD_MIN = 1e-6
 # exp, log and the product in float32 (~1e-7) or float64, so the skip decision is exactly the
 # one the full rule (alpha < 1/255) would take: a pure speed-up, the image is unchanged.
 ALPHA_CUTOFF_SAFETY = 1e-3
+
+# --- Reference-check kit (d2gs_np.refcheck, docs/refcheck.md §5) -------------------------------
+# Default tolerances of `d2gs refcheck compare`, relative to the largest |entry| of each quantity
+# in our (golden) result. float64: two correct float64 implementations of the same formulas
+# differ by rounding only, O(10-1000) ulps of each quantity's scale (our Numba path against the
+# NumPy reference, and gsplat's torch reference, on the whole suite: <= 1.3e-13, the tile-border
+# case's quaternion gradients); 1e-10 leaves almost three orders of magnitude while any wrong
+# term shows at >= 1e-6. float32 against our float64 golden computed from the same float32 inputs: float32
+# rounds each operation at 6e-8 relative; chains of ~1e2 operations and sums over ~1e2 terms give
+# ~1e-6 on outputs and a few 1e-6 on gradients (our own float32 path: docs/refcheck.md §5). 1e-4
+# (outputs) and 1e-3 (gradients, longer chains and cancellations) are gsplat's own float32
+# CUDA-against-torch tolerances (forward 1e-4, gradients a few 1e-3).
+REFCHECK_RTOL_F64 = 1e-10
+REFCHECK_RTOL_F32_OUTPUT = 1e-4
+REFCHECK_RTOL_F32_GRAD = 1e-3
+# Screen radii are ceil(3.33 sigma) (integers): float32 rounding can move a value that sits
+# within ~1e-6 of an integer across it, so a float32 port may differ by one pixel there.
+REFCHECK_RADII_ATOL_F32 = 1

@@ -16,175 +16,21 @@ from __future__ import annotations
 
 import numpy as np
 
-from d2gs_np import constants as C
 
-# ---------------------------------------------------------------------------------------------
-# Random scenes
-# ---------------------------------------------------------------------------------------------
-
-
-def random_rotation(rng, max_angle=np.pi):
-    """A rotation matrix (3, 3) about a uniformly random axis by an angle uniform in [0, max_angle]."""
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    angle = rng.uniform(0.0, max_angle)
-    return _so3_exp(axis * angle)
-
-
-def random_scene(
-    rng,
-    n,
-    width,
-    height,
-    dtype=np.float64,
-    depth_range=(2.0, 6.0),
-    sigma_px_range=(1.0, 8.0),
-    opacity_range=(0.05, 0.95),
-    border_px=4.0,
-    max_camera_angle=0.6,
-):
-    """A random scene of ``n`` Gaussians in front of a camera with a non-identity pose.
-
-    Gaussians are drawn in the camera frame: pixel position (u, v) uniform over the image widened
-    by ``border_px``, camera depth uniform in ``depth_range``, per-axis standard deviations such
-    that the projected size is ``sigma_px_range`` pixels (a few to tens of pixels of footprint),
-    random rotations and raw (non-unit) quaternions, opacities uniform in ``opacity_range``,
-    colours and background uniform in [0, 1]. The means are then mapped to world coordinates with
-    a random ``cam_T_world`` (rotation up to ``max_camera_angle`` rad, translation ~ N(0, 1)).
-
-    Returns dict(means (n,3), quats (n,4) wxyz, scales (n,3) linear, opacities (n,),
-    colors (n,3), cam_T_world (4,4), K (3,3), width, height, background (3,)), all float arrays
-    of ``dtype``.
-    """
-    f = rng.uniform(0.8, 1.2) * max(width, height)
-    K = np.array(
-        [
-            [f * rng.uniform(0.95, 1.05), 0.0, width / 2 + rng.uniform(-1.0, 1.0)],
-            [0.0, f * rng.uniform(0.95, 1.05), height / 2 + rng.uniform(-1.0, 1.0)],
-            [0.0, 0.0, 1.0],
-        ]
-    )
-    R_v = random_rotation(rng, max_camera_angle)
-    t_v = rng.normal(size=3)
-    cam_T_world = np.eye(4)
-    cam_T_world[:3, :3] = R_v
-    cam_T_world[:3, 3] = t_v
-
-    u = rng.uniform(-border_px, width + border_px, size=n)
-    v = rng.uniform(-border_px, height + border_px, size=n)
-    z = rng.uniform(*depth_range, size=n)
-    p_c = np.stack([(u - K[0, 2]) * z / K[0, 0], (v - K[1, 2]) * z / K[1, 1], z], axis=1)
-    means = (p_c - t_v) @ R_v  # p_w = R_v^T (p_c - t_v), row-wise
-
-    sigma_px = rng.uniform(*sigma_px_range, size=(n, 3))
-    scales = sigma_px * z[:, None] / K[0, 0]
-    quats = rng.normal(size=(n, 4))
-    quats *= rng.uniform(0.5, 2.0, size=(n, 1)) / np.linalg.norm(quats, axis=1, keepdims=True)
-    opacities = rng.uniform(*opacity_range, size=n)
-    colors = rng.uniform(0.0, 1.0, size=(n, 3))
-    background = rng.uniform(0.0, 1.0, size=3)
-    scene = dict(
-        means=means,
-        quats=quats,
-        scales=scales,
-        opacities=opacities,
-        colors=colors,
-        cam_T_world=cam_T_world,
-        K=K,
-        width=int(width),
-        height=int(height),
-        background=background,
-    )
-    return cast_scene(scene, dtype)
-
-
-def cast_scene(scene, dtype):
-    """A copy of ``scene`` with every float array cast to ``dtype`` (ints kept)."""
-    out = {}
-    for key, val in scene.items():
-        out[key] = np.array(val, dtype=dtype) if isinstance(val, np.ndarray) else val
-    return out
-
-
-def copy_scene(scene):
-    """A deep copy of the arrays of ``scene`` (so a test can perturb one entry)."""
-    return {k: (v.copy() if isinstance(v, np.ndarray) else v) for k, v in scene.items()}
-
-
-def safe_random_scene(rng, n, width, height, dtype=np.float64, margin=1e-4, config=None, max_tries=200,
-                      **kwargs):
-    """``random_scene`` redrawn until ``threshold_margin(scene, config) >= margin``.
-
-    Raises RuntimeError after ``max_tries`` draws (lower the margin, n or the image size).
-    """
-    for _ in range(max_tries):
-        scene = random_scene(rng, n, width, height, dtype=dtype, **kwargs)
-        if threshold_margin(scene, config) >= margin:
-            return scene
-    raise RuntimeError(f"no scene with threshold margin >= {margin} in {max_tries} draws")
-
-
-# ---------------------------------------------------------------------------------------------
-# Distance to the discontinuities
-# ---------------------------------------------------------------------------------------------
-
-
-def threshold_margins(scene, config=None):
-    """Smallest relative distance to each threshold of the renderer, as a dict of floats.
-
-    Keys (each the min over the relevant evaluations; ``inf`` if there are none):
-      "alpha_threshold": |alpha - 1/255| / (1/255) over (Gaussian, pixel) pairs evaluated before
-          the pixel stopped;
-      "alpha_clamp": |o*exp(-sigma) - 0.999| / 0.999 over the same pairs with alpha >= 1/255;
-      "transmittance": |T*(1-alpha) - 1e-4| / 1e-4 over the same pairs with alpha >= 1/255;
-      "near_plane": |z - near| / near over Gaussians in front of the camera (a Gaussian between
-          the camera and the near plane is culled on either side of a small step, so only the
-          distance to the plane matters);
-      "depth_order": |z_i - z_j| / max(|z_i|, |z_j|) over consecutive visible Gaussians in the
-          front-to-back order;
-      "jacobian_clamp": |x/z - limit| / |limit| over visible Gaussians and the four x/z, y/z
-          limits of the Jacobian clamp (a kink of the gradient).
-    Computed from the float64 reference renderer's saved state (d2gs_np.reference).
-    """
-    from d2gs_np.reference import render_fwd
-
-    scene64 = cast_scene(scene, np.float64)
-    _, saved = render_fwd(**scene64, config=config)
-    proj, ras = saved["proj"], saved["raster"]
-    near = saved["config"].near_plane
-    inf = float("inf")
-
-    def _min(a):
-        a = np.asarray(a, dtype=np.float64)
-        return float(a.min()) if a.size else inf
-
-    ev = ras["evaluated"]  # (S, H, W) pixel not stopped before this Gaussian
-    alpha, raw, T = ras["alpha"], ras["raw_alpha"], ras["T"]
-    passed = ev & (alpha >= C.ALPHA_THRESHOLD)
-    out = {
-        "alpha_threshold": _min(np.abs(alpha[ev] - C.ALPHA_THRESHOLD) / C.ALPHA_THRESHOLD),
-        "alpha_clamp": _min(np.abs(raw[passed] - C.ALPHA_MAX) / C.ALPHA_MAX),
-        "transmittance": _min(np.abs(T[passed] * (1.0 - alpha[passed]) - C.TRANSMITTANCE_MIN)
-                              / C.TRANSMITTANCE_MIN),
-    }
-    z = proj["depths"]
-    front = z > 0
-    out["near_plane"] = _min(np.abs(z[front] - near) / near)
-    zs = z[saved["order"]]
-    out["depth_order"] = _min(np.abs(np.diff(zs)) / np.maximum(np.abs(zs[1:]), np.abs(zs[:-1])))
-    vis = proj["radii"][:, 0] > 0
-    rel = []
-    for ratio, lims in ((proj["x_over_z"], proj["lim_x"]), (proj["y_over_z"], proj["lim_y"])):
-        for lim in lims:
-            rel.append(np.abs(ratio[vis] - lim) / abs(lim))
-    out["jacobian_clamp"] = _min(np.concatenate(rel)) if rel else inf
-    return out
-
-
-def threshold_margin(scene, config=None):
-    """min over ``threshold_margins(scene, config)``: the smallest relative distance to any threshold."""
-    return min(threshold_margins(scene, config).values())
-
+# The scene builders and threshold margins live in the package, shared with the reference-check
+# kit (d2gs_np/refcheck/scenes.py); re-exported here under their old names.
+from d2gs_np.refcheck.scenes import (  # noqa: E402,F401
+    _hat,
+    _so3_exp,
+    camera_scene,
+    cast_scene,
+    copy_scene,
+    random_rotation,
+    random_scene,
+    safe_random_scene,
+    threshold_margin,
+    threshold_margins,
+)
 
 # ---------------------------------------------------------------------------------------------
 # Losses and finite differences
@@ -256,20 +102,6 @@ def left_tangent_from_matrix_grad(T, G):
     """
     M = np.asarray(G, np.float64) @ np.asarray(T, np.float64).T
     return np.array([M[0, 3], M[1, 3], M[2, 3], M[2, 1] - M[1, 2], M[0, 2] - M[2, 0], M[1, 0] - M[0, 1]])
-
-
-def _hat(phi):
-    return np.array([[0.0, -phi[2], phi[1]], [phi[2], 0.0, -phi[0]], [-phi[1], phi[0], 0.0]])
-
-
-def _so3_exp(phi):
-    """Rodrigues' formula (local, for test fixtures; no small-angle subtleties needed here)."""
-    phi = np.asarray(phi, dtype=np.float64)
-    theta = np.linalg.norm(phi)
-    W = _hat(phi)
-    if theta < 1e-8:
-        return np.eye(3) + W + 0.5 * W @ W
-    return np.eye(3) + np.sin(theta) / theta * W + (1.0 - np.cos(theta)) / theta**2 * W @ W
 
 
 def _se3_exp_local(xi):

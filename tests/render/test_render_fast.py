@@ -105,23 +105,8 @@ def tile_intersections_numpy(means2d, radii, width, height, ts=C.TILE_SIZE):
     return int(np.sum((x1 - x0) * (y1 - y0)))
 
 
-def camera_scene(p_c, sigmas, opacities, colors, width, height, f=None, quats=None, rng=None):
-    """A scene from camera-frame means p_c (n,3) and world scales ``sigmas`` (n,3), identity-ish pose."""
-    rng = np.random.default_rng(7) if rng is None else rng
-    n = len(p_c)
-    f = float(max(width, height)) if f is None else f
-    K = np.array([[f, 0.0, width / 2.0], [0.0, f * 1.02, height / 2.0], [0.0, 0.0, 1.0]])
-    R_v = rf.random_rotation(rng, 0.3)
-    t_v = rng.normal(size=3) * 0.1
-    T = np.eye(4)
-    T[:3, :3] = R_v
-    T[:3, 3] = t_v
-    means = (np.asarray(p_c, float) - t_v) @ R_v
-    if quats is None:
-        quats = rng.normal(size=(n, 4))
-    return dict(means=means, quats=np.asarray(quats, float), scales=np.asarray(sigmas, float),
-                opacities=np.asarray(opacities, float), colors=np.asarray(colors, float),
-                cam_T_world=T, K=K, width=width, height=height, background=rng.uniform(0, 1, 3))
+# camera_scene: shared with the reference-check kit (d2gs_np/refcheck/scenes.py)
+camera_scene = rf.camera_scene
 
 
 def assert_margin(scene, config=None, margin=MARGIN_EXTREME, ignore=()):
