@@ -73,3 +73,24 @@ POSENET_INPUT_STD_MIN = 1e-6
 # exp, log and the product in float32 (~1e-7) or float64, so the skip decision is exactly the
 # one the full rule (alpha < 1/255) would take: a pure speed-up, the image is unchanged.
 ALPHA_CUTOFF_SAFETY = 1e-3
+
+# --- Pose solver (d2gs_np/optim/gauss_newton.py, docs/method.md §5) ---------------------------
+# The SE(3) log of the solver takes theta / sin(theta) from its series in sin^2(theta) below this
+# (|w| < 1e-3): four terms leave a truncation of ~(1e-6)^4 = 1e-24; above it atan2(s, c) / s
+# divides by s >= 1e-3, which loses at most ~1e-13 relative.
+GN_LOG_SERIES_SIN2 = 1e-6
+# A match whose rendered depth (either frame) is not above this (world units) is dropped: an
+# empty render reads 0 there, and a point at or behind the camera has no reprojection.
+GN_MIN_DEPTH = 1e-6
+# Levenberg-Marquardt lambda stays in [LM_DAMPING_MIN, LM_DAMPING_MAX]: below 1e-12 the damping
+# no longer changes a float64 solve; at 1e16 the step is ~1e-16 of the gradient step, i.e. none,
+# and the solver stops ("damping_limit") instead of multiplying lambda on towards overflow.
+LM_DAMPING_MIN = 1e-12
+LM_DAMPING_MAX = 1e16
+# Marquardt scaling uses diag(J^T W J), floored at this times its largest entry, so a column the
+# data do not see (a frame without matches) is still damped instead of giving a singular system.
+DAMPING_DIAG_FLOOR = 1e-9
+# Singular values of the final normal matrix below this times the largest count as zero for the
+# covariance pseudo-inverse and its rank: float64 rounding of J^T J is ~1e-16 x cond, and
+# directions observed only through points at 1e6 x the scene's depth fall below 1e-12.
+COVARIANCE_RCOND = 1e-12
