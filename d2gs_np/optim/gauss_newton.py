@@ -60,7 +60,7 @@ from dataclasses import dataclass, field
 import casadi as ca
 import numpy as np
 
-from d2gs_np.constants import (
+from d2gs_np.constants import (  # noqa: F401 (LM_DAMPING_MAX is re-exported for tests)
     COVARIANCE_RCOND,
     DAMPING_DIAG_FLOOR,
     GN_LOG_SERIES_SIN2,
@@ -484,6 +484,13 @@ class GaussNewtonResult:
         return self.times[-1] if self.times else 0.0
 
 
+def _normal_equations(J, w, r):
+    """H = J^T W J, g = J^T W r. With einsum, not BLAS: threaded BLAS on a machine whose cores
+    are busy took 90 ms for a (3024 x 36) product that einsum does in 5 ms (measured)."""
+    Jw = J * w[:, None]
+    return np.einsum("ri,rj->ij", J, Jw), np.einsum("ri,r->i", Jw, r)
+
+
 def _solve_damped(H, g, lam):
     """dx of (H + lam D) dx = -g, D = diag(H) floored; scaled by 1/lam when lam > 1 so that a huge
     lam never overflows."""
@@ -532,8 +539,7 @@ def solve(problem: PoseProblem, config: GaussNewtonConfig = None, x0=None) -> Ga
     status, iters, accepted = ("no_unknowns" if n == 0 else "max_iters"), 0, 0
     while n and iters < config.max_iters:
         iters += 1
-        Jw = J * w[:, None]
-        H, g = J.T @ Jw, Jw.T @ r
+        H, g = _normal_equations(J, w, r)
         step_ok = False
         while True:
             dx = _solve_damped(H, g, lam)
@@ -564,8 +570,7 @@ def solve(problem: PoseProblem, config: GaussNewtonConfig = None, x0=None) -> Ga
         if np.linalg.norm(dx) < config.xtol * (np.linalg.norm(x) + config.xtol):
             status = "converged_step"
             break
-    Jw = J * w[:, None]
-    cov, rank = _covariance(J.T @ Jw)
+    cov, rank = _covariance(_normal_equations(J, w, r)[0])
     starts, ends, mids = problem.poses(x)
     times[-1] = time.perf_counter() - t0
     return GaussNewtonResult(status=status, x=problem.full_x(x), starts=starts, ends=ends, mids=mids, costs=costs,
