@@ -94,3 +94,7 @@ DAMPING_DIAG_FLOOR = 1e-9
 # covariance pseudo-inverse and its rank: float64 rounding of J^T J is ~1e-16 x cond, and
 # directions observed only through points at 1e6 x the scene's depth fall below 1e-12.
 COVARIANCE_RCOND = 1e-12
+# The pose solver reads depths only where the static set's render has alpha >= this: the expected
+# depth D / alpha of a pixel the static Gaussians barely cover is a guess (at alpha -> 0 it is a
+# single faint Gaussian's depth), and such matches are dropped (and counted) instead.
+POSE_DEPTH_ALPHA_MIN = 0.5

@@ -70,12 +70,14 @@ class FeatureConfig:
     min_matches: int = 8  # fewer ratio-test matches than this (>= 8) -> no matches are returned
     seed: int = 0  # OpenCV RNG seed for RANSAC
     detector: str = "sift"  # "sift" (float descriptors, L2), "orb" or "akaze" (binary, Hamming)
+    max_displacement_px: float = 0.0  # > 0: a keypoint is matched only to keypoints within this
+    # distance (px), before the ratio test (guided matching between nearby video frames); 0 = anywhere
 
     def __post_init__(self):
         if self.detector not in DETECTORS:
             raise ValueError(f"FeatureConfig.detector must be one of {DETECTORS}; got {self.detector!r}")
         for name in ("ratio", "ransac_threshold_px", "ransac_confidence", "contrast_threshold",
-                     "edge_threshold", "sigma"):
+                     "edge_threshold", "sigma", "max_displacement_px"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v):
                 raise TypeError(f"FeatureConfig.{name} must be a finite real number; got {v!r}")
@@ -89,6 +91,8 @@ class FeatureConfig:
             raise ValueError(f"FeatureConfig.ransac_threshold_px must be > 0; got {self.ransac_threshold_px}")
         if not 0.0 < self.ransac_confidence < 1.0:
             raise ValueError(f"FeatureConfig.ransac_confidence must be in (0, 1); got {self.ransac_confidence}")
+        if self.max_displacement_px < 0:
+            raise ValueError(f"FeatureConfig.max_displacement_px must be >= 0 (0 = no limit); got {self.max_displacement_px}")
         if self.octave_layers < 1:
             raise ValueError(f"FeatureConfig.octave_layers must be >= 1; got {self.octave_layers}")
         if self.ransac_max_iters < 1:
@@ -246,7 +250,13 @@ def match_keypoints(kp0: Keypoints, kp1: Keypoints, config: FeatureConfig = None
         raise TypeError(f"kp0 and kp1 come from different detectors (descriptor dtypes {kp0.descriptors.dtype} and "
                         f"{kp1.descriptors.dtype}); detect both with the same FeatureConfig.detector")
     norm = cv2.NORM_L2 if kp0.descriptors.dtype == np.float32 else cv2.NORM_HAMMING
-    knn = cv2.BFMatcher(norm).knnMatch(kp0.descriptors, kp1.descriptors, k=2)
+    if config.max_displacement_px > 0:
+        near = np.linalg.norm(kp0.pts[:, None, :] - kp1.pts[None, :, :], axis=-1) <= config.max_displacement_px
+        knn = cv2.BFMatcher(norm).knnMatch(kp0.descriptors, kp1.descriptors, k=2, mask=near.astype(np.uint8))
+        # a keypoint with a single candidate in reach has no second neighbour: the ratio test
+        # cannot vouch for it, and it is dropped below (len(m) == 2)
+    else:
+        knn = cv2.BFMatcher(norm).knnMatch(kp0.descriptors, kp1.descriptors, k=2)
     pairs = [(m[0].queryIdx, m[0].trainIdx) for m in knn
              if len(m) == 2 and m[0].distance < config.ratio * m[1].distance]
     if len(pairs) < config.min_matches:
