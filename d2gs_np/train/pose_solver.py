@@ -52,7 +52,7 @@ from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.plugins import Plugin
 from d2gs_np.train.state import TrainState, entered_period
 
-__all__ = ["PoseSolver", "use_pose_solver", "static_depth", "HISTORY_FILE"]
+__all__ = ["PoseSolver", "use_pose_solver", "static_depth", "write_mid_poses", "HISTORY_FILE"]
 
 HISTORY_FILE = "pose_solver.json"
 
@@ -142,32 +142,19 @@ class PoseSolver(Plugin):
         if not pairs:
             self.note(f"step {state.step}: pose solver skipped (no frame pair has enough matches)")
             return state, {"status": "no_pairs"}
-        N = model.num_frames
-        frames = sorted({p.k for p in pairs} | {p.j for p in pairs})
-        starts, ends, C = self._endpoints(model)
-        mids = se3_interpolate_batch(starts, ends)
-        s = self.pc.render_scale
-        depth = {k: static_depth(model, k, mids[k], s) for k in frames}
-        obs = [gn.pair_observations(p.k, p.j, p.pts_k, p.pts_j, gn.sample_depth(depth[p.k], p.pts_k * s),
-                                    gn.sample_depth(depth[p.j], p.pts_j * s)) for p in pairs]
-        problem = gn.PoseProblem(starts, ends, model.Ks, obs, fixed=(0,))
-        res = gn.solve(problem, self.pc.gauss_newton)
+        problem, res, C = self.solve(model, pairs)
+        mids = problem.poses(np.zeros(problem.num_params))[2]
         ate_before = self._ate(mids)
         entry = {"status": res.status, "cost_before": float(res.costs[0]), "cost_after": float(res.costs[-1]),
                  "iterations": int(res.iterations), "accepted": int(res.accepted), "matches": int(res.num_matches),
                  "dropped": int(res.dropped), "rank": int(res.rank), "num_params": int(res.num_params),
                  "solver_seconds": float(res.wall_time)}
+        ate_after = ate_before
         if res.accepted:
-            new_ref = np.ascontiguousarray(model.poses_ref.copy())
-            changed = [k for k in range(N) if k in set(problem.free.tolist()) and np.any(res.x[k] != 0)]
-            for k in changed:
-                new_ref[k] = se3_inverse(C[k]) @ res.mids[k] if C is not None else res.mids[k]
-            new_model = model.replace(poses_ref=new_ref).validate()
-            state = state.replace(model=new_model, adam=_reset_rows(state.adam, model.params, changed))
+            changed = [int(k) for k in problem.free if np.any(res.x[k] != 0)]
+            state = write_mid_poses(state, res.mids, changed, C)
             entry["changed_frames"] = len(changed)
-            ate_after = self._ate(new_model.mid_poses())
-        else:
-            ate_after = ate_before
+            ate_after = self._ate(state.model.mid_poses())
         if ate_before is not None:
             entry["ate_before"], entry["ate_after"] = ate_before, ate_after
         entry["seconds"] = time.perf_counter() - t0
@@ -177,6 +164,19 @@ class PoseSolver(Plugin):
                   f"({res.dropped} dropped: no depth), rank {res.rank}/{res.num_params}, "
                   f"{entry['seconds']:.2f}s{ate}")
         return state, entry
+
+    def solve(self, model, pairs):
+        """(problem, result, C) of one solver call on ``model`` with the matched ``pairs``: depths
+        rendered at the current mid poses, endpoints from the trajectory model, frame 0 fixed."""
+        frames = sorted({p.k for p in pairs} | {p.j for p in pairs})
+        starts, ends, C = self._endpoints(model)
+        mids = se3_interpolate_batch(starts, ends)
+        s = self.pc.render_scale
+        depth = {k: static_depth(model, k, mids[k], s) for k in frames}
+        obs = [gn.pair_observations(p.k, p.j, p.pts_k, p.pts_j, gn.sample_depth(depth[p.k], p.pts_k * s),
+                                    gn.sample_depth(depth[p.j], p.pts_j * s)) for p in pairs]
+        problem = gn.PoseProblem(starts, ends, model.Ks, obs, fixed=(0,))
+        return problem, gn.solve(problem, self.pc.gauss_newton), C
 
     def _endpoints(self, model):
         """(starts, ends, C): the exposure endpoints (N, 4, 4) and the midpoints C_k of exp(xi_s),
@@ -192,6 +192,19 @@ class PoseSolver(Plugin):
 
     def _ate(self, mids):
         return None if self.gt is None else float(metrics.ate(mids, self.gt))
+
+
+def write_mid_poses(state: TrainState, mids, frames, C=None) -> TrainState:
+    """The state with the mid-exposure poses of ``frames`` moved to ``mids[k]`` (module docstring,
+    step 4): ``poses_ref[k] = C_k^-1 mids[k]`` (C: the (N, 4, 4) midpoints of exp(xi_s), exp(xi_e);
+    None without the blur model: ``poses_ref[k] = mids[k]``), the Adam moments of those camera
+    rows reset, the model validated."""
+    model = state.model
+    new_ref = np.array(model.poses_ref, dtype=np.float64, order="C")
+    for k in frames:
+        new_ref[k] = mids[k] if C is None else se3_inverse(C[k]) @ mids[k]
+    new_model = model.replace(poses_ref=np.ascontiguousarray(new_ref)).validate()
+    return state.replace(model=new_model, adam=_reset_rows(state.adam, model.params, list(frames)))
 
 
 def se3_interpolate_batch(starts, ends):
