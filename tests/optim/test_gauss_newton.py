@@ -10,6 +10,11 @@ from d2gs_np.geometry.se3 import se3_exp, se3_interpolate, se3_inverse, se3_log
 from d2gs_np.optim import gauss_newton as gn
 
 K = np.array([[120.0, 0.0, 80.0], [0.0, 120.0, 45.0], [0.0, 0.0, 1.0]])
+# Central differences with h = 1e-6 in float64: truncation ~h^2 |third derivative| ~ 1e-12 |J| and
+# rounding ~1e-16 |f| / h ~ 1e-10 |f| (|f| <= ~1e3 px, |J| ~ 1e3 for the residuals, O(1) for the
+# mid pose): 1e-6 relative to max |J| leaves a margin of 10-100 over both.
+FD_STEP = 1e-6
+FD_REL_TOL = 1e-6
 
 
 def _project(T, X):
@@ -60,7 +65,7 @@ def _mid_error(res, mids):
     return max(np.abs(se3_log(res.mids[k] @ se3_inverse(mids[k]))).max() for k in range(len(mids)))
 
 
-def _fd_jacobian(problem, x, h=1e-6):
+def _fd_jacobian(problem, x, h):
     J = np.zeros((len(problem.residuals(x, 100.0, 1e-3, False)[0]), len(x)))
     for i in range(len(x)):
         e = np.zeros_like(x)
@@ -71,16 +76,35 @@ def _fd_jacobian(problem, x, h=1e-6):
 
 @pytest.mark.parametrize("scale", [0.0, 1e-2, 0.2])
 def test_jacobian_matches_central_differences(scale):
-    # scale 0: every angle is exactly 0 apart from the 1e-3 spread (series branches); 0.2 rad
-    # perturbations take the closed forms. Central differences with h = 1e-6 in float64 have
-    # truncation ~h^2 |r'''| ~ 1e-12 |J| and rounding ~1e-16 |r| / h ~ 1e-10 |r| (|r| <= ~1e3 px,
-    # |J| ~ 1e3): 1e-6 relative to max |J| leaves a margin of 10-100 over both.
+    # scale 0: every angle is exactly 0 apart from the 1e-3 spread (series branches); 1e-2 takes
+    # the log's closed form (spread change > 1e-3); 0.2 rad larger rotations.
     _, prob = _problem(n=3)
     x = np.random.default_rng(5).normal(0, 1, prob.num_params) * scale
     r, J = prob.residuals(x, 100.0, 1e-3)
     assert np.all(np.isfinite(J))
-    Jfd = _fd_jacobian(prob, x)
-    assert np.abs(J - Jfd).max() <= 1e-6 * np.abs(J).max()
+    Jfd = _fd_jacobian(prob, x, FD_STEP)
+    assert np.abs(J - Jfd).max() <= FD_REL_TOL * np.abs(J).max()
+
+
+@pytest.mark.parametrize("rot", [0.0, 1e-8, 0.3, 0.49, 0.51, 1.0, 3.0])  # both sides of SERIES_ANGLE2, near pi
+@pytest.mark.parametrize("spread", [0.0, 1e-8, 9e-4, 1.1e-3, 0.2, 0.8])  # both sides of sin^2 = 1e-6 and of SERIES_ANGLE2
+def test_mid_pose_jacobian_in_every_branch(rot, spread):
+    rng = np.random.default_rng(4)
+    axis = rng.normal(size=3)
+    axis /= np.linalg.norm(axis)
+    Ts = se3_exp(rng.normal(0, 0.5, 6))
+    Te = se3_exp(np.r_[0.3 * spread, 0.0, 0.0, spread * axis]) @ Ts
+    x = np.r_[rng.normal(0, 0.1, 3), rot * axis, rng.normal(0, 0.1, 3), rot * axis]
+    f = gn._mid_function()
+    fs, fe = gn.pose_to_flat(Ts), gn.pose_to_flat(Te)
+    m0, dm, _, _ = f(x, fs, fe)
+    dm = np.array(dm)
+    assert np.all(np.isfinite(dm))
+    fd = np.stack([(np.array(f(x + FD_STEP * e, fs, fe)[0]) - np.array(f(x - FD_STEP * e, fs, fe)[0])).ravel()
+                   / (2 * FD_STEP) for e in np.eye(12)], axis=1)
+    assert np.abs(dm - fd).max() <= FD_REL_TOL * max(1.0, np.abs(dm).max())
+    S, E = se3_exp(x[:6]) @ Ts, se3_exp(x[6:]) @ Te
+    assert np.abs(gn.flat_to_pose(np.array(m0).ravel()) - se3_interpolate(S, E, 0.5)).max() < 1e-12
 
 
 def test_symbolic_mid_pose_is_the_geodesic_midpoint_and_exact_at_zero_spread():
