@@ -54,8 +54,6 @@ def composition_notes(terms=(), plugins=()) -> list:
     if "pose_solver" not in plugins:
         notes.append("pose refinement (Gauss-Newton on reprojection residuals): not run (config pose_solver.mode, "
                      "trusted poses or a run too short; see the pose solver line above)")
-    else:
-        notes.append("pose refinement (Gauss-Newton on reprojection residuals): on, as the step plugin pose_solver")
     missing = [label for name, label in OPTIONAL_TERMS.items() if name not in terms]
     loss = " + ".join("L_render" if t == "photometric" else OPTIONAL_TERMS.get(t, t) for t in terms) or "L_render"
     if missing:
