@@ -142,7 +142,11 @@ class PoseSolver(Plugin):
         if not pairs:
             self.note(f"step {state.step}: pose solver skipped (no frame pair has enough matches)")
             return state, {"status": "no_pairs"}
-        problem, res, C = self.solve(model, pairs)
+        try:
+            problem, res, C = self.solve(model, pairs)
+        except ValueError as e:  # e.g. a lifted point exactly on a camera plane: non-finite residuals
+            self.note(f"step {state.step}: pose solver skipped ({e})")
+            return state, {"status": "skipped", "reason": str(e)}
         mids = problem.poses(np.zeros(problem.num_params))[2]
         ate_before = self._ate(mids)
         entry = {"status": res.status, "cost_before": float(res.costs[0]), "cost_after": float(res.costs[-1]),
