@@ -181,9 +181,11 @@ def test_robust_loss_recovers_the_pose_with_half_the_matches_outliers():
     s, e = _perturb(starts, ends, 0.01, 0.03)
     prob = gn.PoseProblem(s, e, np.stack([K] * 4), pairs)
     initial = _mid_error(gn.solve(prob, gn.GaussNewtonConfig(max_iters=0)), mids)
-    err = {kind: _mid_error(gn.solve(prob, gn.GaussNewtonConfig(robust=kind, robust_scale=1.0, max_iters=50)), mids)
+    err = {kind: _mid_error(gn.solve(prob, gn.GaussNewtonConfig(robust=kind, robust_scale=1.0, beta=100.0,
+                                                                max_iters=50)), mids)
            for kind in gn.ROBUST_LOSSES}
-    # measured: initial 0.025, none 0.93, huber 0.018, cauchy 0.0017 (rad / world units, max over frames)
+    # measured (beta 100): initial 0.025, none 0.93, huber 0.018, cauchy 0.0017 (rad / world units, max over
+    # frames); with beta 10 (the depth rows, which the outliers do not corrupt, weigh less) cauchy 0.0052
     assert err["none"] > initial  # plain least squares: the outliers pull the poses away
     assert err["cauchy"] < initial / 8  # the redescending loss recovers the pose
     assert err["huber"] < initial < err["none"] / 10  # Huber bounds each outlier's pull, but 50 % still bias it
