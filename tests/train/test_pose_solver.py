@@ -114,3 +114,30 @@ def test_bad_config_is_named():
         ExperimentConfig.from_dict({"pose_solver": {"evry": 3}})
     cfg = ExperimentConfig(pose_solver=PoseSolverConfig(every=7))
     assert ExperimentConfig.from_json(cfg.to_json()) == cfg
+
+
+def test_posenet_mid_poses_move_to_first_order(noisy_scene):
+    # PoseNet reads log T̂ as input, so writing T̂' moves its endpoints a little: the written mid pose
+    # is the target only to first order in (pose change) x (endpoint spread)
+    from d2gs_np.trajectory import TrajectoryConfig
+
+    cfg = _config().replace(trajectory=TrajectoryConfig(kind="posenet"))
+    model = Model.from_scene(noisy_scene, cfg, decide_components(noisy_scene, cfg))
+    state = TrainState(model, adam.adam_init(model.params))
+    rng = np.random.default_rng(1)
+    step = [se3_exp(rng.normal(0, 0.01, 6)) for _ in range(model.num_frames)]
+    target = np.stack([step[k] @ model.mid_pose(k) for k in range(model.num_frames)])
+    new = write_mid_poses(state, target, [1, 2], PoseSolver(noisy_scene, cfg)._endpoints(model)[2])
+    for k in (1, 2):
+        moved = np.abs(target[k] - model.mid_pose(k)).max()
+        assert np.abs(new.model.mid_pose(k) - target[k]).max() < 1e-3 * moved  # measured 5e-5, 1e-4
+
+
+def test_a_run_without_the_blur_model_refines_the_given_poses(tmp_path):
+    scene = make_scene("dynamic", 0, rot_noise_deg=0.5, exposure_fraction=0.0, subframes=1, **SMALL)
+    tr = Trainer(scene, _config(iters=4, every=3), tmp_path / "run")
+    assert not tr.components.blur
+    tr.run()
+    assert len(tr.plugins[-1].history) == 1 and tr.plugins[-1].history[0]["status"] != "no_pairs"
+    np.testing.assert_array_equal(tr.model.mid_poses(), tr.model.poses_ref)  # n = 1: the reference is the mid pose
+    assert not np.array_equal(tr.model.poses_ref, tr.model.poses_est)
