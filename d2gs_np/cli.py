@@ -63,6 +63,10 @@ def _load_config(args):
         cfg = cfg.replace(train=dataclasses.replace(cfg.train, **changes))
     if getattr(args, "n", None) is not None:
         cfg = cfg.replace(blur=dataclasses.replace(cfg.blur, num_virtual=args.n))
+    if getattr(args, "pose_solver", None) is not None or getattr(args, "pose_every", None) is not None:
+        ps = {k: v for k, v in (("mode", getattr(args, "pose_solver", None)), ("every", getattr(args, "pose_every", None)))
+              if v is not None}
+        cfg = cfg.replace(pose_solver=dataclasses.replace(cfg.pose_solver, **ps))
     return cfg
 
 
@@ -285,6 +289,9 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--dynamic", choices=["auto", "on", "off"], default=None,
                    help="dynamic set (default auto; docs/method.md §2, §9)")
     t.add_argument("--n", type=int, default=None, help="virtual views per blurry frame (docs/method.md §4)")
+    t.add_argument("--pose-solver", choices=["auto", "on", "off"], default=None,
+                   help="pose refinement between Adam steps (docs/method.md §5); auto: unless the poses are trusted")
+    t.add_argument("--pose-every", type=int, default=None, help="schedule steps between pose solver calls")
     t.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.npz")
     t.add_argument("--quiet", action="store_true")
     t.set_defaults(func=_cmd_train)

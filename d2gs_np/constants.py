@@ -91,3 +91,28 @@ REFCHECK_RTOL_F32_GRAD = 1e-3
 # Screen radii are ceil(3.33 sigma) (integers): float32 rounding can move a value that sits
 # within ~1e-6 of an integer across it, so a float32 port may differ by one pixel there.
 REFCHECK_RADII_ATOL_F32 = 1
+
+# --- Pose solver (d2gs_np/optim/gauss_newton.py, docs/method.md §5) ---------------------------
+# The SE(3) log of the solver takes theta / sin(theta) from its series in sin^2(theta) below this
+# (|w| < 1e-3): four terms leave a truncation of ~(1e-6)^4 = 1e-24; above it atan2(s, c) / s
+# divides by s >= 1e-3, which loses at most ~1e-13 relative.
+GN_LOG_SERIES_SIN2 = 1e-6
+# A match whose rendered depth (either frame) is not above this (world units) is dropped: an
+# empty render reads 0 there, and a point at or behind the camera has no reprojection.
+GN_MIN_DEPTH = 1e-6
+# Levenberg-Marquardt lambda stays in [LM_DAMPING_MIN, LM_DAMPING_MAX]: below 1e-12 the damping
+# no longer changes a float64 solve; at 1e16 the step is ~1e-16 of the gradient step, i.e. none,
+# and the solver stops ("damping_limit") instead of multiplying lambda on towards overflow.
+LM_DAMPING_MIN = 1e-12
+LM_DAMPING_MAX = 1e16
+# Marquardt scaling uses diag(J^T W J), floored at this times its largest entry, so a column the
+# data do not see (a frame without matches) is still damped instead of giving a singular system.
+DAMPING_DIAG_FLOOR = 1e-9
+# Singular values of the final normal matrix below this times the largest count as zero for the
+# covariance pseudo-inverse and its rank: float64 rounding of J^T J is ~1e-16 x cond, and
+# directions observed only through points at 1e6 x the scene's depth fall below 1e-12.
+COVARIANCE_RCOND = 1e-12
+# The pose solver reads depths only where the static set's render has alpha >= this: the expected
+# depth D / alpha of a pixel the static Gaussians barely cover is a guess (at alpha -> 0 it is a
+# single faint Gaussian's depth), and such matches are dropped (and counted) instead.
+POSE_DEPTH_ALPHA_MIN = 0.5

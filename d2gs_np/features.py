@@ -33,6 +33,7 @@ import numpy as np
 from d2gs_np.constants import PIXEL_CENTER_OFFSET
 
 __all__ = [
+    "DETECTORS",
     "FeatureConfig",
     "Keypoints",
     "Matches",
@@ -42,6 +43,10 @@ __all__ = [
     "match_keypoints",
     "match_images",
 ]
+
+# Feature detectors: SIFT is the default (docs/method.md §5); ORB and AKAZE give binary
+# descriptors, matched by Hamming distance.
+DETECTORS = ("sift", "orb", "akaze")
 
 # The 8-point/7-point solvers inside FM_RANSAC need at least 8 correspondences.
 _MIN_RANSAC_MATCHES = 8
@@ -64,10 +69,15 @@ class FeatureConfig:
     octave_layers: int = 3  # SIFT layers per octave (Lowe's and OpenCV's default)
     min_matches: int = 8  # fewer ratio-test matches than this (>= 8) -> no matches are returned
     seed: int = 0  # OpenCV RNG seed for RANSAC
+    detector: str = "sift"  # "sift" (float descriptors, L2), "orb" or "akaze" (binary, Hamming)
+    max_displacement_px: float = 0.0  # > 0: a keypoint is matched only to keypoints within this
+    # distance (px), before the ratio test (guided matching between nearby video frames); 0 = anywhere
 
     def __post_init__(self):
+        if self.detector not in DETECTORS:
+            raise ValueError(f"FeatureConfig.detector must be one of {DETECTORS}; got {self.detector!r}")
         for name in ("ratio", "ransac_threshold_px", "ransac_confidence", "contrast_threshold",
-                     "edge_threshold", "sigma"):
+                     "edge_threshold", "sigma", "max_displacement_px"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v):
                 raise TypeError(f"FeatureConfig.{name} must be a finite real number; got {v!r}")
@@ -81,6 +91,8 @@ class FeatureConfig:
             raise ValueError(f"FeatureConfig.ransac_threshold_px must be > 0; got {self.ransac_threshold_px}")
         if not 0.0 < self.ransac_confidence < 1.0:
             raise ValueError(f"FeatureConfig.ransac_confidence must be in (0, 1); got {self.ransac_confidence}")
+        if self.max_displacement_px < 0:
+            raise ValueError(f"FeatureConfig.max_displacement_px must be >= 0 (0 = no limit); got {self.max_displacement_px}")
         if self.octave_layers < 1:
             raise ValueError(f"FeatureConfig.octave_layers must be >= 1; got {self.octave_layers}")
         if self.ransac_max_iters < 1:
@@ -104,7 +116,7 @@ class Keypoints:
     """Detected keypoints of one image."""
 
     pts: np.ndarray  # (K, 2) float64, continuous pixel coords, OUR convention (centres at +0.5)
-    descriptors: np.ndarray  # (K, 128) float32 SIFT descriptors (OpenCV's dtype)
+    descriptors: np.ndarray  # (K, 128) float32 SIFT descriptors (OpenCV's dtype); (K, B) uint8 for ORB/AKAZE
     image_shape: tuple  # (H, W) of the image they came from
 
     def __len__(self):
@@ -196,17 +208,25 @@ def detect_features(image, config: FeatureConfig = None, mask=None) -> Keypoints
         if np.shape(mask) != gray.shape:
             raise ValueError(f"mask must have the image's shape {gray.shape}; got {np.shape(mask)}")
         det_mask = static_detector_mask(mask, config.mask_dilation_px)
-    # enable_precise_upscale: without it OpenCV's doubled first octave shifts every keypoint by
-    # +0.25 px in x and y (measured on Gaussian blobs: mean offset (0.250, 0.250) +- 0.005 px).
-    sift = cv2.SIFT_create(
-        config.max_features, config.octave_layers, config.contrast_threshold, config.edge_threshold,
-        config.sigma, True,
-    )
-    kps, desc = sift.detectAndCompute(gray, det_mask)
+    if config.detector == "sift":
+        # enable_precise_upscale: without it OpenCV's doubled first octave shifts every keypoint by
+        # +0.25 px in x and y (measured on Gaussian blobs: mean offset (0.250, 0.250) +- 0.005 px).
+        det = cv2.SIFT_create(
+            config.max_features, config.octave_layers, config.contrast_threshold, config.edge_threshold,
+            config.sigma, True,
+        )
+        empty = np.zeros((0, 128), dtype=np.float32)
+    elif config.detector == "orb":
+        det = cv2.ORB_create(nfeatures=config.max_features or 2000)
+        empty = np.zeros((0, 32), dtype=np.uint8)
+    else:
+        det = cv2.AKAZE_create()
+        empty = np.zeros((0, 61), dtype=np.uint8)
+    kps, desc = det.detectAndCompute(gray, det_mask)
     if not kps or desc is None:
-        return Keypoints(np.zeros((0, 2)), np.zeros((0, 128), dtype=np.float32), gray.shape)
+        return Keypoints(np.zeros((0, 2)), empty, gray.shape)
     pts = np.array([kp.pt for kp in kps], dtype=np.float64) + PIXEL_CENTER_OFFSET  # OpenCV -> ours
-    return Keypoints(pts, np.ascontiguousarray(desc, dtype=np.float32), gray.shape)
+    return Keypoints(pts, np.ascontiguousarray(desc, dtype=empty.dtype), gray.shape)
 
 
 def _empty_matches(kp0, kp1, num_tentative=0):
@@ -226,7 +246,17 @@ def match_keypoints(kp0: Keypoints, kp1: Keypoints, config: FeatureConfig = None
             raise TypeError(f"{name} must be Keypoints (from detect_features); got {type(kp).__name__}")
     if len(kp0) < 1 or len(kp1) < 2:
         return _empty_matches(kp0, kp1)
-    knn = cv2.BFMatcher(cv2.NORM_L2).knnMatch(kp0.descriptors, kp1.descriptors, k=2)
+    if kp0.descriptors.dtype != kp1.descriptors.dtype:
+        raise TypeError(f"kp0 and kp1 come from different detectors (descriptor dtypes {kp0.descriptors.dtype} and "
+                        f"{kp1.descriptors.dtype}); detect both with the same FeatureConfig.detector")
+    norm = cv2.NORM_L2 if kp0.descriptors.dtype == np.float32 else cv2.NORM_HAMMING
+    if config.max_displacement_px > 0:
+        near = np.linalg.norm(kp0.pts[:, None, :] - kp1.pts[None, :, :], axis=-1) <= config.max_displacement_px
+        knn = cv2.BFMatcher(norm).knnMatch(kp0.descriptors, kp1.descriptors, k=2, mask=near.astype(np.uint8))
+        # a keypoint with a single candidate in reach has no second neighbour: the ratio test
+        # cannot vouch for it, and it is dropped below (len(m) == 2)
+    else:
+        knn = cv2.BFMatcher(norm).knnMatch(kp0.descriptors, kp1.descriptors, k=2)
     pairs = [(m[0].queryIdx, m[0].trainIdx) for m in knn
              if len(m) == 2 and m[0].distance < config.ratio * m[1].distance]
     if len(pairs) < config.min_matches:

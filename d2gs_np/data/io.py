@@ -173,6 +173,10 @@ def _top_level_optional(data, where):
     out["scene_scale"] = v
     v = data.get("blur_subframes")
     out["blur_subframes"] = None if v is None else _positive_int(v, where, "blur_subframes")
+    v = data.get("poses_trusted")
+    if v is not None and not isinstance(v, bool):
+        raise ValueError(f"{where}: 'poses_trusted' must be true or false (are the given poses exact?); got {v!r}")
+    out["poses_trusted"] = v
     return out
 
 
@@ -492,6 +496,10 @@ def write_scene(scene: Scene, path, overwrite=False) -> None:
         if not isinstance(scene.blur_subframes, (int, np.integer)) or scene.blur_subframes <= 0:
             raise ValueError(f"scene.blur_subframes must be a positive integer; got {scene.blur_subframes!r}")
         extra["blur_subframes"] = int(scene.blur_subframes)
+    if scene.poses_trusted is not None:
+        if not isinstance(scene.poses_trusted, bool):
+            raise ValueError(f"scene.poses_trusted must be True, False or None; got {scene.poses_trusted!r}")
+        extra["poses_trusted"] = scene.poses_trusted
 
     used = {}
     plans = {}

@@ -41,6 +41,7 @@ class Scene:
     scene_scale: Optional[float] = None
     blur_subframes: Optional[int] = None
     root: Optional[Path] = None  # folder it was loaded from, if any
+    poses_trusted: Optional[bool] = None  # True: the given poses are exact (no pose refinement)
 
     @property
     def num_frames(self) -> int:

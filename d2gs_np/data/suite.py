@@ -551,14 +551,18 @@ def generate_suite(config: SuiteConfig) -> Scene:
     gt = suite_camera_pose(world, times)
     delta = pose_errors(n, config.rot_noise_deg, config.trans_noise * world.depth, config.drift,
                         np.random.default_rng(np.random.SeedSequence([config.seed, 12])))
-    est = se3_exp(delta) @ gt if (config.rot_noise_deg > 0 or config.trans_noise > 0) else gt.copy()
-    return render_clip(
+    exact = not (config.rot_noise_deg > 0 or config.trans_noise > 0)
+    est = gt.copy() if exact else se3_exp(delta) @ gt
+    scene = render_clip(
         lambda t: suite_camera_pose(world, t),
         lambda T, t, K, W, H, ss: render_suite_view(world, T, t, K, W, H, ss),
         times=times, tau=tau, subframes=config.subframes, est_poses=est, K=_intrinsics(config),
         width=config.width, height=config.height, supersample=config.supersample,
         num_test_views=config.num_test_views, test_offset=config.test_offset_fraction * world.depth,
         exposure_fraction=config.exposure_fraction, scene_scale=world.depth)
+    if exact:
+        scene.poses_trusted = True  # the given poses are the true ones (docs/dataset_format.md §4)
+    return scene
 
 
 def make_suite_scene(preset="cube_sign", seed=None, **overrides) -> Scene:

@@ -671,12 +671,15 @@ def generate(config: SyntheticConfig) -> Scene:
     gt = camera_pose(world, times)
     noise_rng = np.random.default_rng(np.random.SeedSequence([config.seed, 2]))
     est, _ = perturb_poses(gt, config.rot_noise_deg, config.trans_noise_fraction * SCENE_SCALE, noise_rng)
-    return render_clip(
+    scene = render_clip(
         lambda t: camera_pose(world, t), lambda T, t, K, W, H, ss: render_view(world, T, t, K, W, H, ss),
         times=times, tau=exposure_length(config), subframes=config.subframes, est_poses=est,
         K=intrinsics(config), width=config.width, height=config.height, supersample=config.supersample,
         num_test_views=config.num_test_views, test_offset=config.test_offset_fraction * SCENE_SCALE,
         exposure_fraction=config.exposure_fraction, scene_scale=SCENE_SCALE)
+    if config.rot_noise_deg == 0 and config.trans_noise_fraction == 0:
+        scene.poses_trusted = True  # the given poses are the true ones (docs/dataset_format.md §4)
+    return scene
 
 
 def render_clip(camera_pose_fn, render_fn, *, times, tau, subframes, est_poses, K, width, height, supersample,

@@ -52,7 +52,8 @@ def composition_notes(terms=(), plugins=()) -> list:
     """Run-log lines on the optional parts: which ran and which did not (``left_out``)."""
     notes = []
     if "pose_solver" not in plugins:
-        notes.append("pose refinement (Gauss-Newton on reprojection residuals): not run (not part of this version)")
+        notes.append("pose refinement (Gauss-Newton on reprojection residuals): not run (config pose_solver.mode, "
+                     "trusted poses or a run too short; see the pose solver line above)")
     missing = [label for name, label in OPTIONAL_TERMS.items() if name not in terms]
     loss = " + ".join("L_render" if t == "photometric" else OPTIONAL_TERMS.get(t, t) for t in terms) or "L_render"
     if missing:

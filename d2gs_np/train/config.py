@@ -15,6 +15,8 @@ from pathlib import Path
 from typing import Optional
 
 from d2gs_np.blur import BlurConfig
+from d2gs_np.correspond import CorrespondConfig
+from d2gs_np.optim.gauss_newton import GaussNewtonConfig
 from d2gs_np.render.config import RenderConfig
 from d2gs_np.scene.deformation import DeformConfig
 from d2gs_np.scene.initialize import InitConfig
@@ -119,6 +121,28 @@ class TrainConfig:
 
 
 @dataclass(frozen=True)
+class PoseSolverConfig:
+    """Pose refinement between Adam steps (docs/method.md §5; the "pose_solver" step plugin,
+    ``train/pose_solver.py``). ``mode``: "auto" runs it unless the scene flags its poses as exact
+    (``poses_trusted``) or the run is too short for it to fire (iters <= every); "on" / "off" force."""
+
+    mode: str = "auto"
+    every: int = 150  # schedule steps between solver calls (R; the paper's 500 is for GPU-length runs)
+    render_scale: float = 1.0  # depth maps rendered at this fraction of the frame size
+    correspond: CorrespondConfig = field(default_factory=CorrespondConfig)
+    gauss_newton: GaussNewtonConfig = field(default_factory=GaussNewtonConfig)
+
+    def __post_init__(self):
+        if self.mode not in _AUTO:
+            raise ValueError(f"PoseSolverConfig.mode must be one of {_AUTO}; got {self.mode!r}")
+        if isinstance(self.every, bool) or not isinstance(self.every, int) or self.every < 1:
+            raise ValueError(f"PoseSolverConfig.every must be an int >= 1 (schedule steps); got {self.every!r}")
+        if isinstance(self.render_scale, bool) or not isinstance(self.render_scale, (int, float)) \
+                or not 0.0 < self.render_scale <= 1.0:
+            raise ValueError(f"PoseSolverConfig.render_scale must be in (0, 1]; got {self.render_scale!r}")
+
+
+@dataclass(frozen=True)
 class ExperimentConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
     loss: LossConfig = field(default_factory=LossConfig)
@@ -131,6 +155,7 @@ class ExperimentConfig:
     motion_init: MotionInitConfig = field(default_factory=MotionInitConfig)
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     prune: PruneConfig = field(default_factory=PruneConfig)
+    pose_solver: PoseSolverConfig = field(default_factory=PoseSolverConfig)
 
     def to_dict(self) -> dict:
         return _to_plain(self)

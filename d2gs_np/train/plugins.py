@@ -16,9 +16,11 @@ The default list (``default_plugins``), in order:
 2. ``GradientStatistics``: accumulates densification's screen-space gradients (before pruning
    removes rows);
 3. ``Prune``: transparent, oversized and escaped Gaussians (``train/prune.py``);
-4. ``Densify``: clone and split (``train/densify.py``).
-Plugins passed to the trainer run after these; a pose solver (docs/method.md §5, name
-"pose_solver") or a nearest-neighbour refresh for L_ts is one more plugin.
+4. ``Densify``: clone and split (``train/densify.py``);
+5. ``PoseSolver`` (name "pose_solver", ``train/pose_solver.py``, docs/method.md §5) when the
+   config and the scene call for it (``use_pose_solver``).
+Plugins passed to the trainer run after these; a nearest-neighbour refresh for L_ts is one more
+plugin.
 """
 from __future__ import annotations
 
@@ -175,8 +177,9 @@ class Densify(Plugin):
         return state
 
 
-def default_plugins(scene, config: ExperimentConfig, extent: float, note=None) -> list:
-    """The plugins a run has by its config, in order (module docstring)."""
+def default_plugins(scene, config: ExperimentConfig, extent: float, note=None, run_dir=None) -> list:
+    """The plugins a run has by its config, in order (module docstring); the pose solver last,
+    when ``train.pose_solver.use_pose_solver`` says so (its correspondence cache goes to ``run_dir``)."""
     tc = config.train
     plugins = []
     if tc.eval_every:
@@ -187,4 +190,8 @@ def default_plugins(scene, config: ExperimentConfig, extent: float, note=None) -
         plugins.append(Prune(config, extent, [f.mask for f in scene.frames]))
     if config.densify.enabled:
         plugins.append(Densify(config, extent, max(f.width for f in scene.frames), note))
+    from d2gs_np.train.pose_solver import PoseSolver, use_pose_solver  # it imports this module
+
+    if use_pose_solver(scene, config, note):
+        plugins.append(PoseSolver(scene, config, run_dir, note))
     return plugins

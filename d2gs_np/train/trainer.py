@@ -98,7 +98,8 @@ class Trainer:
         if not resume:
             atomic_write_text(self.run_dir / "config.json", config.to_json())
             components = decide_components(scene, config, self.log.note)
-        self.plugins = default_plugins(scene, config, self.extent, self.log.note) + list(plugins)
+        self.plugins = default_plugins(scene, config, self.extent, self.log.note,
+                                       run_dir=self.run_dir) + list(plugins)
         if resume:
             self._restore(ckpt)
         else:

@@ -1,0 +1,143 @@
+"""The pose_solver step plugin (d2gs_np/train/pose_solver.py, docs/method.md §5): when it runs,
+what it writes (the refined mid pose, exactly, with the endpoints kept relative to it; the
+camera rows' Adam moments reset), and an exact resume with it in the run."""
+import dataclasses
+import json
+import shutil
+
+import numpy as np
+import pytest
+
+from d2gs_np.data.synthetic import make_scene
+from d2gs_np.geometry.se3 import se3_exp
+from d2gs_np.optim import adam
+from d2gs_np.train.components import decide_components
+from d2gs_np.train.config import ExperimentConfig, PoseSolverConfig, TrainConfig
+from d2gs_np.train.model import Model
+from d2gs_np.train.pose_solver import PoseSolver, use_pose_solver, write_mid_poses
+from d2gs_np.train.state import TrainState
+from d2gs_np.train.trainer import Trainer
+
+SMALL = dict(width=96, height=54, num_frames=5)
+
+
+@pytest.fixture(scope="module")
+def noisy_scene():
+    return make_scene("dynamic", 0, rot_noise_deg=0.5, **SMALL)
+
+
+def _config(iters=8, every=3, mode="on", **train):
+    base = dict(iters=iters, quiet=True, eval_every=0, log_every=1, checkpoint_every=0, prune_every=0)
+    base.update(train)
+    return ExperimentConfig(train=TrainConfig(**base), pose_solver=PoseSolverConfig(mode=mode, every=every))
+
+
+def test_mode_and_trusted_poses_decide_and_the_log_says_why(noisy_scene):
+    notes = []
+    assert use_pose_solver(noisy_scene, _config(iters=400, every=150, mode="auto"), notes.append)
+    assert not use_pose_solver(noisy_scene, _config(iters=100, every=150, mode="auto"), notes.append)
+    assert not use_pose_solver(noisy_scene, _config(mode="off"), notes.append)
+    exact = make_scene("sharp", 0, **SMALL)
+    assert exact.poses_trusted is True and noisy_scene.poses_trusted is None
+    assert not use_pose_solver(exact, _config(iters=400, every=150, mode="auto"), notes.append)
+    assert use_pose_solver(exact, _config(mode="on"), notes.append)
+    assert "on (poses not flagged exact)" in notes[0] and "ends before its first call" in notes[1]
+    assert "off" in notes[2] and "poses_trusted" in notes[3]
+
+
+@pytest.mark.parametrize("blur", ["on", "off"])
+def test_written_mid_poses_are_exact_and_camera_moments_reset(noisy_scene, blur):
+    cfg = _config(blur=blur)
+    model = Model.from_scene(noisy_scene, cfg, decide_components(noisy_scene, cfg))
+    st = adam.adam_init(model.params)
+    st = {slot: {n: np.ones_like(v) for n, v in blocks.items()} if slot in ("m", "v") else blocks
+          for slot, blocks in st.items()}
+    state = TrainState(model, st)
+    rng = np.random.default_rng(0)
+    target = np.stack([se3_exp(rng.normal(0, 0.02, 6)) @ model.mid_pose(k) for k in range(model.num_frames)])
+    C = PoseSolver(noisy_scene, cfg)._endpoints(model)[2]
+    new = write_mid_poses(state, target, [1, 3], C)
+    for k in range(model.num_frames):
+        want = target[k] if k in (1, 3) else model.mid_pose(k)
+        np.testing.assert_allclose(new.model.mid_pose(k), want, atol=1e-12)
+    assert np.array_equal(new.model.poses_est, model.poses_est)  # the given poses stay as given
+    if blur == "on":
+        for name in ("camera.xi_start", "camera.xi_end"):
+            np.testing.assert_array_equal(new.model.params[name], model.params[name])  # endpoints relative to T̂
+            for slot in ("m", "v"):
+                assert np.all(new.adam[slot][name][[1, 3]] == 0) and np.all(new.adam[slot][name][[0, 2, 4]] == 1)
+    else:
+        np.testing.assert_array_equal(new.model.poses_ref[[1, 3]], target[[1, 3]])
+
+
+def test_a_solver_call_lowers_the_cost_and_is_logged(noisy_scene, tmp_path):
+    cfg = _config(iters=4, every=3)
+    tr = Trainer(noisy_scene, cfg, tmp_path / "run")
+    assert [p.name for p in tr.plugins][-1] == "pose_solver"
+    assert "pose_refinement" not in tr.left_out()
+    tr.run()
+    hist = json.loads((tmp_path / "run" / "pose_solver.json").read_text())
+    assert len(hist) == 1 and hist[0]["step"] == 3
+    h = hist[0]
+    assert h["cost_after"] <= h["cost_before"] and h["matches"] > 0 and "ate_before" in h
+    notes = json.loads((tmp_path / "run" / "log.json").read_text())["notes"]
+    assert any("pose solver" in n and "cost" in n and "ATE" in n for n in notes)
+    assert any(p.name.startswith("correspondences_") for p in (tmp_path / "run").iterdir())
+    assert not np.array_equal(tr.model.poses_ref, tr.model.poses_est)
+
+
+def test_resume_is_exact_with_the_pose_solver(noisy_scene, tmp_path):
+    cfg = _config(iters=8, every=3, checkpoint_every=5)
+    full = Trainer(noisy_scene, cfg, tmp_path / "full")
+    full.run()
+    assert len(full.plugins[-1].history) == 2  # steps 3 and 6
+    (tmp_path / "part").mkdir()
+    for name in ("checkpoint.npz", "config.json", "log.json", "log.csv"):
+        shutil.copy(tmp_path / "full" / name, tmp_path / "part" / name)
+    resumed = Trainer(noisy_scene, cfg, tmp_path / "part", resume=True)
+    assert resumed.step_index == 5 and len(resumed.plugins[-1].history) == 1
+    resumed.run()
+    assert resumed.plugins[-1].history == full.plugins[-1].history[:1] + [
+        {**h, "seconds": resumed.plugins[-1].history[1]["seconds"],
+         "solver_seconds": resumed.plugins[-1].history[1]["solver_seconds"]} for h in full.plugins[-1].history[1:]]
+    np.testing.assert_array_equal(resumed.model.poses_ref, full.model.poses_ref)
+    for name in full.params:
+        np.testing.assert_array_equal(resumed.params[name], full.params[name], err_msg=name)
+
+
+def test_bad_config_is_named():
+    with pytest.raises(ValueError, match="mode"):
+        PoseSolverConfig(mode="maybe")
+    with pytest.raises(ValueError, match="every"):
+        PoseSolverConfig(every=0)
+    with pytest.raises(ValueError, match="unknown key"):
+        ExperimentConfig.from_dict({"pose_solver": {"evry": 3}})
+    cfg = ExperimentConfig(pose_solver=PoseSolverConfig(every=7))
+    assert ExperimentConfig.from_json(cfg.to_json()) == cfg
+
+
+def test_posenet_mid_poses_move_to_first_order(noisy_scene):
+    # PoseNet reads log T̂ as input, so writing T̂' moves its endpoints a little: the written mid pose
+    # is the target only to first order in (pose change) x (endpoint spread)
+    from d2gs_np.trajectory import TrajectoryConfig
+
+    cfg = _config().replace(trajectory=TrajectoryConfig(kind="posenet"))
+    model = Model.from_scene(noisy_scene, cfg, decide_components(noisy_scene, cfg))
+    state = TrainState(model, adam.adam_init(model.params))
+    rng = np.random.default_rng(1)
+    step = [se3_exp(rng.normal(0, 0.01, 6)) for _ in range(model.num_frames)]
+    target = np.stack([step[k] @ model.mid_pose(k) for k in range(model.num_frames)])
+    new = write_mid_poses(state, target, [1, 2], PoseSolver(noisy_scene, cfg)._endpoints(model)[2])
+    for k in (1, 2):
+        moved = np.abs(target[k] - model.mid_pose(k)).max()
+        assert np.abs(new.model.mid_pose(k) - target[k]).max() < 1e-3 * moved  # measured 5e-5, 1e-4
+
+
+def test_a_run_without_the_blur_model_refines_the_given_poses(tmp_path):
+    scene = make_scene("dynamic", 0, rot_noise_deg=0.5, exposure_fraction=0.0, subframes=1, **SMALL)
+    tr = Trainer(scene, _config(iters=4, every=3), tmp_path / "run")
+    assert not tr.components.blur
+    tr.run()
+    assert len(tr.plugins[-1].history) == 1 and tr.plugins[-1].history[0]["status"] != "no_pairs"
+    np.testing.assert_array_equal(tr.model.mid_poses(), tr.model.poses_ref)  # n = 1: the reference is the mid pose
+    assert not np.array_equal(tr.model.poses_ref, tr.model.poses_est)
