@@ -3,8 +3,8 @@
 Every row records the step, the seconds of training so far (JIT warm-up and
 evaluation excluded, see ``Stopwatch``), the loss and train PSNR, and, on
 evaluation steps, held-out PSNR; also the render scale, the number of Gaussians,
-the progress of the schedule (``schedule_step / iters``: with a time budget it runs
-ahead of ``step / iters`` and reaches 1 when the budget is spent) and the number of
+the progress of the run after the row's step (``schedule.training_progress``: with a
+time budget it runs ahead of ``step / iters`` and reaches 1 when the budget is spent) and the number of
 virtual views the step rendered (1 without the blur model). Rows are appended to ``RUN/log.csv`` as they
 come (so a crash keeps them) and the whole history is rewritten atomically to
 ``RUN/log.json`` at checkpoints.

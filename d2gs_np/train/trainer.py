@@ -38,7 +38,7 @@ from d2gs_np.train.log import RunLog, Stopwatch, psnr_from_mse
 from d2gs_np.train.model import Model, frame_render_bwd, frame_render_fwd
 from d2gs_np.train.optimise import learning_rates, optimiser_step, scene_extent
 from d2gs_np.train.plugins import default_plugins
-from d2gs_np.train.schedule import TargetCache, schedule_step
+from d2gs_np.train.schedule import TargetCache, schedule_step, training_progress
 from d2gs_np.train.stages import Planner, make_stages
 from d2gs_np.train.state import TrainState
 from d2gs_np.train.terms import TermInputs, loss_terms, terms_fwd_bwd
@@ -250,12 +250,14 @@ class Trainer:
         heldout = info.get("heldout_psnr")
         if state.step % tc.log_every == 0 or state.last or heldout is not None:
             seconds = self.stopwatch.seconds()
+            # how far the run is after this step: what a time budget has bought (1 when it is spent)
+            progress = min(1.0, training_progress(state.step + 1, seconds, tc.iters, tc.time_budget))
             self.log.row(step=state.step, seconds=round(seconds, 4), stage=state.stage.name, loss=info["loss"],
                          train_psnr=info["train_psnr"], heldout_psnr=heldout, scale=round(info["scale"], 4),
-                         num_gaussians=self.num_gaussians(), progress=round(min(1.0, (state.sched + 1) / tc.iters), 4),
+                         num_gaussians=self.num_gaussians(), progress=round(progress, 4),
                          views=info.get("views"), **{f"loss_{t.name}": info.get(f"loss_{t.name}") for t in self.terms})
             self.log.progress(self.step_index, tc.iters, seconds, info["loss"], info["train_psnr"], state.stage.name,
-                              fraction=min(1.0, (state.sched + 1) / tc.iters))
+                              fraction=progress)
 
     # ------------------------------------------------------------------ checkpoints
     def checkpoint(self, final: bool = False):
