@@ -73,3 +73,9 @@ POSENET_INPUT_STD_MIN = 1e-6
 # exp, log and the product in float32 (~1e-7) or float64, so the skip decision is exactly the
 # one the full rule (alpha < 1/255) would take: a pure speed-up, the image is unchanged.
 ALPHA_CUTOFF_SAFETY = 1e-3
+
+# The rasteriser's vectorisable exp(-sigma) (render/rasterize.py ``_exp_neg``) clamps its argument
+# into [0, EXP_ARG_MAX]. Only sigma <= ln(opacity / ALPHA_THRESHOLD) + ALPHA_CUTOFF_SAFETY
+# <= ln(255) + 1e-3 ~ 5.54 ever reaches a pixel (opacity <= 1); larger sigma is masked out, so the
+# clamp only keeps those masked lanes finite. 8 > 5.54 with room, and keeps 2^-k in 4 bits (k <= 12).
+EXP_ARG_MAX = 8.0

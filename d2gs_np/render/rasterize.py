@@ -206,20 +206,77 @@ def _box_range(c, r, lo, hi, half, one):
 
 
 @njit(cache=True)
-def _row_range(loc, k, dy, ja, jb, half, one, two, zero):
-    """Columns [a, b) of [ja, jb) where Gaussian k may have sigma <= sigma_cut on a row at dy.
+def _band_rows(loc, k, y0, y1, half, one, two, zero):
+    """Rows [ia, ib) of [y0, y1) where Gaussian k may have sigma <= sigma_cut somewhere.
 
-    On a row, sigma(dx) = sigma_min + a/2 (dx - dx*)^2 with dx* = (c01/c11) dy and
-    sigma_min = dy^2 / (2 c11) (no cancellation: built from the covariance, not the conic), so
-    sigma <= cut only for |dx - dx*| <= sqrt((2 cut - dy^2 / c11) / a). Pixels outside that
-    interval (widened by 1 px) have sigma > cut, hence alpha < 1/255 by the margin
-    ALPHA_CUTOFF_SAFETY, far above rounding: skipping them is exactly what the 1/255 rule does.
+    On a row at dy the minimum of sigma over x is dy^2 / (2 c11) (``_IC11``, built from the
+    covariance: no cancellation), so only rows with |dy| <= sqrt(2 cut c11) can hold a pixel with
+    sigma <= cut; the 3.33-sigma box bounds them too. ``_box_range`` widens the interval by 1 px
+    (rounding). A degenerate row minimum (``_IC11`` <= 0, only with a clamped det) keeps the box.
     """
-    w2 = (two * loc[k, _CUT] - dy * dy * loc[k, _IC11]) * loc[k, _IA]
-    if not w2 >= zero:  # also catches cut = -inf (opacity 0)
-        return ja, ja
-    xc = loc[k, _U] - loc[k, _SLOPE] * dy  # pixel-centre x of the row's minimum
-    return _box_range(xc, math.sqrt(w2), ja, jb, half, one)
+    ry = loc[k, _RY]
+    ic11 = loc[k, _IC11]
+    if ic11 > zero:
+        r2 = two * loc[k, _CUT] / ic11
+        if not r2 >= zero:  # cut < 0 (alpha < 1/255 everywhere) or -inf (opacity 0)
+            return y0, y0
+        r = math.sqrt(r2)
+        if r < ry:
+            ry = r
+    return _box_range(loc[k, _V], ry, y0, y1, half, one)
+
+
+@njit(cache=True)
+def _exp_neg(s, ec):
+    """exp(-s) for s in [0, EXP_ARG_MAX] (clamped into it), within 2 ulp; plain arithmetic so that
+    a loop calling it vectorises (``math.exp`` is a scalar library call). ``ec``: ``_exp_consts``
+    unpacked into a tuple (see there for the method and the error bound)."""
+    (inv_ln2, ln2_hi, ln2_lo, s_max, half, one, zero, p1, p2, p4, p8, eight, four, two,
+     c2, c3, c4, c5, c6, c7, c8, c9, c10, c11, c12, c13) = ec
+    s = s_max if s > s_max else s
+    s = zero if s < zero else s
+    kf = np.floor(s * inv_ln2 + half)  # k = round(s / ln 2), 0 <= k <= 12
+    r = (kf * ln2_hi - s) + kf * ln2_lo  # k ln2 - s in [-ln2/2, ln2/2]; k ln2_hi is exact
+    p = c13
+    p = p * r + c12
+    p = p * r + c11
+    p = p * r + c10
+    p = p * r + c9
+    p = p * r + c8
+    p = p * r + c7
+    p = p * r + c6
+    p = p * r + c5
+    p = p * r + c4
+    p = p * r + c3
+    p = p * r + c2
+    p = p * r + one
+    p = p * r + one  # exp(r)
+    scale = one  # 2^-k from the bits of k (exact powers of two)
+    if kf >= eight:
+        kf = kf - eight
+        scale = p8
+    if kf >= four:
+        kf = kf - four
+        scale = scale * p4
+    if kf >= two:
+        kf = kf - two
+        scale = scale * p2
+    if kf >= one:
+        scale = scale * p1
+    return p * scale
+
+
+def _exp_consts(dtype):
+    """Constants of ``_exp_neg`` in ``dtype``: exp(-s) = 2^-k exp(r) with k = round(s / ln 2) and
+    r = k ln 2 - s in [-ln2/2, ln2/2] (Cody-Waite: ln 2 = ln2_hi + ln2_lo with ln2_hi holding 12
+    trailing zero bits, so k ln2_hi is exact for k <= 4096), exp(r) by its Taylor polynomial of
+    degree 13 (remainder <= (ln2/2)^14 / 14! < 5e-18, far below float64 rounding; measured within
+    2 ulp of numpy.exp over [0, EXP_ARG_MAX] by tests/render/test_render_fast.py)."""
+    ln2 = math.log(2.0)
+    ln2_hi = 0.693145751953125
+    vals = [1.0 / ln2, ln2_hi, ln2 - ln2_hi, C.EXP_ARG_MAX, 0.5, 1.0, 0.0, 0.5, 0.25, 1.0 / 16.0, 1.0 / 256.0,
+            8.0, 4.0, 2.0] + [1.0 / math.factorial(n) for n in range(2, 14)]
+    return np.array(vals, dtype=dtype)
 
 
 @njit(cache=True)
@@ -231,17 +288,71 @@ def _sigma(dx, dy, ca, cb, cc, half):
     return half * (ca * dx * dx + cc * dy * dy) + cb * dx * dy
 
 
+@njit(cache=True)
+def _tile_pixel_centres(x0, x1, y0, y1, px_centres, py_centres, dtype_like):
+    """(2, npix) pixel-centre x and y of the tile's pixels, row-major (lane q = row * tw + col)."""
+    tw = x1 - x0
+    P = np.empty((2, tw * (y1 - y0)), dtype_like.dtype)
+    for i in range(y0, y1):
+        for j in range(x0, x1):
+            q = (i - y0) * tw + (j - x0)
+            P[0, q] = px_centres[j]
+            P[1, q] = py_centres[i]
+    return P
+
+
+@njit(cache=True)
+def _composite_band(S, last, P, qa, qb, u, v, ca, cb, cc, o, cut, col0, col1, col2, zk, idx, amax, athr, tmin,
+                    zero, one, half, ec):
+    """Forward compositing of one Gaussian over the tile lanes [qa, qb) (uint64; whole tile rows).
+
+    S (6, npix) = per-pixel (T, r, g, b, depth, stopped flag), last (npix,) int64, P (2, npix)
+    pixel centres. Branch-free, so that LLVM vectorises it: every lane computes sigma and alpha,
+    and a lane changes state only when the rules of docs/conventions.md §6 make the Gaussian
+    contribute (sigma in [0, cut], alpha >= 1/255, the pixel not stopped, T(1 - alpha) > 1e-4);
+    otherwise it adds exact zeros (x + 0 = x) and keeps T and last. Returns the number of pixels
+    that stopped here.
+    """
+    n_stop = 0
+    for q in range(qa, qb):
+        dx = u - P[0, q]
+        dy = v - P[1, q]
+        sigma = _sigma(dx, dy, ca, cb, cc, half)
+        alpha = o * _exp_neg(sigma, ec)
+        alpha = amax if alpha > amax else alpha
+        T = S[0, q]
+        next_T = T * (one - alpha)
+        ok = (sigma >= zero) & (sigma <= cut) & (alpha >= athr) & (S[5, q] == zero)
+        stop = ok & (next_T <= tmin)
+        use = ok & (next_T > tmin)
+        # Every store is unconditional and exact for lanes that do not change (x + 0 = x,
+        # T (1 - 0) = T, last + 0 = last): a select of the old value would become a masked store.
+        a_used = alpha if use else zero
+        w = a_used * T
+        S[1, q] += col0 * w
+        S[2, q] += col1 * w
+        S[3, q] += col2 * w
+        S[4, q] += zk * w
+        S[0, q] = T * (one - a_used)
+        lq = last[q]
+        last[q] = lq + ((idx - lq) if use else 0)
+        S[5, q] += one if stop else zero
+        n_stop += 1 if stop else 0
+    return n_stop
+
+
 @njit(cache=True, parallel=True)
 def _rasterize_fwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, sigma_cut, cov2d, isect_gauss,
-                          tile_offsets, tile_order, px_centres, py_centres, background, consts, grid_w,
+                          tile_offsets, tile_order, px_centres, py_centres, background, consts, exp_consts, grid_w,
                           tile_size, image, depth_img, T_final, last_idx, n_eval_tile):
     """Front-to-back compositing, prange over tiles (each pixel written by its tile only).
 
     Within a tile the Gaussians are the outer loop, in list order (front to back), and each
-    visits only the pixels of its footprint (3.33-sigma box, then per row the interval where
-    sigma <= sigma_cut), keeping per-pixel T, C, D, last contributor and a "stopped" flag. So
-    every pixel still sees its Gaussians front to back and applies the exact rules of
-    docs/conventions.md §6; the pixels not visited are exactly those the 1/255 rule would skip.
+    visits the whole tile rows of its band (``_band_rows``: rows that can hold a pixel with
+    sigma <= sigma_cut) in one vectorised pass (``_composite_band``), keeping per-pixel T, C, D,
+    last contributor and a "stopped" flag. So every pixel still sees its Gaussians front to back
+    and applies the exact rules of docs/conventions.md §6; the rows not visited hold only pixels
+    the 1/255 rule skips.
 
     Outputs: image (H,W,3) = C + T_final background, depth_img (H,W) = sum w z, T_final (H,W),
     last_idx (H,W) int64 (list position of the last contributor, -1 if none), n_eval_tile
@@ -260,6 +371,7 @@ def _rasterize_fwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
     bg0 = background[0]
     bg1 = background[1]
     bg2 = background[2]
+    ec = _unpack_exp_consts(exp_consts)
     for it in prange(n_tiles):
         t = tile_order[it]
         start = tile_offsets[t]
@@ -272,12 +384,10 @@ def _rasterize_fwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
         y1 = min(y0 + tile_size, H)
         tw = x1 - x0
         npix = tw * (y1 - y0)
-        Tp = np.empty(npix, image.dtype)
-        acc = np.zeros((npix, 4), image.dtype)  # r, g, b, depth
-        last = np.empty(npix, np.int64)
-        stopped = np.zeros(npix, np.bool_)
-        Tp[:] = one
-        last[:] = -1
+        S = np.zeros((6, npix), image.dtype)  # T, r, g, b, depth, stopped
+        S[0, :] = one
+        last = np.full(npix, -1, np.int64)
+        P = _tile_pixel_centres(x0, x1, y0, y1, px_centres, py_centres, consts)
         n_stopped = 0
         count = 0
         loc = _gather_tile(start, end, isect_gauss, means2d, conics, opac_eff, colors, depths, radii_f,
@@ -285,76 +395,91 @@ def _rasterize_fwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
         for k in range(end - start):
             if n_stopped == npix:
                 break
-            u = loc[k, _U]
-            v = loc[k, _V]
-            ca = loc[k, _CA]
-            cb = loc[k, _CB]
-            cc = loc[k, _CC]
-            o = loc[k, _OP]
-            cut = loc[k, _CUT]
-            col0 = loc[k, _R]
-            col1 = loc[k, _G]
-            col2 = loc[k, _B]
-            zk = loc[k, _Z]
-            ja0, jb0 = _box_range(u, loc[k, _RX], x0, x1, half, one)
-            ia, ib = _box_range(v, loc[k, _RY], y0, y1, half, one)
-            for i in range(ia, ib):
-                dy = v - py_centres[i]
-                ja, jb = _row_range(loc, k, dy, ja0, jb0, half, one, two, zero)
-                count += jb - ja
-                for j in range(ja, jb):
-                    p = (i - y0) * tw + (j - x0)
-                    if stopped[p]:
-                        continue
-                    dx = u - px_centres[j]
-                    sigma = _sigma(dx, dy, ca, cb, cc, half)
-                    if sigma < zero or sigma > cut:
-                        continue
-                    alpha = o * math.exp(-sigma)
-                    if alpha > amax:
-                        alpha = amax
-                    if alpha < athr:
-                        continue
-                    T = Tp[p]
-                    next_T = T * (one - alpha)
-                    if next_T <= tmin:
-                        stopped[p] = True
-                        n_stopped += 1
-                        continue
-                    w = alpha * T
-                    acc[p, 0] += col0 * w
-                    acc[p, 1] += col1 * w
-                    acc[p, 2] += col2 * w
-                    acc[p, 3] += zk * w
-                    Tp[p] = next_T
-                    last[p] = start + k
+            ia, ib = _band_rows(loc, k, y0, y1, half, one, two, zero)
+            if ib <= ia:
+                continue
+            qa = (ia - y0) * tw
+            qb = (ib - y0) * tw
+            count += qb - qa
+            n_stopped += _composite_band(S, last, P, np.uint64(qa), np.uint64(qb), loc[k, _U], loc[k, _V],
+                                         loc[k, _CA], loc[k, _CB], loc[k, _CC], loc[k, _OP], loc[k, _CUT],
+                                         loc[k, _R], loc[k, _G], loc[k, _B], loc[k, _Z], start + k, amax, athr,
+                                         tmin, zero, one, half, ec)
         for i in range(y0, y1):
             for j in range(x0, x1):
-                p = (i - y0) * tw + (j - x0)
-                T = Tp[p]
-                image[i, j, 0] = acc[p, 0] + T * bg0
-                image[i, j, 1] = acc[p, 1] + T * bg1
-                image[i, j, 2] = acc[p, 2] + T * bg2
-                depth_img[i, j] = acc[p, 3]
+                q = (i - y0) * tw + (j - x0)
+                T = S[0, q]
+                image[i, j, 0] = S[1, q] + T * bg0
+                image[i, j, 1] = S[2, q] + T * bg1
+                image[i, j, 2] = S[3, q] + T * bg2
+                depth_img[i, j] = S[4, q]
                 T_final[i, j] = T
-                last_idx[i, j] = last[p]
+                last_idx[i, j] = last[q]
         n_eval_tile[t] = count
+
+
+@njit(cache=True)
+def _unpack_exp_consts(e):
+    """The (26,) array of ``_exp_consts`` as a tuple (loop invariants LLVM keeps in registers)."""
+    return (e[0], e[1], e[2], e[3], e[4], e[5], e[6], e[7], e[8], e[9], e[10], e[11], e[12], e[13], e[14], e[15],
+            e[16], e[17], e[18], e[19], e[20], e[21], e[22], e[23], e[24], e[25])
+
+
+@njit(cache=True, error_model="numpy")  # no zero-division check (alpha <= 0.999): it would stop vectorisation
+def _backprop_band(S, X, P, V, last, qa, qb, row, u, v, ca, cb, cc, o, cut, col0, col1, col2, zk, amax, athr,
+                   zero, one, half, ec):
+    """Backward of one Gaussian over the tile lanes [qa, qb) (uint64), branch-free (vectorises).
+
+    S (5, npix) = per-pixel (T behind, sums behind of r, g, b, depth times weight), V (5, npix) =
+    per-pixel (dL/dr, dL/dg, dL/db, dL/dD, dL/dT_final x T_final), last (npix,) the last
+    contributor of each pixel, P (2, npix) the pixel centres. A lane takes part when the pixel
+    composited this Gaussian in the forward pass (row <= last, sigma in [0, cut], alpha >= 1/255:
+    the forward's exact decisions); it then recovers T in front (T / (1 - alpha)) and updates S.
+    X (3, npix) gets per lane the weight alpha T, dL/dalpha x exp(-sigma) (= dL/dopacity) and
+    dL/dsigma = -dL/dalpha x alpha_raw (these two zero through the 0.999 clamp), all zero for
+    lanes that do not take part; ``_rasterize_bwd_kernel`` sums the ten gradient terms from them.
+    (Three output rows, not ten: more written arrays need more runtime alias checks than LLVM
+    allows, and the loop would stay scalar.)
+    """
+    for q in range(qa, qb):
+        dx = u - P[0, q]
+        dy = v - P[1, q]
+        sigma = _sigma(dx, dy, ca, cb, cc, half)
+        vis = _exp_neg(sigma, ec)
+        raw = o * vis
+        alpha = amax if raw > amax else raw
+        ok = (row <= last[q]) & (sigma >= zero) & (sigma <= cut) & (alpha >= athr)
+        ra = one / (one - alpha)
+        T = S[0, q] * ra  # transmittance in front of this Gaussian
+        fac = alpha * T
+        v_alpha = ((col0 * T - S[1, q] * ra) * V[0, q] + (col1 * T - S[2, q] * ra) * V[1, q]
+                   + (col2 * T - S[3, q] * ra) * V[2, q] + (zk * T - S[4, q] * ra) * V[3, q] - V[4, q] * ra)
+        S[0, q] = S[0, q] * (ra if ok else one)  # T in front if ok, else unchanged (x 1 is exact)
+        S[1, q] += col0 * fac if ok else zero
+        S[2, q] += col1 * fac if ok else zero
+        S[3, q] += col2 * fac if ok else zero
+        S[4, q] += zk * fac if ok else zero
+        geo = ok & (raw <= amax)  # no gradient through the 0.999 clamp
+        X[0, q] = fac if ok else zero
+        X[1, q] = v_alpha * vis if geo else zero
+        X[2, q] = -v_alpha * raw if geo else zero
 
 
 @njit(cache=True, parallel=True)
 def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, sigma_cut, cov2d, isect_gauss,
-                          tile_offsets, tile_order, px_centres, py_centres, consts, grid_w, tile_size,
+                          tile_offsets, tile_order, px_centres, py_centres, consts, exp_consts, grid_w, tile_size,
                           T_final, last_idx, v_color_img, v_depth_img, v_T_img, buf):
     """Back-to-front gradient of the compositing, prange over tiles.
 
     v_color_img (H,W,3) = dL/dC, v_depth_img (H,W) = dL/dD, v_T_img (H,W) = dL/dT_final (all
     paths: background, alpha, expected depth). Gaussians are the outer loop, from the tile's
-    latest last contributor back to its first, over the same footprints as the forward pass;
-    every pixel walks its own contributors back to front from its last one, recovering
-    T_k = T_{k+1} / (1 - alpha_k) (alpha <= 0.999, so the division is safe), as 3DGS and gsplat
-    do. The gradient of intersection ``start + k`` (dL/d(u, v, conic a, b, c, opacity_eff, r, g,
-    b, z)) is summed over the tile's pixels in a fixed order and written once to row start + k of
-    buf (n_isect, 10); rows no pixel uses stay as given (zero).
+    latest last contributor back to its first, over the same bands as the forward pass
+    (``_backprop_band``, vectorised); every pixel walks its own contributors back to front from
+    its last one, recovering T_k = T_{k+1} / (1 - alpha_k) (alpha <= 0.999, so the division is
+    safe), as 3DGS and gsplat do. The gradient of intersection ``start + k`` (dL/d(u, v, conic
+    a, b, c, opacity_eff, r, g, b, z)) is summed over the band's pixels in row-major order (the
+    lanes that do not take part hold exact zeros) and written once to row start + k of buf
+    (n_isect, 10); rows no pixel uses stay as given (zero).
     """
     H = T_final.shape[0]
     W = T_final.shape[1]
@@ -365,6 +490,7 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
     half = consts[K_HALF]
     amax = consts[K_ALPHA_MAX]
     athr = consts[K_ALPHA_THRESHOLD]
+    ec = _unpack_exp_consts(exp_consts)
     for it in prange(n_tiles):
         t = tile_order[it]
         start = tile_offsets[t]
@@ -379,34 +505,41 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
         y1 = min(y0 + tile_size, H)
         tw = x1 - x0
         npix = tw * (y1 - y0)
-        Tp = np.empty(npix, T_final.dtype)
-        acc = np.zeros((npix, 4), T_final.dtype)  # sums behind: color * weight (r, g, b), depth * weight
         last = np.empty(npix, np.int64)
         kmax = -1
         for i in range(y0, y1):
             for j in range(x0, x1):
-                p = (i - y0) * tw + (j - x0)
-                Tp[p] = T_final[i, j]
-                last[p] = last_idx[i, j]
-                if last[p] > kmax:
-                    kmax = last[p]
+                q = (i - y0) * tw + (j - x0)
+                last[q] = last_idx[i, j]
+                if last[q] > kmax:
+                    kmax = last[q]
         if kmax < start:
             continue
+        S = np.zeros((5, npix), T_final.dtype)  # T behind, sums behind: color * weight (r, g, b), depth * weight
+        V = np.empty((5, npix), T_final.dtype)
+        for i in range(y0, y1):
+            for j in range(x0, x1):
+                q = (i - y0) * tw + (j - x0)
+                S[0, q] = T_final[i, j]
+                V[0, q] = v_color_img[i, j, 0]
+                V[1, q] = v_color_img[i, j, 1]
+                V[2, q] = v_color_img[i, j, 2]
+                V[3, q] = v_depth_img[i, j]
+                V[4, q] = v_T_img[i, j] * T_final[i, j]
+        X = np.empty((3, npix), T_final.dtype)  # per-lane weight, dL/dopacity, dL/dsigma
+        P = _tile_pixel_centres(x0, x1, y0, y1, px_centres, py_centres, consts)
         loc = _gather_tile(start, kmax + 1, isect_gauss, means2d, conics, opac_eff, colors, depths, radii_f,
                            sigma_cut, cov2d, consts)
         for k in range(kmax - start, -1, -1):
             row = start + k
-            u = loc[k, _U]
-            v = loc[k, _V]
-            ca = loc[k, _CA]
-            cb = loc[k, _CB]
-            cc = loc[k, _CC]
-            o = loc[k, _OP]
-            cut = loc[k, _CUT]
-            col0 = loc[k, _R]
-            col1 = loc[k, _G]
-            col2 = loc[k, _B]
-            zk = loc[k, _Z]
+            ia, ib = _band_rows(loc, k, y0, y1, half, one, two, zero)
+            if ib <= ia:
+                continue
+            qa = (ia - y0) * tw
+            qb = (ib - y0) * tw
+            _backprop_band(S, X, P, V, last, np.uint64(qa), np.uint64(qb), row, loc[k, _U], loc[k, _V],
+                           loc[k, _CA], loc[k, _CB], loc[k, _CC], loc[k, _OP], loc[k, _CUT], loc[k, _R],
+                           loc[k, _G], loc[k, _B], loc[k, _Z], amax, athr, zero, one, half, ec)
             g_u = zero
             g_v = zero
             g_a = zero
@@ -417,53 +550,28 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
             g_g = zero
             g_bl = zero
             g_z = zero
-            ja0, jb0 = _box_range(u, loc[k, _RX], x0, x1, half, one)
-            ia, ib = _box_range(v, loc[k, _RY], y0, y1, half, one)
-            for i in range(ia, ib):
-                dy = v - py_centres[i]
-                ja, jb = _row_range(loc, k, dy, ja0, jb0, half, one, two, zero)
-                for j in range(ja, jb):
-                    p = (i - y0) * tw + (j - x0)
-                    if row > last[p]:
-                        continue
-                    dx = u - px_centres[j]
-                    sigma = _sigma(dx, dy, ca, cb, cc, half)
-                    if sigma < zero or sigma > cut:
-                        continue
-                    vis = math.exp(-sigma)
-                    raw = o * vis
-                    alpha = raw
-                    if alpha > amax:
-                        alpha = amax
-                    if alpha < athr:
-                        continue
-                    ra = one / (one - alpha)
-                    T = Tp[p] * ra  # transmittance in front of Gaussian k
-                    Tp[p] = T
-                    fac = alpha * T
-                    vc0 = v_color_img[i, j, 0]
-                    vc1 = v_color_img[i, j, 1]
-                    vc2 = v_color_img[i, j, 2]
-                    vd = v_depth_img[i, j]
-                    g_r += fac * vc0
-                    g_g += fac * vc1
-                    g_bl += fac * vc2
-                    g_z += fac * vd
-                    v_alpha = ((col0 * T - acc[p, 0] * ra) * vc0 + (col1 * T - acc[p, 1] * ra) * vc1
-                               + (col2 * T - acc[p, 2] * ra) * vc2 + (zk * T - acc[p, 3] * ra) * vd
-                               - v_T_img[i, j] * T_final[i, j] * ra)
-                    acc[p, 0] += col0 * fac
-                    acc[p, 1] += col1 * fac
-                    acc[p, 2] += col2 * fac
-                    acc[p, 3] += zk * fac
-                    if raw <= amax:  # no gradient through the 0.999 clamp
-                        g_o += v_alpha * vis
-                        v_sigma = -v_alpha * raw
-                        g_a += half * dx * dx * v_sigma
-                        g_b += dx * dy * v_sigma
-                        g_c += half * dy * dy * v_sigma
-                        g_u += v_sigma * (ca * dx + cb * dy)
-                        g_v += v_sigma * (cb * dx + cc * dy)
+            u = loc[k, _U]
+            v = loc[k, _V]
+            ca = loc[k, _CA]
+            cb = loc[k, _CB]
+            cc = loc[k, _CC]
+            for q in range(qa, qb):  # row-major over the band: a fixed order
+                fac = X[0, q]
+                if fac == zero:  # the lane did not take part (alpha T > 0 when it does)
+                    continue
+                g_r += fac * V[0, q]
+                g_g += fac * V[1, q]
+                g_bl += fac * V[2, q]
+                g_z += fac * V[3, q]
+                g_o += X[1, q]
+                v_sigma = X[2, q]
+                dx = u - P[0, q]
+                dy = v - P[1, q]
+                g_a += half * dx * dx * v_sigma
+                g_b += dx * dy * v_sigma
+                g_c += half * dy * dy * v_sigma
+                g_u += v_sigma * (ca * dx + cb * dy)
+                g_v += v_sigma * (cb * dx + cc * dy)
             buf[row, _U] = g_u
             buf[row, _V] = g_v
             buf[row, _CA] = g_a
@@ -582,7 +690,7 @@ def rasterize_fwd(proj, colors, background, consts, isect, width, height, tile_s
     n_eval_tile = np.zeros(n_tiles, np.int64)
     _rasterize_fwd_kernel(proj["means2d"], proj["conics"], proj["opac_eff"], colors, proj["depths"],
                           proj["radii_f"], sigma_cut, proj["cov2d"], isect["isect_gauss"], isect["tile_offsets"],
-                          _tile_order(n_tiles), px, py, background, consts, isect["grid_w"], tile_size,
+                          _tile_order(n_tiles), px, py, background, consts, _exp_consts(dtype), isect["grid_w"], tile_size,
                           image, depth, T_final, last_idx, n_eval_tile)
     return dict(image=image, depth=depth, T_final=T_final, last_idx=last_idx, n_eval_tile=n_eval_tile,
                 sigma_cut=sigma_cut)
@@ -599,7 +707,7 @@ def rasterize_bwd(proj, colors, consts, isect, raster, tile_size, v_color_img, v
     buf = np.zeros((isect["n_isect"], _NCOL), dtype)
     _rasterize_bwd_kernel(proj["means2d"], proj["conics"], proj["opac_eff"], colors, proj["depths"],
                           proj["radii_f"], raster["sigma_cut"], proj["cov2d"], isect["isect_gauss"], isect["tile_offsets"],
-                          _tile_order(n_tiles), px, py, consts, isect["grid_w"], tile_size, raster["T_final"],
+                          _tile_order(n_tiles), px, py, consts, _exp_consts(dtype), isect["grid_w"], tile_size, raster["T_final"],
                           raster["last_idx"], v_color_img, v_depth_img, v_T_img, buf)
     out = dict(v_means2d=np.zeros((n, 2), dtype), v_conics=np.zeros((n, 3), dtype),
                v_opac_eff=np.zeros(n, dtype), v_colors=np.zeros((n, 3), dtype),

@@ -455,7 +455,8 @@ def test_float32_kernels_compute_in_float32():
     kernels = _jitted_functions(fast_project) + _jitted_functions(fast_rasterize)
     names = {k.py_func.__name__ for k in kernels}
     assert {"_project_fwd_kernel", "_project_bwd_kernel", "_rasterize_fwd_kernel", "_rasterize_bwd_kernel",
-            "_isect_reduce_kernel", "_gather_tile", "_sigma", "_row_range"} <= names
+            "_isect_reduce_kernel", "_gather_tile", "_sigma", "_band_rows", "_exp_neg", "_composite_band",
+            "_backprop_band"} <= names
     def float32_sigs(kern):
         return [s for s in kern.signatures if any(getattr(a, "dtype", a) == types.float32 for a in s)]
 
