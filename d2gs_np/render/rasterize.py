@@ -62,9 +62,17 @@ from d2gs_np.render.project import (
 )
 
 # Columns of the tile-local packed parameters (all 16) and of the gradient buffer (first 10).
-_U, _V, _CA, _CB, _CC, _OP, _R, _G, _B, _Z, _RX, _RY, _CUT, _SLOPE, _IC11, _IA = range(16)
+_U, _V, _CA, _CB, _CC, _OP, _R, _G, _B, _Z, _RX, _RY, _CUT, _IC00, _IC11 = range(15)
 _NCOL = 10
-_NLOC = 16
+_NLOC = 15
+# Tile-local pixel layout: the tile is cut into column strips _STRIP pixels wide, each stored
+# row-major, one after the other, so that the rows [ia, ib) of one strip are one contiguous run of
+# lanes. A Gaussian visits only the strips its columns reach: narrower strips waste fewer lanes
+# on the sides, wider ones make longer runs (vector loops need several vectors per run). 4
+# measured best with 8 float64 lanes per vector (examples/profile_step.py). The backward pass
+# sums gradients in this lane order, so results depend on it (deterministically).
+_STRIP = 8
+_ROW_GROUP = 2  # bands are padded to a multiple of this many rows (``_pad_rows``): 16-lane runs
 _TILE_ORDER_SEED = 0  # seed of the fixed tile permutation (load balance only; results never depend on it)
 
 
@@ -161,9 +169,8 @@ def _gather_tile(start, end, isect_gauss, means2d, conics, opac_eff, colors, dep
                  cov2d, consts):
     """Copy the parameters of a tile's Gaussians, in list order, into a (m, _NLOC) local array.
 
-    Besides the parameters, each row gets the footprint bounds used by ``_row_range``: the slope
-    c01/c11 of the line of per-row minima, the row-minimum coefficient (1/c11) and 1/a
-    (a = conic[0] = c11/det).
+    Besides the parameters, each row gets the coefficients of the row and column minima of sigma
+    used by ``_band_rows`` / ``_band_cols`` (1/c11 and 1/c00 of the covariance).
     """
     m = end - start
     zero = consts[K_ZERO]
@@ -188,15 +195,15 @@ def _gather_tile(start, end, isect_gauss, means2d, conics, opac_eff, colors, dep
         c00 = cov2d[g, 0]
         c01 = cov2d[g, 1]
         c11 = cov2d[g, 2]
-        loc[k, _SLOPE] = c01 / c11
-        loc[k, _IA] = one / conics[g, 0]
         det = c00 * c11 - c01 * c01  # bitwise the projection's det before its clamp
         if det >= det_min:
             loc[k, _IC11] = one / c11  # conic = inverse covariance: row minimum dy^2 / (2 c11)
+            loc[k, _IC00] = one / c00  # and column minimum dx^2 / (2 c00)
         else:
             # det clamped (only possible with eps2d = 0): conic = adj(cov) / DET_MIN, whose row
             # minimum is dy^2 det / (2 DET_MIN c11) (<= 0 if det <= 0: rows are never skipped)
             loc[k, _IC11] = max(det, zero) / (det_min * c11)
+            loc[k, _IC00] = max(det, zero) / (det_min * c00)
     return loc
 
 
@@ -211,24 +218,66 @@ def _box_range(c, r, lo, hi, half, one):
 
 
 @njit(cache=True)
-def _band_rows(loc, k, y0, y1, half, one, two, zero):
-    """Rows [ia, ib) of [y0, y1) where Gaussian k may have sigma <= sigma_cut somewhere.
+def _band(c, r_box, inv_var, cut, lo, hi, half, one, two, zero):
+    """Pixels [a, b) of [lo, hi) along one axis where a Gaussian may have sigma <= cut.
 
-    On a row at dy the minimum of sigma over x is dy^2 / (2 c11) (``_IC11``, built from the
-    covariance: no cancellation), so only rows with |dy| <= sqrt(2 cut c11) can hold a pixel with
-    sigma <= cut; the 3.33-sigma box bounds them too. ``_box_range`` widens the interval by 1 px
-    (rounding). A degenerate row minimum (``_IC11`` <= 0, only with a clamped det) keeps the box.
+    Along that axis the minimum of sigma over the other axis is d^2 inv_var / 2 (inv_var = 1/c11
+    for rows, 1/c00 for columns, built from the covariance: no cancellation), so only
+    |d| <= sqrt(2 cut / inv_var) can hold a pixel with sigma <= cut; the 3.33-sigma box (r_box)
+    bounds it too. ``_box_range`` widens the interval by 1 px (rounding). A degenerate minimum
+    (inv_var <= 0, only with a clamped det) keeps the box.
     """
-    ry = loc[k, _RY]
-    ic11 = loc[k, _IC11]
-    if ic11 > zero:
-        r2 = two * loc[k, _CUT] / ic11
+    if inv_var > zero:
+        r2 = two * cut / inv_var
         if not r2 >= zero:  # cut < 0 (alpha < 1/255 everywhere) or -inf (opacity 0)
-            return y0, y0
+            return lo, lo
         r = math.sqrt(r2)
-        if r < ry:
-            ry = r
-    return _box_range(loc[k, _V], ry, y0, y1, half, one)
+        if r < r_box:
+            r_box = r
+    return _box_range(c, r_box, lo, hi, half, one)
+
+
+@njit(cache=True)
+def _band_rows(loc, k, y0, y1, half, one, two, zero):
+    """Rows [ia, ib) of [y0, y1) where Gaussian k may have sigma <= sigma_cut (``_band``)."""
+    return _band(loc[k, _V], loc[k, _RY], loc[k, _IC11], loc[k, _CUT], y0, y1, half, one, two, zero)
+
+
+@njit(cache=True)
+def _band_cols(loc, k, x0, x1, half, one, two, zero):
+    """Columns [ja, jb) of [x0, x1) where Gaussian k may have sigma <= sigma_cut (``_band``)."""
+    return _band(loc[k, _U], loc[k, _RX], loc[k, _IC00], loc[k, _CUT], x0, x1, half, one, two, zero)
+
+
+@njit(cache=True)
+def _lane(i, j, x0, x1, y0, th):
+    """Tile-local lane of pixel (i, j) in the strip layout (see ``_STRIP``)."""
+    s = (j - x0) // _STRIP
+    c0 = x0 + s * _STRIP
+    ws = min(_STRIP, x1 - c0)
+    return s * _STRIP * th + (i - y0) * ws + (j - c0)
+
+
+@njit(cache=True)
+def _pad_rows(ia, ib, y0, y1):
+    """[ia, ib) grown to a multiple of _ROW_GROUP rows inside [y0, y1) (downwards, else upwards):
+    runs of whole vectors leave no scalar remainder loop. Extra rows only add lanes that the
+    rules of §6 then decide on like any other (so results do not depend on it)."""
+    n = ((ib - ia + _ROW_GROUP - 1) // _ROW_GROUP) * _ROW_GROUP
+    if n > y1 - y0:
+        n = y1 - y0
+    if ia + n <= y1:
+        return ia, ia + n
+    return y1 - n, y1
+
+
+@njit(cache=True)
+def _strip_run(s, ia, ib, x0, x1, y0, th):
+    """Lanes [qa, qb) of rows [ia, ib) of strip s."""
+    c0 = x0 + s * _STRIP
+    ws = min(_STRIP, x1 - c0)
+    base = s * _STRIP * th
+    return base + (ia - y0) * ws, base + (ib - y0) * ws
 
 
 @njit(cache=True)
@@ -297,12 +346,12 @@ def _sigma(dx, dy, ca, cb, cc, half):
 
 @njit(cache=True)
 def _tile_pixel_centres(x0, x1, y0, y1, px_centres, py_centres, dtype_like):
-    """(2, npix) pixel-centre x and y of the tile's pixels, row-major (lane q = row * tw + col)."""
-    tw = x1 - x0
-    P = np.empty((2, tw * (y1 - y0)), dtype_like.dtype)
+    """(2, npix) pixel-centre x and y of the tile's pixels, in the lane layout (``_lane``)."""
+    th = y1 - y0
+    P = np.empty((2, (x1 - x0) * th), dtype_like.dtype)
     for i in range(y0, y1):
         for j in range(x0, x1):
-            q = (i - y0) * tw + (j - x0)
+            q = _lane(i, j, x0, x1, y0, th)
             P[0, q] = px_centres[j]
             P[1, q] = py_centres[i]
     return P
@@ -399,22 +448,25 @@ def _rasterize_fwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
         count = 0
         loc = _gather_tile(start, end, isect_gauss, means2d, conics, opac_eff, colors, depths, radii_f,
                            sigma_cut, cov2d, consts)
+        th = y1 - y0
         for k in range(end - start):
             if n_stopped == npix:
                 break
             ia, ib = _band_rows(loc, k, y0, y1, half, one, two, zero)
-            if ib <= ia:
+            ja, jb = _band_cols(loc, k, x0, x1, half, one, two, zero)
+            if ib <= ia or jb <= ja:
                 continue
-            qa = (ia - y0) * tw
-            qb = (ib - y0) * tw
-            count += qb - qa
-            n_stopped += _composite_band(S, last, P, np.uint64(qa), np.uint64(qb), loc[k, _U], loc[k, _V],
-                                         loc[k, _CA], loc[k, _CB], loc[k, _CC], loc[k, _OP], loc[k, _CUT],
-                                         loc[k, _R], loc[k, _G], loc[k, _B], loc[k, _Z], start + k, amax, athr,
-                                         tmin, zero, one, half, ec)
+            ia, ib = _pad_rows(ia, ib, y0, y1)
+            for s in range((ja - x0) // _STRIP, (jb - 1 - x0) // _STRIP + 1):
+                qa, qb = _strip_run(s, ia, ib, x0, x1, y0, th)
+                count += qb - qa
+                n_stopped += _composite_band(S, last, P, np.uint64(qa), np.uint64(qb), loc[k, _U], loc[k, _V],
+                                             loc[k, _CA], loc[k, _CB], loc[k, _CC], loc[k, _OP], loc[k, _CUT],
+                                             loc[k, _R], loc[k, _G], loc[k, _B], loc[k, _Z], start + k, amax,
+                                             athr, tmin, zero, one, half, ec)
         for i in range(y0, y1):
             for j in range(x0, x1):
-                q = (i - y0) * tw + (j - x0)
+                q = _lane(i, j, x0, x1, y0, th)
                 T = S[0, q]
                 image[i, j, 0] = S[1, q] + T * bg0
                 image[i, j, 1] = S[2, q] + T * bg1
@@ -512,11 +564,12 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
         y1 = min(y0 + tile_size, H)
         tw = x1 - x0
         npix = tw * (y1 - y0)
+        th = y1 - y0
         last = np.empty(npix, np.int64)
         kmax = -1
         for i in range(y0, y1):
             for j in range(x0, x1):
-                q = (i - y0) * tw + (j - x0)
+                q = _lane(i, j, x0, x1, y0, th)
                 last[q] = last_idx[i, j]
                 if last[q] > kmax:
                     kmax = last[q]
@@ -526,7 +579,7 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
         V = np.empty((5, npix), T_final.dtype)
         for i in range(y0, y1):
             for j in range(x0, x1):
-                q = (i - y0) * tw + (j - x0)
+                q = _lane(i, j, x0, x1, y0, th)
                 S[0, q] = T_final[i, j]
                 V[0, q] = v_color_img[i, j, 0]
                 V[1, q] = v_color_img[i, j, 1]
@@ -540,13 +593,15 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
         for k in range(kmax - start, -1, -1):
             row = start + k
             ia, ib = _band_rows(loc, k, y0, y1, half, one, two, zero)
-            if ib <= ia:
+            ja, jb = _band_cols(loc, k, x0, x1, half, one, two, zero)
+            if ib <= ia or jb <= ja:
                 continue
-            qa = (ia - y0) * tw
-            qb = (ib - y0) * tw
-            _backprop_band(S, X, P, V, last, np.uint64(qa), np.uint64(qb), row, loc[k, _U], loc[k, _V],
-                           loc[k, _CA], loc[k, _CB], loc[k, _CC], loc[k, _OP], loc[k, _CUT], loc[k, _R],
-                           loc[k, _G], loc[k, _B], loc[k, _Z], amax, athr, zero, one, half, ec)
+            ia, ib = _pad_rows(ia, ib, y0, y1)
+            u = loc[k, _U]
+            v = loc[k, _V]
+            ca = loc[k, _CA]
+            cb = loc[k, _CB]
+            cc = loc[k, _CC]
             g_u = zero
             g_v = zero
             g_a = zero
@@ -557,28 +612,28 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
             g_g = zero
             g_bl = zero
             g_z = zero
-            u = loc[k, _U]
-            v = loc[k, _V]
-            ca = loc[k, _CA]
-            cb = loc[k, _CB]
-            cc = loc[k, _CC]
-            for q in range(qa, qb):  # row-major over the band: a fixed order
-                fac = X[0, q]
-                if fac == zero:  # the lane did not take part (alpha T > 0 when it does)
-                    continue
-                g_r += fac * V[0, q]
-                g_g += fac * V[1, q]
-                g_bl += fac * V[2, q]
-                g_z += fac * V[3, q]
-                g_o += X[1, q]
-                v_sigma = X[2, q]
-                dx = u - P[0, q]
-                dy = v - P[1, q]
-                g_a += half * dx * dx * v_sigma
-                g_b += dx * dy * v_sigma
-                g_c += half * dy * dy * v_sigma
-                g_u += v_sigma * (ca * dx + cb * dy)
-                g_v += v_sigma * (cb * dx + cc * dy)
+            for s in range((ja - x0) // _STRIP, (jb - 1 - x0) // _STRIP + 1):
+                qa, qb = _strip_run(s, ia, ib, x0, x1, y0, th)
+                _backprop_band(S, X, P, V, last, np.uint64(qa), np.uint64(qb), row, u, v, ca, cb, cc,
+                               loc[k, _OP], loc[k, _CUT], loc[k, _R], loc[k, _G], loc[k, _B], loc[k, _Z], amax,
+                               athr, zero, one, half, ec)
+                for q in range(qa, qb):  # strips in order, each row-major: a fixed order
+                    fac = X[0, q]
+                    if fac == zero:  # the lane did not take part (alpha T > 0 when it does)
+                        continue
+                    g_r += fac * V[0, q]
+                    g_g += fac * V[1, q]
+                    g_bl += fac * V[2, q]
+                    g_z += fac * V[3, q]
+                    g_o += X[1, q]
+                    v_sigma = X[2, q]
+                    dx = u - P[0, q]
+                    dy = v - P[1, q]
+                    g_a += half * dx * dx * v_sigma
+                    g_b += dx * dy * v_sigma
+                    g_c += half * dy * dy * v_sigma
+                    g_u += v_sigma * (ca * dx + cb * dy)
+                    g_v += v_sigma * (cb * dx + cc * dy)
             buf[row, _U] = g_u
             buf[row, _V] = g_v
             buf[row, _CA] = g_a
