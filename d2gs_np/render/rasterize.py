@@ -280,7 +280,7 @@ def _strip_run(s, ia, ib, x0, x1, y0, th):
     return base + (ia - y0) * ws, base + (ib - y0) * ws
 
 
-@njit(cache=True)
+@njit(cache=True, fastmath={"contract"})  # Horner steps as fused multiply-adds (deterministic)
 def _exp_neg(s, ec):
     """exp(-s) for s in [0, EXP_ARG_MAX] (clamped into it), within 3 ulp; plain arithmetic so that
     a loop calling it vectorises (``math.exp`` is a scalar library call). ``ec``: ``_exp_consts``
