@@ -16,22 +16,24 @@ Pipeline (docs/conventions.md §5-8, gsplat 1.5.3):
    back with the exact rules of §6 (skip if sigma < 0 or alpha < 1/255; alpha clamped at 0.999;
    stop *before* a Gaussian that would bring T(1-alpha) <= 1e-4) and stores its final
    transmittance and the list position of its last contributor. Inside a tile the Gaussians are
-   the outer loop (front to back) with per-pixel state in tile-local arrays, and each Gaussian
-   visits the whole tile rows of its band: the rows of its 3.33-sigma box where the row minimum
-   of sigma is <= ln(255 o) + ALPHA_CUTOFF_SAFETY (``_band_rows``). Outside the band alpha <
+   the outer loop (front to back) with per-pixel state in tile-local arrays laid out as column
+   strips (``_STRIP`` wide, each row-major: ``_lane``). Each Gaussian visits its band: the rows
+   and columns of its 3.33-sigma box where the row (column) minimum of sigma is <= ln(255 o) +
+   ALPHA_CUTOFF_SAFETY (``_band_rows``, ``_band_cols``), rows padded to whole vectors
+   (``_pad_rows``), as one contiguous run of lanes per strip it reaches. Outside the band alpha <
    1/255 for certain (with a relative margin of 1e-3 >> rounding), so the skipped pairs are
-   exactly those the rule skips. The band is one contiguous run of tile pixels, composited by a
-   branch-free loop (``_composite_band``: every lane computes alpha with an inline polynomial exp,
-   ``_exp_neg``, and changes state only when the rules say so) that LLVM vectorises (8 float64
-   lanes with AVX-512): more lanes than the exact per-row footprint, but several times cheaper
-   each than the scalar, branchy loop with a libm exp.
+   exactly those the rule skips. Each run is composited by a branch-free loop
+   (``_composite_band``: every lane computes alpha with an inline polynomial exp, ``_exp_neg``,
+   and changes state only when the rules say so) that LLVM vectorises (8 float64 lanes with
+   AVX-512): more lanes than the exact per-row footprint (~1.6-2x), but each several times
+   cheaper than in a scalar, branchy loop with a libm exp.
 4. ``_rasterize_bwd_kernel`` (prange over tiles): the same bands, Gaussians from the tile's
    latest last contributor back to its first; each pixel walks its own contributors back to
    front, recovering T_k = T_{k+1} / (1 - alpha_k) (safe: alpha <= 0.999), as 3DGS and gsplat
    do. A vectorised branch-free pass (``_backprop_band``) updates the per-pixel state and writes
    three per-lane terms; a scalar pass sums the ten gradient terms of the intersection over the
-   band's pixels in row-major order and writes them once to its own row of ``buf`` (n_isect,
-   10); a row belongs to one tile, so to one thread.
+   band's lanes in lane order (strips in order, each row-major) and writes them once to its own
+   row of ``buf`` (n_isect, 10); a row belongs to one tile, so to one thread.
 5. ``_isect_reduce_kernel`` (prange over Gaussians): each Gaussian sums its own rows of ``buf``
    in its fixed slot order.
 
@@ -404,11 +406,11 @@ def _rasterize_fwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
     """Front-to-back compositing, prange over tiles (each pixel written by its tile only).
 
     Within a tile the Gaussians are the outer loop, in list order (front to back), and each
-    visits the whole tile rows of its band (``_band_rows``: rows that can hold a pixel with
-    sigma <= sigma_cut) in one vectorised pass (``_composite_band``), keeping per-pixel T, C, D,
-    last contributor and a "stopped" flag. So every pixel still sees its Gaussians front to back
-    and applies the exact rules of docs/conventions.md §6; the rows not visited hold only pixels
-    the 1/255 rule skips.
+    visits the rows and column strips of its band (``_band_rows``, ``_band_cols``: they hold every
+    pixel with sigma <= sigma_cut) in vectorised passes (``_composite_band``, one per strip),
+    keeping per-pixel T, C, D, last contributor and a "stopped" flag. So every pixel still sees
+    its Gaussians front to back and applies the exact rules of docs/conventions.md §6; the
+    pixels not visited are only pixels the 1/255 rule skips.
 
     Outputs: image (H,W,3) = C + T_final background, depth_img (H,W) = sum w z, T_final (H,W),
     last_idx (H,W) int64 (list position of the last contributor, -1 if none), n_eval_tile
@@ -536,8 +538,8 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
     (``_backprop_band``, vectorised); every pixel walks its own contributors back to front from
     its last one, recovering T_k = T_{k+1} / (1 - alpha_k) (alpha <= 0.999, so the division is
     safe), as 3DGS and gsplat do. The gradient of intersection ``start + k`` (dL/d(u, v, conic
-    a, b, c, opacity_eff, r, g, b, z)) is summed over the band's pixels in row-major order (the
-    lanes that do not take part hold exact zeros) and written once to row start + k of buf
+    a, b, c, opacity_eff, r, g, b, z)) is summed over the band's lanes in lane order (the lanes
+    that do not take part are skipped) and written once to row start + k of buf
     (n_isect, 10); rows no pixel uses stay as given (zero).
     """
     H = T_final.shape[0]

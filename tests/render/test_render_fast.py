@@ -490,11 +490,37 @@ def test_band_rows_hold_every_pixel_below_the_cutoff():
         sigma = 0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) + conic[1] * dx * dy
         rows = np.flatnonzero(np.any(sigma <= cut[0], axis=1)) + y0
         assert np.all((rows >= ia) & (rows < ib)), (rows, ia, ib)
+        ja, jb = fast_rasterize._band_cols(loc, 0, 16, 32, 0.5, 1.0, 2.0, 0.0)
+        dx_all = mean[0] - px[None, 16:32]
+        dy_all = mean[1] - py[:, None]
+        sig_all = 0.5 * (conic[0] * dx_all * dx_all + conic[2] * dy_all * dy_all) + conic[1] * dx_all * dy_all
+        cols = np.flatnonzero(np.any(sig_all <= cut[0], axis=0)) + 16
+        assert np.all((cols >= ja) & (cols < jb)), (cols, ja, jb)
         box = fast_rasterize._box_range(mean[1], radii[1], y0, y1, 0.5, 1.0)
         assert box[0] <= ia or ib <= ia
         assert ib <= box[1] or ib <= ia
         tighter += (ib - ia) < (box[1] - box[0]) - 2
     assert tighter > 10  # 29 of the 400 (most miss the tile or are bright)
+
+
+@pytest.mark.parametrize("x0, x1, y0, y1", [(0, 16, 0, 16), (32, 45, 16, 23), (0, 3, 0, 1), (16, 17, 0, 16)])
+def test_lane_layout_is_a_bijection_with_contiguous_strip_runs(x0, x1, y0, y1):
+    """Every tile pixel has its own lane in [0, npix) (full and partial tiles), and the lanes of rows
+    [ia, ib) of strip s (``_strip_run``, after ``_pad_rows``) are exactly that strip's pixels of
+    those rows."""
+    th = y1 - y0
+    lanes = {(i, j): fast_rasterize._lane(i, j, x0, x1, y0, th) for i in range(y0, y1) for j in range(x0, x1)}
+    assert sorted(lanes.values()) == list(range((x1 - x0) * th))
+    st = fast_rasterize._STRIP
+    for ia in range(y0, y1):
+        for ib in range(ia + 1, y1 + 1):
+            pa, pb = fast_rasterize._pad_rows(ia, ib, y0, y1)
+            assert y0 <= pa <= ia and ib <= pb <= y1
+            assert (pb - pa) % fast_rasterize._ROW_GROUP == 0 or pb - pa == th
+            for s_ in range(-(-(x1 - x0) // st)):
+                qa, qb = fast_rasterize._strip_run(s_, pa, pb, x0, x1, y0, th)
+                want = sorted(lanes[i, j] for i in range(pa, pb) for j in range(x0 + s_ * st, min(x0 + s_ * st + st, x1)))
+                assert list(range(qa, qb)) == want
 
 
 def _float64_variables(dispatcher, sig):
