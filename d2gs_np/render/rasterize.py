@@ -31,8 +31,9 @@ Pipeline (docs/conventions.md §5-8, gsplat 1.5.3):
    latest last contributor back to its first; each pixel walks its own contributors back to
    front, recovering T_k = T_{k+1} / (1 - alpha_k) (safe: alpha <= 0.999), as 3DGS and gsplat
    do. A vectorised branch-free pass (``_backprop_band``) updates the per-pixel state and writes
-   three per-lane terms; a scalar pass sums the ten gradient terms of the intersection over the
-   band's lanes in lane order (strips in order, each row-major) and writes them once to its own
+   three per-lane terms; a second vectorised pass (``_sum_terms``, reassociation allowed: the
+   order is fixed by the build, not left to right) sums the ten gradient terms of the
+   intersection over the band's lanes, strip by strip in order, and writes them once to its own
    row of ``buf`` (n_isect, 10); a row belongs to one tile, so to one thread.
 5. ``_isect_reduce_kernel`` (prange over Gaussians): each Gaussian sums its own rows of ``buf``
    in its fixed slot order.
@@ -526,6 +527,40 @@ def _backprop_band(S, X, P, V, last, qa, qb, row, u, v, ca, cb, cc, o, cut, col0
         X[2, q] = -v_alpha * raw if geo else zero
 
 
+@njit(cache=True, fastmath={"reassoc", "contract"})
+def _sum_terms(X, V, P, qa, qb, u, v, ca, cb, cc, half, zero):
+    """The ten gradient terms of one Gaussian summed over lanes [qa, qb) (``_backprop_band``'s
+    outputs; lanes that did not take part hold zeros and add nothing). Reassociation lets LLVM
+    vectorise the sums (per-lane partial sums combined at the end): a fixed order for a given
+    build, the same for any thread count, but not the plain left-to-right order."""
+    g_u = zero
+    g_v = zero
+    g_a = zero
+    g_b = zero
+    g_c = zero
+    g_o = zero
+    g_r = zero
+    g_g = zero
+    g_bl = zero
+    g_z = zero
+    for q in range(qa, qb):
+        fac = X[0, q]
+        g_r += fac * V[0, q]
+        g_g += fac * V[1, q]
+        g_bl += fac * V[2, q]
+        g_z += fac * V[3, q]
+        g_o += X[1, q]
+        v_sigma = X[2, q]
+        dx = u - P[0, q]
+        dy = v - P[1, q]
+        g_a += half * dx * dx * v_sigma
+        g_b += dx * dy * v_sigma
+        g_c += half * dy * dy * v_sigma
+        g_u += v_sigma * (ca * dx + cb * dy)
+        g_v += v_sigma * (cb * dx + cc * dy)
+    return g_u, g_v, g_a, g_b, g_c, g_o, g_r, g_g, g_bl, g_z
+
+
 @njit(cache=True, parallel=True)
 def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, sigma_cut, cov2d, isect_gauss,
                           tile_offsets, tile_order, px_centres, py_centres, consts, exp_consts, grid_w, tile_size,
@@ -538,8 +573,8 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
     (``_backprop_band``, vectorised); every pixel walks its own contributors back to front from
     its last one, recovering T_k = T_{k+1} / (1 - alpha_k) (alpha <= 0.999, so the division is
     safe), as 3DGS and gsplat do. The gradient of intersection ``start + k`` (dL/d(u, v, conic
-    a, b, c, opacity_eff, r, g, b, z)) is summed over the band's lanes in lane order (the lanes
-    that do not take part are skipped) and written once to row start + k of buf
+    a, b, c, opacity_eff, r, g, b, z)) is summed over the band's lanes (``_sum_terms``; the lanes
+    that do not take part hold zeros) and written once to row start + k of buf
     (n_isect, 10); rows no pixel uses stay as given (zero).
     """
     H = T_final.shape[0]
@@ -619,23 +654,18 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
                 _backprop_band(S, X, P, V, last, np.uint64(qa), np.uint64(qb), row, u, v, ca, cb, cc,
                                loc[k, _OP], loc[k, _CUT], loc[k, _R], loc[k, _G], loc[k, _B], loc[k, _Z], amax,
                                athr, zero, one, half, ec)
-                for q in range(qa, qb):  # strips in order, each row-major: a fixed order
-                    fac = X[0, q]
-                    if fac == zero:  # the lane did not take part (alpha T > 0 when it does)
-                        continue
-                    g_r += fac * V[0, q]
-                    g_g += fac * V[1, q]
-                    g_bl += fac * V[2, q]
-                    g_z += fac * V[3, q]
-                    g_o += X[1, q]
-                    v_sigma = X[2, q]
-                    dx = u - P[0, q]
-                    dy = v - P[1, q]
-                    g_a += half * dx * dx * v_sigma
-                    g_b += dx * dy * v_sigma
-                    g_c += half * dy * dy * v_sigma
-                    g_u += v_sigma * (ca * dx + cb * dy)
-                    g_v += v_sigma * (cb * dx + cc * dy)
+                (t_u, t_v, t_a, t_b, t_c, t_o, t_r, t_g, t_bl, t_z) = _sum_terms(
+                    X, V, P, np.uint64(qa), np.uint64(qb), u, v, ca, cb, cc, half, zero)
+                g_u += t_u
+                g_v += t_v
+                g_a += t_a
+                g_b += t_b
+                g_c += t_c
+                g_o += t_o
+                g_r += t_r
+                g_g += t_g
+                g_bl += t_bl
+                g_z += t_z
             buf[row, _U] = g_u
             buf[row, _V] = g_v
             buf[row, _CA] = g_a
