@@ -487,7 +487,8 @@ def _unpack_exp_consts(e):
             e[16], e[17], e[18], e[19], e[20], e[21], e[22], e[23], e[24], e[25])
 
 
-@njit(cache=True, error_model="numpy")  # no zero-division check (alpha <= 0.999): it would stop vectorisation
+# error_model="numpy": no zero-division check (alpha <= 0.999), which would stop vectorisation
+@njit(cache=True, error_model="numpy")
 def _backprop_band(S, X, P, V, last, qa, qb, row, u, v, ca, cb, cc, o, cut, col0, col1, col2, zk, amax, athr,
                    zero, one, half, ec):
     """Backward of one Gaussian over the tile lanes [qa, qb) (uint64), branch-free (vectorises).
@@ -784,8 +785,8 @@ def rasterize_fwd(proj, colors, background, consts, isect, width, height, tile_s
     n_eval_tile = np.zeros(n_tiles, np.int64)
     _rasterize_fwd_kernel(proj["means2d"], proj["conics"], proj["opac_eff"], colors, proj["depths"],
                           proj["radii_f"], sigma_cut, proj["cov2d"], isect["isect_gauss"], isect["tile_offsets"],
-                          _tile_order(n_tiles), px, py, background, consts, _exp_consts(dtype), isect["grid_w"], tile_size,
-                          image, depth, T_final, last_idx, n_eval_tile)
+                          _tile_order(n_tiles), px, py, background, consts, _exp_consts(dtype), isect["grid_w"],
+                          tile_size, image, depth, T_final, last_idx, n_eval_tile)
     return dict(image=image, depth=depth, T_final=T_final, last_idx=last_idx, n_eval_tile=n_eval_tile,
                 sigma_cut=sigma_cut)
 
@@ -801,8 +802,8 @@ def rasterize_bwd(proj, colors, consts, isect, raster, tile_size, v_color_img, v
     buf = np.zeros((isect["n_isect"], _NCOL), dtype)
     _rasterize_bwd_kernel(proj["means2d"], proj["conics"], proj["opac_eff"], colors, proj["depths"],
                           proj["radii_f"], raster["sigma_cut"], proj["cov2d"], isect["isect_gauss"], isect["tile_offsets"],
-                          _tile_order(n_tiles), px, py, consts, _exp_consts(dtype), isect["grid_w"], tile_size, raster["T_final"],
-                          raster["last_idx"], v_color_img, v_depth_img, v_T_img, buf)
+                          _tile_order(n_tiles), px, py, consts, _exp_consts(dtype), isect["grid_w"], tile_size,
+                          raster["T_final"], raster["last_idx"], v_color_img, v_depth_img, v_T_img, buf)
     out = dict(v_means2d=np.zeros((n, 2), dtype), v_conics=np.zeros((n, 3), dtype),
                v_opac_eff=np.zeros(n, dtype), v_colors=np.zeros((n, 3), dtype),
                v_depths=np.zeros(n, dtype))

@@ -519,7 +519,8 @@ def test_lane_layout_is_a_bijection_with_contiguous_strip_runs(x0, x1, y0, y1):
             assert (pb - pa) % fast_rasterize._ROW_GROUP == 0 or pb - pa == th
             for s_ in range(-(-(x1 - x0) // st)):
                 qa, qb = fast_rasterize._strip_run(s_, pa, pb, x0, x1, y0, th)
-                want = sorted(lanes[i, j] for i in range(pa, pb) for j in range(x0 + s_ * st, min(x0 + s_ * st + st, x1)))
+                cols = range(x0 + s_ * st, min(x0 + s_ * st + st, x1))
+                want = sorted(lanes[i, j] for i in range(pa, pb) for j in cols)
                 assert list(range(qa, qb)) == want
 
 
