@@ -116,3 +116,9 @@ COVARIANCE_RCOND = 1e-12
 # depth D / alpha of a pixel the static Gaussians barely cover is a guess (at alpha -> 0 it is a
 # single faint Gaussian's depth), and such matches are dropped (and counted) instead.
 POSE_DEPTH_ALPHA_MIN = 0.5
+
+# The rasteriser's vectorisable exp(-sigma) (render/rasterize.py ``_exp_neg``) clamps its argument
+# into [0, EXP_ARG_MAX]. Only sigma <= ln(opacity / ALPHA_THRESHOLD) + ALPHA_CUTOFF_SAFETY
+# <= ln(255) + 1e-3 ~ 5.54 ever reaches a pixel (opacity <= 1); larger sigma is masked out, so the
+# clamp only keeps those masked lanes finite. 8 > 5.54 with room, and keeps 2^-k in 4 bits (k <= 12).
+EXP_ARG_MAX = 8.0

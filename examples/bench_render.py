@@ -4,6 +4,7 @@ Times render_fwd and render_fwd + render_bwd in float64 and float32 with 1 and 2
 after JIT warm-up, on
   (a) N = 5 000 random Gaussians at 256 x 256,
   (b) N = 50 000 random Gaussians at 512 x 512,
+  (c) scene (a) with 4x the scales (large, heavily overlapping Gaussians),
 and the plain NumPy reference (d2gs_np.reference, memory O(N H W)) on a reduced scene
   (r) N = 312 at 64 x 64 (the Gaussian density per pixel of (a), 1/16 of its area),
 with the fast path timed on (r) in the same run for the ratio.
@@ -43,7 +44,8 @@ SIGMA_PX = (1.0, 6.0)
 DEPTH = (2.0, 6.0)
 OPACITY = (0.05, 0.95)
 BORDER_PX = 4.0
-SCENES = {"a": (5_000, 256, 256), "b": (50_000, 512, 512), "r": (312, 64, 64)}
+SCENES = {"a": (5_000, 256, 256), "b": (50_000, 512, 512), "c": (5_000, 256, 256), "r": (312, 64, 64)}
+SCALE = {"c": 4.0}  # scale factor of a scene's Gaussians (1 if absent)
 TARGETS_MS = {("a", "fwd"): 30.0, ("a", "fwd+bwd"): 100.0, ("b", "fwd+bwd"): 1000.0}  # float64, 2 threads
 
 
@@ -55,8 +57,9 @@ def _rotation(rng, max_angle):
     return np.eye(3) + np.sin(angle) * W + (1.0 - np.cos(angle)) * W @ W
 
 
-def random_scene(n, width, height, seed=0, dtype=np.float64):
-    """A random scene (see the module docstring) as keyword arguments of render_fwd."""
+def random_scene(n, width, height, seed=0, dtype=np.float64, scale=1.0):
+    """A random scene (see the module docstring) as keyword arguments of render_fwd; ``scale``
+    multiplies every Gaussian's scales (after drawing, so the rest of the scene is unchanged)."""
     rng = np.random.default_rng(seed)
     f = max(width, height)
     K = np.array([[f, 0.0, width / 2.0], [0.0, f, height / 2.0], [0.0, 0.0, 1.0]])
@@ -72,7 +75,7 @@ def random_scene(n, width, height, seed=0, dtype=np.float64):
     scene = dict(
         means=(p_c - t_v) @ R_v,
         quats=rng.normal(size=(n, 4)),
-        scales=rng.uniform(*SIGMA_PX, size=(n, 3)) * z[:, None] / f,
+        scales=scale * rng.uniform(*SIGMA_PX, size=(n, 3)) * z[:, None] / f,
         opacities=rng.uniform(*OPACITY, n),
         colors=rng.uniform(0.0, 1.0, (n, 3)),
         cam_T_world=T,
@@ -168,7 +171,7 @@ def bench_fast(name, dtype, threads, reps):
 
     n, W, H = SCENES[name]
     numba.set_num_threads(threads)
-    scene = random_scene(n, W, H, dtype=dtype)
+    scene = random_scene(n, W, H, dtype=dtype, scale=SCALE.get(name, 1.0))
     cot = cotangents(W, H, dtype)
     out, saved = render_fwd(**scene)  # warm-up (JIT or cache load)
     render_bwd(saved, **cot)
@@ -189,7 +192,7 @@ def float32_errors(name):
     n, W, H = SCENES[name]
     outs, grads, saves = {}, {}, {}
     for dtype in (np.float64, np.float32):
-        out, saved = render_fwd(**random_scene(n, W, H, dtype=dtype))
+        out, saved = render_fwd(**random_scene(n, W, H, dtype=dtype, scale=SCALE.get(name, 1.0)))
         outs[dtype], saves[dtype] = out, saved
         grads[dtype] = render_bwd(saved, **cotangents(W, H, dtype))
     i32, i64 = outs[np.float32]["image"], outs[np.float64]["image"]
@@ -288,13 +291,13 @@ def main(argv=None):
 
     max_threads = min(2, numba.config.NUMBA_NUM_THREADS)
     results["fast"] = []
-    for name in ("a", "b"):
+    for name in ("a", "c", "b"):
         reps = args.reps if name == "a" else max(2, args.reps // 2)
         for dtype in (np.float64, np.float32):
             for threads in sorted({1, max_threads}):
                 results["fast"].append(bench_fast(name, dtype, threads, reps))
     results["reference"] = [bench_reference(max_threads, args.reps)]
-    results["float32_error"] = {name: float32_errors(name) for name in ("a", "b")}
+    results["float32_error"] = {name: float32_errors(name) for name in ("a", "c", "b")}
     results["targets"] = []
     for (name, measure), target in TARGETS_MS.items():
         row = next(r for r in results["fast"]

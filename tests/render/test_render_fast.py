@@ -410,6 +410,105 @@ def test_float32_stays_float32_and_agrees(seed):
         assert rel_err(g32[key], g64[key]) <= RTOL_F32, (key, rel_err(g32[key], g64[key]))
 
 
+# The rasteriser's inline exp(-s) (vectorisable) against numpy.exp. Its error budget: Taylor
+# remainder < 5e-18 relative, ~14 Horner steps each rounding at 0.5 ulp of a value near 1 but
+# mostly damped by powers of |r| <= 0.35, and exact scaling by 2^-k: a few ulp. 4 ulp (float64,
+# vs numpy.exp, itself within 0.5 ulp) and 2 ulp (float32, vs the float64 exp rounded) bound the
+# measured 3 and 1.1 ulp; a wrong coefficient or range reduction shows at >= 1e3 ulp.
+EXP_ULP_F64 = 4.0
+EXP_ULP_F32 = 2.0
+
+
+@numba.njit
+def _exp_neg_array(s, e):
+    ec = fast_rasterize._unpack_exp_consts(e)
+    out = np.empty_like(s)
+    for i in range(s.size):
+        out[i] = fast_rasterize._exp_neg(s[i], ec)
+    return out
+
+
+@pytest.mark.parametrize("dtype, max_ulp", [(np.float64, EXP_ULP_F64), (np.float32, EXP_ULP_F32)])
+def test_inline_exp_within_a_few_ulp(dtype, max_ulp):
+    """_exp_neg(s) = exp(-s) over [0, EXP_ARG_MAX] (dense grid, every range-reduction step k and
+    its boundaries), and the clamp keeps masked lanes finite (s < 0 -> 1, s > max -> exp(-max))."""
+    ln2 = np.log(2.0)
+    k_edges = (np.arange(13)[:, None] + 0.5) * ln2 + np.array([-1e-12, 0.0, 1e-12])
+    s = np.concatenate([np.linspace(0.0, C.EXP_ARG_MAX, 400_001), k_edges.ravel()]).astype(dtype)
+    s = s[(s >= 0) & (s <= C.EXP_ARG_MAX)]
+    got = _exp_neg_array(s, fast_rasterize._exp_consts(dtype)).astype(np.float64)
+    want = np.exp(-s.astype(np.float64))
+    ulps = np.abs(got - want) / np.spacing(want.astype(dtype)).astype(np.float64)
+    assert ulps.max() <= max_ulp, (ulps.max(), s[np.argmax(ulps)])
+    edge = _exp_neg_array(np.array([-3.0, -0.0, 1e3, np.inf], dtype), fast_rasterize._exp_consts(dtype))
+    assert edge[0] == 1 and edge[1] == 1
+    assert np.all(np.isfinite(edge)) and edge[2] == edge[3] == _exp_neg_array(
+        np.array([C.EXP_ARG_MAX], dtype), fast_rasterize._exp_consts(dtype))[0]
+
+
+def test_band_rows_hold_every_pixel_below_the_cutoff():
+    """Every pixel of a tile whose sigma <= sigma_cut (the only pixels that can pass the 1/255
+    rule) lies in the rows ``_band_rows`` gives, for random anisotropic Gaussians of random
+    opacity around and inside one tile; and the band is much tighter than the 3.33-sigma box
+    for faint Gaussians (so the test can fail both ways)."""
+    rng = np.random.default_rng(7)
+    consts = fast_project.make_consts(RenderConfig(), 64, 64, np.float64)
+    y0, y1 = 16, 32
+    py = np.arange(64) + 0.5
+    px = np.arange(64) + 0.5
+    tighter = 0
+    for _ in range(400):
+        L = rng.normal(size=(2, 2)) * rng.uniform(0.5, 6.0)
+        cov = L @ L.T + 0.3 * np.eye(2)
+        det = cov[0, 0] * cov[1, 1] - cov[0, 1] ** 2
+        conic = np.array([cov[1, 1], -cov[0, 1], cov[0, 0]]) / det
+        o = rng.uniform(0.0, 1.0)
+        cut = fast_rasterize.sigma_cutoffs(np.array([o]))
+        mean = rng.uniform(0.0, 48.0, 2)
+        radii = np.ceil(C.RADIUS_SIGMA * np.sqrt([cov[0, 0], cov[1, 1]]))
+        loc = fast_rasterize._gather_tile(0, 1, np.zeros(1, np.int64), mean[None], conic[None], np.array([o]),
+                                         np.zeros((1, 3)), np.ones(1), radii[None], cut,
+                                         np.array([[cov[0, 0], cov[0, 1], cov[1, 1]]]), consts)
+        ia, ib = fast_rasterize._band_rows(loc, 0, y0, y1, 0.5, 1.0, 2.0, 0.0)
+        dx = mean[0] - px[None, :]
+        dy = mean[1] - py[y0:y1, None]
+        sigma = 0.5 * (conic[0] * dx * dx + conic[2] * dy * dy) + conic[1] * dx * dy
+        rows = np.flatnonzero(np.any(sigma <= cut[0], axis=1)) + y0
+        assert np.all((rows >= ia) & (rows < ib)), (rows, ia, ib)
+        ja, jb = fast_rasterize._band_cols(loc, 0, 16, 32, 0.5, 1.0, 2.0, 0.0)
+        dx_all = mean[0] - px[None, 16:32]
+        dy_all = mean[1] - py[:, None]
+        sig_all = 0.5 * (conic[0] * dx_all * dx_all + conic[2] * dy_all * dy_all) + conic[1] * dx_all * dy_all
+        cols = np.flatnonzero(np.any(sig_all <= cut[0], axis=0)) + 16
+        assert np.all((cols >= ja) & (cols < jb)), (cols, ja, jb)
+        box = fast_rasterize._box_range(mean[1], radii[1], y0, y1, 0.5, 1.0)
+        assert box[0] <= ia or ib <= ia
+        assert ib <= box[1] or ib <= ia
+        tighter += (ib - ia) < (box[1] - box[0]) - 2
+    assert tighter > 10  # 29 of the 400 (most miss the tile or are bright)
+
+
+@pytest.mark.parametrize("x0, x1, y0, y1", [(0, 16, 0, 16), (32, 45, 16, 23), (0, 3, 0, 1), (16, 17, 0, 16)])
+def test_lane_layout_is_a_bijection_with_contiguous_strip_runs(x0, x1, y0, y1):
+    """Every tile pixel has its own lane in [0, npix) (full and partial tiles), and the lanes of rows
+    [ia, ib) of strip s (``_strip_run``, after ``_pad_rows``) are exactly that strip's pixels of
+    those rows."""
+    th = y1 - y0
+    lanes = {(i, j): fast_rasterize._lane(i, j, x0, x1, y0, th) for i in range(y0, y1) for j in range(x0, x1)}
+    assert sorted(lanes.values()) == list(range((x1 - x0) * th))
+    st = fast_rasterize._STRIP
+    for ia in range(y0, y1):
+        for ib in range(ia + 1, y1 + 1):
+            pa, pb = fast_rasterize._pad_rows(ia, ib, y0, y1)
+            assert y0 <= pa <= ia and ib <= pb <= y1
+            assert (pb - pa) % fast_rasterize._ROW_GROUP == 0 or pb - pa == th
+            for s_ in range(-(-(x1 - x0) // st)):
+                qa, qb = fast_rasterize._strip_run(s_, pa, pb, x0, x1, y0, th)
+                cols = range(x0 + s_ * st, min(x0 + s_ * st + st, x1))
+                want = sorted(lanes[i, j] for i in range(pa, pb) for j in cols)
+                assert list(range(qa, qb)) == want
+
+
 def _float64_variables(dispatcher, sig):
     """Names of float64-typed variables when ``dispatcher``'s Python function is typed for ``sig``.
 
@@ -440,13 +539,15 @@ def test_float32_kernels_compute_in_float32():
     kernels = _jitted_functions(fast_project) + _jitted_functions(fast_rasterize)
     names = {k.py_func.__name__ for k in kernels}
     assert {"_project_fwd_kernel", "_project_bwd_kernel", "_rasterize_fwd_kernel", "_rasterize_bwd_kernel",
-            "_isect_reduce_kernel", "_gather_tile", "_sigma", "_row_range"} <= names
+            "_isect_reduce_kernel", "_gather_tile", "_sigma", "_band_rows", "_exp_neg", "_composite_band",
+            "_backprop_band"} <= names
     def float32_sigs(kern):
         return [s for s in kern.signatures if any(getattr(a, "dtype", a) == types.float32 for a in s)]
 
     # Typing a function afresh also types (or loads from the cache) the helpers it calls, so
     # sweep until every helper has a float32 signature and has been checked.
-    todo = [k for k in kernels if k.py_func.__name__ not in ("_isect_build_kernel", "_clamp_tile")]
+    todo = [k for k in kernels if k.py_func.__name__ not in ("_isect_build_kernel", "_clamp_tile", "_lane", "_pad_rows",
+                                                              "_strip_run")]  # integer-only helpers
     checked = 0
     while todo:
         ready = [k for k in todo if float32_sigs(k)]
