@@ -92,6 +92,12 @@ OPACITY_ENTROPY_MIN = 1e-6
 # below that amplitude is noise and is gated out; above it the gate is ~1. g * dphi/dF is then
 # bounded by 1 / (2 kappa).
 FREQ_PHASE_GATE_AMPLITUDE = 1e-3
+# An L_freq bin whose render amplitude is below this is treated as exactly 0 in the backward
+# (the subgradient 0 of the cone |F| at F = 0): the FFT of an image with values ~1 rounds a true
+# zero bin to ~1e-16 sqrt(H W) (< 1e-13 up to 10^6 pixels), and F / |F| of that rounding noise is a
+# unit vector in a random direction, which would add an O(1) spurious gradient per such bin (a
+# periodic or symmetric image has many). Real content is many orders of magnitude above it.
+FREQ_AMPLITUDE_ZERO = 1e-12
 # Width (in normalised radial frequency, 1 = Nyquist along an axis) of the cosine ramp of the
 # L_freq high-pass mask around its cutoff: wide enough that the mask has no hard edge (ringing
 # in the image domain), narrow against the cutoff 0.1.

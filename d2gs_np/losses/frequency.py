@@ -16,7 +16,8 @@ the pixels' scale at any resolution), A = |F| and phi = angle(F):
   coefficient is undefined and d phi / dF grows as 1 / A; the gate (and its derivative) vanish
   at A = 0, so the gradient stays bounded (by ~1 / (2 kappa) per bin).
 - At equality the L1 terms take the subgradient 0 (as L_render's L1); at A = 0 the amplitude's
-  gradient direction F / A is taken as 0.
+  gradient direction F / A is taken as 0, and so below FREQ_AMPLITUDE_ZERO, where a bin that is 0
+  in exact arithmetic sits after the FFT's rounding (its direction would be noise).
 
 The backward maps the cotangent on each bin's real and imaginary parts (v_F = v_re + i v_im)
 to the image by the adjoint of the real-to-complex orthonormal DFT: v_x = Re(ifft2(v_F, ortho)).
@@ -29,7 +30,7 @@ import numbers
 
 import numpy as np
 
-from d2gs_np.constants import FREQ_MASK_EDGE, FREQ_PHASE_GATE_AMPLITUDE
+from d2gs_np.constants import FREQ_AMPLITUDE_ZERO, FREQ_MASK_EDGE, FREQ_PHASE_GATE_AMPLITUDE
 
 __all__ = ["highpass_mask", "frequency_fwd", "frequency_bwd"]
 
@@ -109,7 +110,7 @@ def _frequency_fwd(render, target, mask, cutoff):
 def frequency_bwd(saved, v_value=1.0):
     """Gradient of ``v_value * frequency_fwd(render, target)[0]`` w.r.t. the render, (H, W, C)."""
     Fr, a2r, Ar, w = saved["Fr"], saved["a2r"], saved["Ar"], v_value * saved["weight"]
-    nonzero = Ar > 0.0
+    nonzero = Ar > FREQ_AMPLITUDE_ZERO
     safe_a = np.where(nonzero, Ar, 1.0)
     safe_a2 = np.where(nonzero, a2r, 1.0)
     # d A / d(re, im) = (re, im) / A;  d phi / d(re, im) = (-im, re) / A^2  (0 where A = 0)

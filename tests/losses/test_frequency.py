@@ -75,6 +75,12 @@ def test_constant_images_are_finite_and_only_low_frequency_differs():
     value, saved = frequency_fwd(a, b)
     grad = frequency_bwd(saved)
     assert value < 1e-15  # the DC bin is masked out; every other bin is ~0 in both
+    # those bins are 0 up to rounding (< FREQ_AMPLITUDE_ZERO): the subgradient 0, not a unit
+    # vector in the direction of the rounding noise
+    assert np.all(grad == 0.0)
+    # a textured target against a constant render: finite, bounded
+    tex = np.random.default_rng(9).uniform(0.2, 0.8, size=a.shape)
+    grad = frequency_bwd(frequency_fwd(a, tex)[1])
     assert np.all(np.isfinite(grad)) and np.linalg.norm(grad) <= _grad_bound(a.shape)
 
 
