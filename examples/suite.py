@@ -181,8 +181,8 @@ def ablation_table(rows, scenes, seed):
             if r is None:
                 continue
             d = None if (base is None or r.get("dvs_psnr") is None) else r["dvs_psnr"] - base
-            lines.append(f"| {s} | {v} | {fmt(r.get('dvs_psnr'))} | {fmt(d, '+.2f')} | {fmt(r.get('dvs_ssim'), '.3f')} | "
-                         f"{fmt(r.get('nvs_psnr'))} | {fmt(r.get('nvs_ssim'), '.3f')} | {fmt(r.get('ate'), '.4f')} | "
+            lines.append(f"| {s} | {v} | {fmt(r.get('dvs_psnr'))} | {fmt(d, '+.2f')} | "
+                         f"{fmt(r.get('dvs_ssim'), '.3f')} | {fmt(r.get('nvs_psnr'))} | {fmt(r.get('nvs_ssim'), '.3f')} | {fmt(r.get('ate'), '.4f')} | "
                          f"{fmt(r.get('num_gaussians'), 'd')} | {fmt(r.get('steps'), 'd')} | "
                          f"{fmt(r.get('wall_seconds'), '.0f')} |")
     return "\n".join(lines)
