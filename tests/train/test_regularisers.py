@@ -227,3 +227,14 @@ def test_loss_config_validates_and_round_trips():
                        (dict(lambda_freq=True), "lambda_freq")):
         with pytest.raises(ValueError, match=match):
             LossConfig(**bad)
+
+
+def test_l_ts_with_every_dynamic_gaussian_pruned(dynamic_scene, tmp_path):
+    tr = Trainer(dynamic_scene, _config(iters=20, loss=LossConfig(lambda_ts=1.0)), tmp_path / "run")
+    empty = tr.state.resize_rows("dynamic", keep=np.zeros(tr.params["dynamic.means"].shape[0], dtype=bool))
+    term, plugin = tr.terms[1], tr.terms[1].knn
+    plugin.on_step(empty.replace(step=1, sched=1, prev_sched=1))
+    assert plugin.lists.shape == (0, 0)
+    value, saved = term.fwd(_joint_inputs(tr)._replace(model=empty.model))
+    grads = term.bwd(saved).params
+    assert value == 0.0 and all(g.shape[0] == 0 for g in grads.values())
