@@ -122,3 +122,32 @@ POSE_DEPTH_ALPHA_MIN = 0.5
 # <= ln(255) + 1e-3 ~ 5.54 ever reaches a pixel (opacity <= 1); larger sigma is masked out, so the
 # clamp only keeps those masked lanes finite. 8 > 5.54 with room, and keeps 2^-k in 4 bits (k <= 12).
 EXP_ARG_MAX = 8.0
+
+# --- Regularisers (docs/method.md §6) -------------------------------------------
+# L_ts uses the smooth norm sqrt(|u|^2 + eps^2) - eps in place of |u|, which has no gradient at
+# u = 0 (coincident neighbours, a Gaussian that does not move). 1e-6 world units / unit-free
+# quaternion and colour residuals is far below any deformation that shows in a render (scenes
+# span ~1-10 units), so the value differs from |u| by at most 1e-6, and the gradient u / sqrt(...)
+# is the unit direction wherever |u| >> 1e-6 and goes smoothly to 0 at u = 0.
+TS_NORM_EPS = 1e-6
+# L_gs clamps the opacity to [OPACITY_ENTROPY_MIN, 1] inside the log (docs/method.md §6): log(o)
+# is finite there, so -o log o and its gradient stay finite as o -> 0 (an opacity logit of -inf
+# gives value 0 and gradient 0).
+OPACITY_ENTROPY_MIN = 1e-6
+# L_freq weights each phase difference by g(A_r) g(A_t), g(A) = A^2 / (A^2 + kappa^2): the phase
+# of a coefficient with amplitude ~0 is undefined and its gradient grows as 1 / A. With the
+# orthonormal FFT a bin's amplitude is on the pixels' scale: 8-bit quantisation noise
+# (std 1 / (255 sqrt 12) ~ 1.1e-3 per pixel) gives amplitudes ~1e-3 in every bin, so a phase
+# below that amplitude is noise and is gated out; above it the gate is ~1. g * dphi/dF is then
+# bounded by 1 / (2 kappa).
+FREQ_PHASE_GATE_AMPLITUDE = 1e-3
+# An L_freq bin whose render amplitude is below this is treated as exactly 0 in the backward
+# (the subgradient 0 of the cone |F| at F = 0): the FFT of an image with values ~1 rounds a true
+# zero bin to ~1e-16 sqrt(H W) (< 1e-13 up to 10^6 pixels), and F / |F| of that rounding noise is a
+# unit vector in a random direction, which would add an O(1) spurious gradient per such bin (a
+# periodic or symmetric image has many). Real content is many orders of magnitude above it.
+FREQ_AMPLITUDE_ZERO = 1e-12
+# Width (in normalised radial frequency, 1 = Nyquist along an axis) of the cosine ramp of the
+# L_freq high-pass mask around its cutoff: wide enough that the mask has no hard edge (ringing
+# in the image domain), narrow against the cutoff 0.1.
+FREQ_MASK_EDGE = 0.05

@@ -53,6 +53,37 @@ def plot_error_vs_time(run_dirs, out_png, labels=None, title="error against wall
     return Path(out_png)
 
 
+def plot_loss_terms(run_dir, out_png, title=None):
+    """Each loss term's unweighted value (log columns ``loss_<name>``, docs/method.md §6) against
+    training seconds, on a log axis (the terms differ by orders of magnitude)."""
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    c = read_log(run_dir)
+    names = [k for k in c if k.startswith("loss_")]
+    if not names:
+        raise ValueError(f"{Path(run_dir) / 'log.csv'} has no loss_<name> columns; it is not a run with loss terms")
+    fig, ax = plt.subplots(figsize=(6.4, 4.0))
+    for name in names:
+        v = c[name]
+        ok = np.isfinite(v) & (v > 0)
+        if ok.any():
+            ax.plot(c["seconds"][ok], v[ok], lw=1, label=name[len("loss_"):])
+    ax.set_yscale("log")
+    ax.set_xlabel("training time [s]")
+    ax.set_ylabel("term value (unweighted)")
+    ax.set_title(title or f"loss terms of {Path(run_dir).name}")
+    ax.grid(alpha=0.3)
+    ax.legend(fontsize=8)
+    fig.tight_layout()
+    Path(out_png).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=120)
+    plt.close(fig)
+    return Path(out_png)
+
+
 def save_image(path, image):
     """Write an (H, W, 3) float image in [0, 1] as 8-bit PNG."""
     import cv2

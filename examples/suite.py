@@ -9,6 +9,15 @@ suite scene the variants are (each a separate run with its own folder):
 - ``noisy``: blurry input with the suite's realistic pose error (0.75 deg RMS, 1.5% of depth), full
   method (opt-in: ``--variants sharp blur noblur noisy``).
 
+Ablation of the regularisers (docs/method.md §6, the paper's Table V), on the ``blur`` variant's
+scene (blurry input, true poses), each with the method's weights (``METHOD_REGULARISER_WEIGHTS``)
+and every other regulariser at weight 0: ``render_only`` (L_render alone), ``+ts``, ``+gs``,
+``+freq`` (L_render plus one term) and ``all``. They get their own table (OUT/ablation.md):
+deblurring-view and novel-view PSNR / SSIM, ATE, number of Gaussians, steps and wall time.
+
+    python examples/suite.py --out runs/ablation --scenes wall_disk cube_sign \
+        --variants render_only +ts +gs +freq all --iters 300 --size 0.5 --jobs 1 --threads 1
+
 Cells already finished (RUN/metrics.json present) are not recomputed, so an interrupted sweep
 resumes. Cells run in parallel processes (``--jobs``) with ``--threads`` Numba threads each.
 
@@ -30,6 +39,26 @@ from concurrent.futures import ProcessPoolExecutor, as_completed
 from pathlib import Path
 
 VARIANTS = ("sharp", "blur", "noblur", "noisy")
+# Regulariser ablation: variant -> the LossConfig weights it turns on (the method's values); the
+# rest are set to 0. "+reproj" (L_reproj with the pose solver) is to be added here when it exists.
+ABLATION = {
+    "render_only": (),
+    "+ts": ("lambda_ts",),
+    "+gs": ("lambda_gs",),
+    "+freq": ("lambda_freq",),
+    "all": ("lambda_ts", "lambda_gs", "lambda_freq"),
+}
+ALL_VARIANTS = VARIANTS + tuple(ABLATION)
+
+
+def loss_overrides(variant):
+    """LossConfig fields of a variant: for an ablation variant every regulariser weight (method's
+    value if the variant has the term, else 0); {} for the other variants (the config's loss)."""
+    from d2gs_np.train.config import METHOD_REGULARISER_WEIGHTS
+
+    if variant not in ABLATION:
+        return {}
+    return {k: (v if k in ABLATION[variant] else 0.0) for k, v in METHOD_REGULARISER_WEIGHTS.items()}
 
 
 def scene_overrides(variant, size):
@@ -37,7 +66,7 @@ def scene_overrides(variant, size):
     o = {}
     if variant == "sharp":
         o.update(exposure_fraction=0.0, rot_noise_deg=0.0, trans_noise=0.0)
-    elif variant in ("blur", "noblur"):
+    elif variant in ("blur", "noblur") or variant in ABLATION:
         o.update(rot_noise_deg=0.0, trans_noise=0.0)
     if size != 1.0:
         o.update(width=max(16, int(round(240 * size))), height=max(16, int(round(135 * size))))
@@ -45,7 +74,8 @@ def scene_overrides(variant, size):
 
 
 def scene_folder(out, scene, variant, seed):
-    kind = {"sharp": "sharp_true", "blur": "blurry_true", "noblur": "blurry_true", "noisy": "blurry_noisy"}[variant]
+    kind = {"sharp": "sharp_true", "blur": "blurry_true", "noblur": "blurry_true", "noisy": "blurry_noisy",
+            **{v: "blurry_true" for v in ABLATION}}[variant]
     return Path(out) / "scenes" / f"{scene}_s{seed}_{kind}"
 
 
@@ -75,12 +105,14 @@ def run_cell(out, scene, variant, seed, budget, iters, size, threads, config_pat
         train = dataclasses.replace(cfg.train, quiet=True, seed=seed, time_budget=budget,
                                     iters=iters if iters else cfg.train.iters,
                                     blur="off" if variant == "noblur" else cfg.train.blur)
-        cfg = cfg.replace(train=train)
+        cfg = cfg.replace(train=train, loss=dataclasses.replace(cfg.loss, **loss_overrides(variant)))
         t0 = time.perf_counter()
-        Trainer(load_scene(sdir), cfg, run_dir).run()
+        trainer = Trainer(load_scene(sdir), cfg, run_dir)
+        trainer.run()
         wall = time.perf_counter() - t0
         result = evaluate_run(run_dir)
         result["wall_seconds"] = wall
+        result["num_gaussians"] = trainer.num_gaussians()
         metrics_path.write_text(json.dumps(result, indent=1, allow_nan=False, default=_none_for_nan) + "\n")
     return {"scene": scene, "variant": variant, "seed": seed, "run": str(run_dir),
             **flatten(json.loads(metrics_path.read_text()))}
@@ -95,7 +127,8 @@ def flatten(m):
     return {
         "dvs_psnr": g("dvs", "psnr"), "dvs_ssim": g("dvs", "ssim"),
         "input_psnr": g("input_blur", "psnr"), "input_ssim": g("input_blur", "ssim"),
-        "nvs_psnr": g("nvs", "psnr"), "ate": g("trajectory", "ate"), "ate_initial": g("trajectory", "initial", "ate"),
+        "nvs_psnr": g("nvs", "psnr"), "nvs_ssim": g("nvs", "ssim"), "num_gaussians": m.get("num_gaussians"),
+        "ate": g("trajectory", "ate"), "ate_initial": g("trajectory", "initial", "ate"),
         "steps": m.get("steps"), "train_seconds": m.get("train_seconds"), "wall_seconds": m.get("wall_seconds"),
     }
 
@@ -134,13 +167,34 @@ def table(rows, scenes, seed):
     return "\n".join(lines)
 
 
+def ablation_table(rows, scenes, seed):
+    """One line per (scene, ablation variant), in ABLATION's order: DVS and NVS PSNR / SSIM, ATE,
+    Gaussians, steps, wall time; and the change of DVS PSNR against render_only."""
+    cell = {(r["scene"], r["variant"]): r for r in rows if r["seed"] == seed}
+    lines = ["| scene | variant | DVS PSNR dB | vs render_only dB | DVS SSIM | NVS PSNR dB | NVS SSIM | ATE | "
+             "Gaussians | steps | wall s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|"]
+    for s in scenes:
+        base = cell.get((s, "render_only"), {}).get("dvs_psnr")
+        for v in ABLATION:
+            r = cell.get((s, v))
+            if r is None:
+                continue
+            d = None if (base is None or r.get("dvs_psnr") is None) else r["dvs_psnr"] - base
+            lines.append(f"| {s} | {v} | {fmt(r.get('dvs_psnr'))} | {fmt(d, '+.2f')} | "
+                         f"{fmt(r.get('dvs_ssim'), '.3f')} | {fmt(r.get('nvs_psnr'))} | {fmt(r.get('nvs_ssim'), '.3f')} | {fmt(r.get('ate'), '.4f')} | "
+                         f"{fmt(r.get('num_gaussians'), 'd')} | {fmt(r.get('steps'), 'd')} | "
+                         f"{fmt(r.get('wall_seconds'), '.0f')} |")
+    return "\n".join(lines)
+
+
 def main(argv=None):
     from d2gs_np.data.suite import SUITE
 
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("--out", default="runs/suite")
     ap.add_argument("--scenes", nargs="+", default=list(SUITE), help=f"suite scenes (default all: {list(SUITE)})")
-    ap.add_argument("--variants", nargs="+", default=["sharp", "blur", "noblur"], choices=VARIANTS)
+    ap.add_argument("--variants", nargs="+", default=["sharp", "blur", "noblur"], choices=ALL_VARIANTS)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--budget", type=float, default=600.0, help="seconds of training per cell (default 600)")
     ap.add_argument("--iters", type=int, default=None, help="steps per cell (default: the config's)")
@@ -179,7 +233,7 @@ def main(argv=None):
             futs = {pool.submit(run_cell, job[0], s, v, *job[1:]): (s, v) for s, v in cells}
             for f in as_completed(futs):
                 record(*futs[f], f.result)
-    rows.sort(key=lambda r: (args.scenes.index(r["scene"]), VARIANTS.index(r["variant"])))
+    rows.sort(key=lambda r: (args.scenes.index(r["scene"]), ALL_VARIANTS.index(r["variant"])))
     with open(out / "suite.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=list(rows[0]) if rows else ["scene"])
         w.writeheader()
@@ -188,6 +242,10 @@ def main(argv=None):
     cmd = "python examples/suite.py " + " ".join(argv if argv is not None else sys.argv[1:])
     (out / "suite.md").write_text(f"`{cmd}`\n\n{md}\n")
     print("\n" + md)
+    if any(r["variant"] in ABLATION for r in rows):
+        amd = ablation_table(rows, args.scenes, args.seed)
+        (out / "ablation.md").write_text(f"`{cmd}`\n\n{amd}\n")
+        print("\n" + amd)
     if rows:
         from d2gs_np.report import plot_error_vs_time
 

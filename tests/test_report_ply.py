@@ -2,7 +2,7 @@
 import numpy as np
 
 from d2gs_np.data.ply import SH_C0, read_ply, write_ply
-from d2gs_np.report import comparison_strip, plot_error_vs_time, read_log
+from d2gs_np.report import comparison_strip, plot_error_vs_time, plot_loss_terms, read_log
 
 
 def _fake_run(path, rows):
@@ -20,6 +20,19 @@ def test_plot_error_vs_time_writes_a_png(tmp_path):
     c = read_log(tmp_path / "a")
     np.testing.assert_array_equal(c["step"], [0, 10, 20])
     assert np.isnan(c["heldout_psnr"][1]) and c["heldout_psnr"][2] == 26.0
+
+
+def test_plot_loss_terms_needs_term_columns(tmp_path):
+    _fake_run(tmp_path / "a", [(0, 0.1, 20.0, 19.0)])
+    import pytest
+
+    with pytest.raises(ValueError, match="no loss_<name> columns"):
+        plot_loss_terms(tmp_path / "a", tmp_path / "p.png")
+    run = tmp_path / "b"
+    run.mkdir()
+    (run / "log.csv").write_text("step,seconds,stage,loss_photometric,loss_gs\n0,0.1,joint,0.1,0.2\n"
+                                 "1,0.2,joint,0.05,\n")
+    assert plot_loss_terms(run, tmp_path / "q.png").read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
 
 
 def test_ply_round_trip_in_the_3dgs_layout(tmp_path):

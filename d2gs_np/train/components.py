@@ -21,6 +21,9 @@ __all__ = ["Components", "decide_components", "OPTIONAL_TERMS", "OPTIONAL_PLUGIN
 
 # Regularisers of docs/method.md §6, by loss-term name: left out unless a term of that name is in the loss.
 OPTIONAL_TERMS = {"ts": "L_ts", "gs": "L_gs", "reproj": "L_reproj", "freq": "L_freq"}
+# Regularisers this version implements (a LossConfig weight > 0 turns each on); the others are
+# not part of this version yet.
+IMPLEMENTED_TERMS = ("ts", "gs", "freq")
 # Optional step plugins, by plugin name -> the component they are (docs/method.md §5).
 OPTIONAL_PLUGINS = {"pose_solver": "pose_refinement"}
 
@@ -56,8 +59,12 @@ def composition_notes(terms=(), plugins=()) -> list:
                      "trusted poses or a run too short; see the pose solver line above)")
     missing = [label for name, label in OPTIONAL_TERMS.items() if name not in terms]
     loss = " + ".join("L_render" if t == "photometric" else OPTIONAL_TERMS.get(t, t) for t in terms) or "L_render"
+    off = [label for name, label in OPTIONAL_TERMS.items() if name not in terms and name in IMPLEMENTED_TERMS]
+    absent = [label for label in missing if label not in off]
     if missing:
-        notes.append(f"regularisers {', '.join(missing)}: not applied (not part of this version); loss = {loss}")
+        why = ([f"{', '.join(off)}: off (weight 0 in the loss config, or not applicable)"] if off else []) + \
+              ([f"{', '.join(absent)}: not applied (not part of this version)"] if absent else [])
+        notes.append(f"regularisers {'; '.join(why)}; loss = {loss}")
     else:
         notes.append(f"loss = {loss}")
     return notes

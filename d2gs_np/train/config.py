@@ -38,10 +38,43 @@ class LossConfig:
     """
 
     lambda_ssim: float = 0.2  # L_render = (1 - lambda_ssim) L1 + lambda_ssim (1 - SSIM)
+    # Regularisers (docs/method.md §6); each enters the loss when its weight is > 0. Default off
+    # (weight 0; the short-budget ablation of docs/method.md §6 decided it); the method's weights
+    # are METHOD_REGULARISER_WEIGHTS below.
+    lambda_ts: float = 0.0  # L_ts = ts_time_weight l_time + ts_spatial_weight l_spatial, times this
+    ts_time_weight: float = 1.0  # lambda_t
+    ts_spatial_weight: float = 1.0  # lambda_s
+    ts_time_offset: float = 0.08  # epsilon of l_time: D(t) against D(t + epsilon), normalised time
+    ts_neighbours: int = 8  # K nearest dynamic Gaussians (by base position) of l_spatial
+    ts_knn_every: int = 250  # schedule steps between neighbour-list rebuilds (and after any resize)
+    lambda_gs: float = 0.0  # opacity entropy L_gs
+    lambda_freq: float = 0.0  # high-frequency loss L_freq
+    freq_cutoff: float = 0.1  # normalised radial frequency (1 = Nyquist) the L_freq high-pass keeps above
 
     def __post_init__(self):
         if not 0.0 <= self.lambda_ssim <= 1.0:
             raise ValueError(f"LossConfig.lambda_ssim must be in [0, 1]; got {self.lambda_ssim}")
+        for name in ("lambda_ts", "ts_time_weight", "ts_spatial_weight", "lambda_gs", "lambda_freq"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0.0 <= v < float("inf")):
+                raise ValueError(f"LossConfig.{name} must be a finite number >= 0 (0 = term off); got {v!r}")
+        e = self.ts_time_offset
+        if isinstance(e, bool) or not isinstance(e, (int, float)) or not (0.0 < e < float("inf")):
+            raise ValueError(f"LossConfig.ts_time_offset must be a finite time offset > 0 (the method's 0.08); "
+                             f"got {e!r}")
+        for name in ("ts_neighbours", "ts_knn_every"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
+                raise ValueError(f"LossConfig.{name} must be an integer >= 1; got {v!r}")
+        c = self.freq_cutoff
+        if isinstance(c, bool) or not isinstance(c, (int, float)) or not 0.0 < c < 2.0 ** 0.5:
+            raise ValueError(f"LossConfig.freq_cutoff must be in (0, sqrt 2) (normalised radial frequency, the "
+                             f"method's 0.1); got {c!r}")
+
+
+# The method's regulariser weights (docs/method.md §6, Eq. 18), for turning the terms on
+# (``LossConfig(**METHOD_REGULARISER_WEIGHTS)``; examples/suite.py's ablation variants use them).
+METHOD_REGULARISER_WEIGHTS = {"lambda_ts": 1.0, "lambda_gs": 0.01, "lambda_freq": 0.002}
 
 
 @dataclass(frozen=True)

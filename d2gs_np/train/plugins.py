@@ -19,8 +19,9 @@ The default list (``default_plugins``), in order:
 4. ``Densify``: clone and split (``train/densify.py``);
 5. ``PoseSolver`` (name "pose_solver", ``train/pose_solver.py``, docs/method.md §5) when the
    config and the scene call for it (``use_pose_solver``).
-Plugins passed to the trainer run after these; a nearest-neighbour refresh for L_ts is one more
-plugin.
+Plugins a loss term needs (``term.plugins``, e.g. ``NeighbourRefresh`` of L_ts) run after the
+default ones, so they see this step's pruning and densification, and before those passed to the
+trainer.
 """
 from __future__ import annotations
 
@@ -28,6 +29,7 @@ from typing import Optional
 
 import numpy as np
 
+from d2gs_np.losses.smoothness import knn
 from d2gs_np.scene import gaussians
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
 from d2gs_np.train import prune as prune_rules
@@ -35,9 +37,10 @@ from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.densify import add_grad_stats, densify, init_grad_stats
 from d2gs_np.train.log import psnr_from_mse
 from d2gs_np.train.optimise import size_extent
+from d2gs_np.train.rows import SETS, num_rows
 from d2gs_np.train.state import TrainState, entered_period
 
-__all__ = ["Plugin", "Evaluate", "GradientStatistics", "Prune", "Densify", "default_plugins"]
+__all__ = ["Plugin", "Evaluate", "GradientStatistics", "Prune", "Densify", "NeighbourRefresh", "default_plugins"]
 
 
 class Plugin:
@@ -175,6 +178,59 @@ class Densify(Plugin):
             self.note(f"step {state.step}: densified (cloned {info['cloned']}, split {info['split']}) -> "
                       f"{state.model.num_gaussians()} Gaussians")
         return state
+
+
+class NeighbourRefresh(Plugin):
+    """The K nearest dynamic Gaussians of each dynamic Gaussian, by base position
+    (``losses.smoothness.knn``), for L_ts's spatial term (docs/method.md §6); name "knn".
+
+    Rebuilt on the initial model, every ``every`` schedule steps (``entered_period``), and at the
+    end of any step whose pruning or densification changed the dynamic set: a per-row marker
+    (``rows``: 1 on the rows the lists were built for) goes through ``state.resize_rows`` with
+    the parameters, so removed rows change the count and appended rows arrive with a 0 marker,
+    even when a prune and a densification leave the count unchanged. The lists (``state_dict``)
+    and the marker (a row statistic) are checkpointed, so a resumed run uses the same lists.
+    """
+
+    name = "knn"
+    MARK = "knn_built"
+
+    def __init__(self, k: int, every: int):
+        self.k, self.every = int(k), int(every)
+        self.lists = None  # (N_dynamic, min(k, N_dynamic - 1)) int64, or None before the first build
+
+    def rows(self, params):
+        return {self.MARK: {p: np.zeros(num_rows(params, p)) for p in SETS}}
+
+    def _build(self, params):
+        means = params.get(f"{DYNAMIC}.means")
+        self.lists = knn(means, self.k) if means is not None else np.zeros((0, 0), dtype=np.int64)
+        return self.lists
+
+    def on_init(self, model):
+        self._build(model.params)
+
+    def neighbours(self, params):
+        """The lists for these parameters (built now if there are none for this many rows)."""
+        if self.lists is None or self.lists.shape[0] != num_rows(params, DYNAMIC):
+            self._build(params)
+        return self.lists
+
+    def on_step(self, state):
+        n = num_rows(state.params, DYNAMIC)
+        mark = state.rows[self.MARK][DYNAMIC]
+        resized = self.lists is None or self.lists.shape[0] != n or not np.all(mark > 0.0)
+        if not (resized or entered_period(state, self.every)):
+            return state
+        self._build(state.params)
+        return state.replace(rows={**state.rows, self.MARK: {**state.rows[self.MARK], DYNAMIC: np.ones(n)}})
+
+    def state_dict(self):
+        return {} if self.lists is None else {"lists": self.lists}
+
+    def load_state_dict(self, state):
+        if "lists" in state:
+            self.lists = np.asarray(state["lists"], dtype=np.int64)
 
 
 def default_plugins(scene, config: ExperimentConfig, extent: float, note=None, run_dir=None) -> list:

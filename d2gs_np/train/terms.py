@@ -26,11 +26,17 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
+from d2gs_np.losses.entropy import _entropy_fwd, entropy_bwd
+from d2gs_np.losses.frequency import _frequency_fwd, frequency_bwd
 from d2gs_np.losses.photometric import photometric_bwd, photometric_fwd
+from d2gs_np.losses.smoothness import _spatial_fwd, _time_fwd, spatial_bwd, time_bwd
 from d2gs_np.losses.ssim import SSIM_WINDOW
+from d2gs_np.scene.gaussians import DEFORM_FIELDS, DYNAMIC, STATIC
 from d2gs_np.train.config import LossConfig
+from d2gs_np.train.plugins import NeighbourRefresh
 
-__all__ = ["TermInputs", "TermGrads", "Photometric", "loss_terms", "terms_fwd_bwd"]
+__all__ = ["TermInputs", "TermGrads", "Photometric", "Smoothness", "OpacityEntropy", "Frequency", "loss_terms",
+           "terms_fwd_bwd"]
 
 
 class TermInputs(NamedTuple):
@@ -70,9 +76,94 @@ class Photometric:
         return TermGrads(render={"image": photometric_bwd(saved, self.weight)}, params={})
 
 
-def loss_terms(config: LossConfig) -> list:
-    """The loss terms of a run, photometric first (module docstring)."""
-    return [Photometric(config.lambda_ssim)]
+class Smoothness:
+    """L_ts = w_t l_time + w_s l_spatial of the deformation (docs/method.md §6, Eq. 11-13;
+    ``losses/smoothness.py``) at the step frame's mid-exposure time t = model.times[frame], on
+    every ``dynamic.deform_*`` block. Its neighbour lists come from the ``NeighbourRefresh``
+    plugin it is built with (``plugins``). In a stage that renders only the static set (warm-up)
+    the deformation is not trained and the term is 0 (not evaluated)."""
+
+    name = "ts"
+
+    def __init__(self, weight, time_weight, spatial_weight, time_offset, neighbours, knn_every):
+        self.weight, self.time_weight, self.spatial_weight = weight, time_weight, spatial_weight
+        self.time_offset = time_offset
+        self.knn = NeighbourRefresh(neighbours, knn_every)
+        self.plugins = [self.knn]
+
+    def fwd(self, x: TermInputs):
+        p = x.model.params
+        if x.stage.static_only or f"{DYNAMIC}.means" not in p:
+            return 0.0, None
+        coefs = tuple(p[f"{DYNAMIC}.{f}"] for f in DEFORM_FIELDS)
+        n, t, cfg = coefs[0].shape[0], float(x.model.times[x.frame]), x.model.config.deform
+        lt, st = _time_fwd(coefs, t, self.time_offset, cfg, n)
+        ls, ss = _spatial_fwd(coefs, self.knn.neighbours(p), t, cfg, n)
+        return self.time_weight * lt + self.spatial_weight * ls, (st, ss)
+
+    def bwd(self, saved) -> TermGrads:
+        if saved is None:
+            return TermGrads(render={}, params={})
+        gt = time_bwd(saved[0], self.weight * self.time_weight)
+        gs = spatial_bwd(saved[1], self.weight * self.spatial_weight)
+        return TermGrads(render={}, params={f"{DYNAMIC}.{f}": a + b for f, a, b in zip(DEFORM_FIELDS, gt, gs)})
+
+
+class OpacityEntropy:
+    """L_gs: mean opacity entropy over all Gaussians, static and dynamic (docs/method.md §6,
+    Eq. 14; ``losses/entropy.py``), with gradients on ``*.opacity_logits``."""
+
+    name = "gs"
+
+    def __init__(self, weight):
+        self.weight = weight
+
+    def fwd(self, x: TermInputs):
+        p = x.model.params
+        blocks = [b for b in (f"{STATIC}.opacity_logits", f"{DYNAMIC}.opacity_logits") if b in p]
+        value, saved = _entropy_fwd(np.concatenate([p[b] for b in blocks]))
+        return value, (saved, blocks, [p[b].shape[0] for b in blocks])
+
+    def bwd(self, saved) -> TermGrads:
+        s, blocks, sizes = saved
+        v = entropy_bwd(s, self.weight)
+        return TermGrads(render={}, params=dict(zip(blocks, np.split(v, np.cumsum(sizes)[:-1]))))
+
+
+class Frequency:
+    """L_freq of the rendered image against the target (docs/method.md §6, Eq. 15;
+    ``losses/frequency.py``); with a loss mask (warm-up) both images are multiplied by it before
+    the FFT, so pixels that carry no loss contribute nothing."""
+
+    name = "freq"
+
+    def __init__(self, weight, cutoff):
+        self.weight, self.cutoff = weight, cutoff
+
+    def fwd(self, x: TermInputs):
+        return _frequency_fwd(x.out["image"], x.target, x.loss_mask, self.cutoff)
+
+    def bwd(self, saved) -> TermGrads:
+        return TermGrads(render={"image": frequency_bwd(saved, self.weight)}, params={})
+
+
+def loss_terms(config: LossConfig, components=None, note=None) -> list:
+    """The loss terms of a run, photometric first (module docstring). ``components``
+    (``train/components.py``): what the run models; L_ts is left out without a dynamic set (and
+    ``note`` says so)."""
+    say = note if note is not None else (lambda m: None)
+    terms = [Photometric(config.lambda_ssim)]
+    if config.lambda_ts > 0:
+        if components is not None and not components.dynamic:
+            say("L_ts: left out (no dynamic set, nothing deforms), although loss.lambda_ts > 0")
+        else:
+            terms.append(Smoothness(config.lambda_ts, config.ts_time_weight, config.ts_spatial_weight,
+                                    config.ts_time_offset, config.ts_neighbours, config.ts_knn_every))
+    if config.lambda_gs > 0:
+        terms.append(OpacityEntropy(config.lambda_gs))
+    if config.lambda_freq > 0:
+        terms.append(Frequency(config.lambda_freq, config.freq_cutoff))
+    return terms
 
 
 def terms_fwd_bwd(terms, inputs: TermInputs):

@@ -32,7 +32,7 @@ from d2gs_np.optim import adam
 from d2gs_np.render.api import warm_up
 from d2gs_np.scene.gaussians import STATIC, num_static
 from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint, save_checkpoint
-from d2gs_np.train.components import composition_notes, decide_components
+from d2gs_np.train.components import Components, composition_notes, decide_components
 from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.log import RunLog, Stopwatch, psnr_from_mse
 from d2gs_np.train.model import Model, frame_render_bwd, frame_render_fwd
@@ -86,10 +86,17 @@ class Trainer:
         self.step_index = 0
         self.extent = scene_extent(np.stack([f.cam_T_world for f in self.frames]).astype(np.float64),
                                    scene.scene_scale)
-        self.terms = loss_terms(config.loss)
         ckpt = latest_checkpoint(self.run_dir) if resume else None
         if resume and ckpt is None:
             raise FileNotFoundError(f"--resume: no checkpoint in {self.run_dir}; train without --resume first")
+        # What the run models decides which loss terms apply (no dynamic set: no L_ts); their
+        # notes wait for the log, whose columns follow the terms.
+        pending = []
+        if resume:
+            components = Components(**load_checkpoint(ckpt)[1]["components"])
+        else:
+            components = decide_components(scene, config, pending.append)
+        self.terms = loss_terms(config.loss, components, pending.append)
         if not resume:
             for stale in (CHECKPOINT_NAME, FINAL_NAME, "metrics.json"):  # a fresh run never mixes with an old one
                 (self.run_dir / stale).unlink(missing_ok=True)
@@ -97,9 +104,11 @@ class Trainer:
                           extra_fields=[f"loss_{t.name}" for t in self.terms])
         if not resume:
             atomic_write_text(self.run_dir / "config.json", config.to_json())
-            components = decide_components(scene, config, self.log.note)
-        self.plugins = default_plugins(scene, config, self.extent, self.log.note,
-                                       run_dir=self.run_dir) + list(plugins)
+            for line in pending:
+                self.log.note(line)
+        # plugins that loss terms read from (term.plugins) run after the default ones
+        self.plugins = (default_plugins(scene, config, self.extent, self.log.note, run_dir=self.run_dir)
+                        + [p for t in self.terms for p in getattr(t, "plugins", ())] + list(plugins))
         if resume:
             self._restore(ckpt)
         else:
