@@ -14,6 +14,8 @@ Variants (``EXPERIMENTS``):
   upper bound (sharp frames, true poses).
 - ``progressive``: the paper's Table VI: no progressive resolution, linear, exponential, cosine.
 - ``virtual-views``: n in {1, 2, 4, 8, 16}: quality against time.
+- ``ablation``: the paper's Table V on the given poses: render only; + L_ts; + L_gs; + L_freq
+  (each alone, at the method's weights); + the pose solver (the "+ L_reproj" row); all.
 - ``suite``: what ``examples/suite.py`` runs (sharp / blurry with true poses, with and without
   the blur model / blurry with the given noisy poses).
 A variant is a name, config overrides (a nested dict merged into the config's JSON form, so a
@@ -42,6 +44,8 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
+from d2gs_np.train.config import METHOD_REGULARISER_WEIGHTS
+
 __all__ = ["Variant", "EXPERIMENTS", "run_cell", "run_experiment", "experiment_cells"]
 
 
@@ -59,6 +63,8 @@ class Variant:
         return "_".join(parts).replace(".", "p") + ("_rl" if self.two_stage else "")
 
 
+_REG = METHOD_REGULARISER_WEIGHTS  # the method's weights (docs/method.md §6)
+_NO_REG = {k: 0.0 for k in _REG}
 _TRUE_POSES = {"rot_noise_deg": 0.0, "trans_noise": 0.0}
 _SHARP = {"exposure_fraction": 0.0, **_TRUE_POSES}
 
@@ -78,6 +84,18 @@ EXPERIMENTS = {
     "virtual-views": tuple(
         Variant(f"n{n}", config={"train": {"blur": "off"}} if n == 1 else {"blur": {"num_virtual": n}})
         for n in (1, 2, 4, 8, 16)),
+    # The paper's Table V on the given (noisy) poses: the photometric loss alone, each regulariser
+    # added alone at the method's weight, the pose solver (the "+ L_reproj" row: refinement on
+    # reprojection residuals), and everything.
+    "ablation": (
+        Variant("render_only", config={"loss": _NO_REG, "pose_solver": {"mode": "off"}}),
+        Variant("+ts", config={"loss": {**_NO_REG, "lambda_ts": _REG["lambda_ts"]}, "pose_solver": {"mode": "off"}}),
+        Variant("+gs", config={"loss": {**_NO_REG, "lambda_gs": _REG["lambda_gs"]}, "pose_solver": {"mode": "off"}}),
+        Variant("+freq", config={"loss": {**_NO_REG, "lambda_freq": _REG["lambda_freq"]},
+                                 "pose_solver": {"mode": "off"}}),
+        Variant("+reproj", config={"loss": _NO_REG, "pose_solver": {"mode": "on"}}),
+        Variant("all", config={"loss": dict(_REG), "pose_solver": {"mode": "on"}}),
+    ),
     "suite": (
         Variant("sharp", scene=_SHARP),
         Variant("blur", scene=_TRUE_POSES),

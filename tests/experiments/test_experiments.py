@@ -19,6 +19,11 @@ def test_every_variant_of_every_experiment_is_a_valid_config():
     assert vv["n16"].blur.num_virtual == 16 and vv["n1"].train.blur == "off"
     prog = {v.name: ex.variant_config(v) for v in ex.EXPERIMENTS["progressive"]}
     assert not prog["none"].train.progressive and prog["linear"].schedule.kind == "linear"
+    abl = {v.name: ex.variant_config(v) for v in ex.EXPERIMENTS["ablation"]}
+    assert (abl["render_only"].loss.lambda_ts, abl["render_only"].loss.lambda_gs, abl["render_only"].loss.lambda_freq,
+            abl["render_only"].pose_solver.mode) == (0.0, 0.0, 0.0, "off")
+    assert abl["+gs"].loss.lambda_gs > 0 and abl["+gs"].loss.lambda_ts == 0 and abl["+gs"].pose_solver.mode == "off"
+    assert abl["+reproj"].pose_solver.mode == "on" and abl["all"].loss.lambda_ts > 0
     with pytest.raises(ValueError, match="bogus"):
         ex.variant_config(ex.Variant("x", config={"train": {"bogus": 1}}))
 
