@@ -1,0 +1,141 @@
+"""Motion masks from dense optical flow against the flow the camera motion explains (docs/dataset_format.md §8).
+
+For frame k and each neighbour j = k -/+ ``gap`` that exists:
+1. observed flow k -> j: OpenCV DIS optical flow (``DISOpticalFlow``, medium preset) on grey frames;
+2. expected flow of a static world: each pixel lifted at the depth interpolated from the sparse
+   points seen in frame k (inverse depth, linear over their Delaunay triangulation, nearest
+   outside it: ``d2gs_np.scene.initialize.interpolate_inverse_depth``), moved by the relative
+   pose and projected into j;
+3. disagreement e_j = |observed - expected| (pixels), against the threshold
+   ``threshold_px + relative * |t_j|``, where t_j is the part of the expected flow that depends
+   on depth (expected minus the flow of the rotation alone): interpolated depth is least
+   reliable there, while the rotational part is exact.
+A pixel is moving when it disagrees with every neighbour (a mover disagrees with both; a
+pixel disoccluded on one side only disagrees with that one). The raw mask is opened (radius
+``open_px``: speckle), closed (``close_px``: holes), and components smaller than
+``min_area_fraction`` of the frame are dropped. No moving object gives empty masks.
+"""
+from __future__ import annotations
+
+import numbers
+from dataclasses import dataclass
+
+import cv2
+import numpy as np
+
+from d2gs_np.constants import PIXEL_CENTER_OFFSET
+from d2gs_np.features import to_gray_u8
+from d2gs_np.geometry.camera import project_points
+from d2gs_np.scene.initialize import interpolate_inverse_depth
+
+__all__ = ["MaskConfig", "motion_masks", "expected_flow", "observed_flow"]
+
+
+@dataclass(frozen=True)
+class MaskConfig:
+    """Settings of the motion masks. Validated on construction."""
+
+    gap: int = 1  # neighbours k -/+ gap
+    threshold_px: float = 1.5  # disagreement (px) above which a pixel may be moving
+    relative: float = 0.3  # plus this fraction of the depth-dependent expected flow
+    open_px: int = 2  # morphological opening radius (removes speckle)
+    close_px: int = 3  # closing radius (fills holes)
+    min_area_fraction: float = 0.002  # smaller connected components are dropped
+
+    def __post_init__(self):
+        for name in ("gap", "open_px", "close_px"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < (1 if name == "gap" else 0):
+                raise ValueError(f"MaskConfig.{name} must be an int >= {1 if name == 'gap' else 0}; got {v!r}")
+        for name in ("threshold_px", "relative", "min_area_fraction"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v) or v < 0:
+                raise ValueError(f"MaskConfig.{name} must be a finite number >= 0; got {v!r}")
+
+
+def observed_flow(img0, img1):
+    """Dense flow (H, W, 2) from img0 to img1 (pixel displacement, x then y): DIS, medium preset."""
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    return dis.calc(to_gray_u8(img0), to_gray_u8(img1), None).astype(np.float64)
+
+
+def _pixel_grid(W, H):
+    jj, ii = np.meshgrid(np.arange(W), np.arange(H))
+    return np.stack([jj.ravel() + PIXEL_CENTER_OFFSET, ii.ravel() + PIXEL_CENTER_OFFSET], axis=1)
+
+
+def depth_map(points, cam_T_world, K, W, H):
+    """Depth (H, W) of frame (cam_T_world, K) interpolated from the sparse points it sees (NaN: none)."""
+    uv, z = project_points(points, cam_T_world, K)
+    vis = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+    d, _ = interpolate_inverse_depth(uv[vis], z[vis], _pixel_grid(W, H))
+    return d.reshape(H, W)
+
+
+def expected_flow(depth, T_k, T_j, K):
+    """Flow (H, W, 2) of a static world from frame k to frame j, and its depth-dependent part (H, W, 2).
+
+    depth (H, W) of frame k; T_k, T_j: cam_T_world; K shared intrinsics.
+    """
+    H, W = depth.shape
+    pix = _pixel_grid(W, H)
+    Kinv = np.linalg.inv(K)
+    rays = np.c_[pix, np.ones(len(pix))] @ Kinv.T  # z = 1
+    rel = T_j @ np.linalg.inv(T_k)
+    R, t = rel[:3, :3], rel[:3, 3]
+    d = depth.ravel()
+    xr = rays @ R.T  # rotation only
+    x = d[:, None] * xr + t
+    with np.errstate(divide="ignore", invalid="ignore"):
+        p = x[:, :2] / x[:, 2:3] * np.diag(K)[:2] + K[:2, 2]
+        pr = xr[:, :2] / xr[:, 2:3] * np.diag(K)[:2] + K[:2, 2]
+    flow = (p - pix).reshape(H, W, 2)
+    return flow, (p - pr).reshape(H, W, 2)
+
+
+def _clean(mask, cfg):
+    m = mask.astype(np.uint8)
+    if cfg.open_px > 0:
+        m = cv2.morphologyEx(m, cv2.MORPH_OPEN, cv2.getStructuringElement(
+            cv2.MORPH_ELLIPSE, (2 * cfg.open_px + 1, 2 * cfg.open_px + 1)))
+    if cfg.close_px > 0:
+        m = cv2.morphologyEx(m, cv2.MORPH_CLOSE, cv2.getStructuringElement(
+            cv2.MORPH_ELLIPSE, (2 * cfg.close_px + 1, 2 * cfg.close_px + 1)))
+    n, lab, stats, _ = cv2.connectedComponentsWithStats(m, connectivity=8)
+    min_area = cfg.min_area_fraction * m.size
+    keep = np.zeros(n, dtype=bool)
+    keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= min_area
+    return keep[lab]
+
+
+def motion_masks(images, cam_T_world, K, points, config: MaskConfig = None, log=None):
+    """Motion masks (list of (H, W) bool, True = moving) for registered frames (module docstring).
+
+    images: list of (H, W, 3) frames (uint8 or float in [0, 1]); cam_T_world (N, 4, 4); K (3, 3);
+    points (P, 3) sparse static points. Returns (masks, info with per-frame moving fractions).
+    """
+    cfg = MaskConfig() if config is None else config
+    if not isinstance(cfg, MaskConfig):
+        raise TypeError(f"config must be a MaskConfig; got {type(cfg).__name__}")
+    N = len(images)
+    H, W = images[0].shape[:2]
+    masks = []
+    for k in range(N):
+        depth = depth_map(points, cam_T_world[k], K, W, H)
+        if not np.any(np.isfinite(depth)):
+            masks.append(np.zeros((H, W), dtype=bool))
+            continue
+        moving = np.ones((H, W), dtype=bool)
+        for j in (k - cfg.gap, k + cfg.gap):
+            if not 0 <= j < N:
+                continue
+            obs = observed_flow(images[k], images[j])
+            exp, trans = expected_flow(depth, cam_T_world[k], cam_T_world[j], K)
+            e = np.linalg.norm(obs - exp, axis=2)
+            thr = cfg.threshold_px + cfg.relative * np.linalg.norm(trans, axis=2)
+            moving &= np.nan_to_num(e, nan=0.0) > thr
+        masks.append(_clean(moving, cfg))
+        if log is not None and (k + 1) % 10 == 0:
+            log(f"motion masks: {k + 1}/{N} frames")
+    frac = [float(m.mean()) for m in masks]
+    return masks, {"moving_fraction": frac}
