@@ -9,8 +9,10 @@ Steps (``register_video``):
    is dropped).
 3. Two-view start: among frame pairs at most ``init_max_gap`` apart, the essential matrix
    (RANSAC), ``recoverPose`` and a triangulation; the pair with the most points whose median
-   triangulation angle reaches ``init_min_parallax_deg`` starts the reconstruction. If no pair
-   reaches it, the video is a pure rotation (no parallax): see ``rotation_only``.
+   triangulation angle reaches ``init_min_parallax_deg`` starts the reconstruction. A pair whose
+   inliers a homography H explains as well, with K^-1 H K a rotation (singular values equal within
+   that angle in radians), counts as angle 0: pure rotation makes the essential matrix degenerate.
+   If no pair reaches it, the video is a pure rotation (no parallax): see ``rotation_only``.
 4. Every further frame (most 2D-3D correspondences first) by PnP with RANSAC, refined by
    Levenberg-Marquardt on the inliers; new tracks are triangulated from their two registered
    views farthest apart in time (kept if in front of both cameras, reprojection within
@@ -154,6 +156,14 @@ def _two_view(pa, pb, K, cfg):
     with np.errstate(invalid="ignore"):
         good = inl & fin & (z0 > 0) & (z1 > 0) & (err <= cfg.max_reprojection_px)
     med = float(np.median(par[good])) if good.any() else 0.0
+    # Pure rotation makes E degenerate (any t fits), so the triangulation angle can be spurious: if a
+    # homography explains the same inliers and K^-1 H K is a rotation (equal singular values up to the
+    # parallax threshold), the pair has no parallax.
+    H, hmask = cv2.findHomography(pa, pb, cv2.RANSAC, cfg.essential_threshold_px)
+    if H is not None and hmask is not None and hmask.ravel().sum() >= 0.9 * inl.sum():
+        sv = np.linalg.svd(np.linalg.inv(K) @ H @ K, compute_uv=False)
+        if sv[0] / sv[-1] - 1.0 < np.radians(cfg.init_min_parallax_deg):
+            med = 0.0
     return Tb, X, med, good
 
 
