@@ -57,7 +57,7 @@ class SfmConfig:
 
     # SIFT at a low contrast threshold: blurry frames lose DoG contrast (as in InitConfig)
     features: FeatureConfig = field(default_factory=lambda: FeatureConfig(contrast_threshold=0.01))
-    match_window: int = 3  # match frame k with k+1 .. k+window
+    match_window: int = 4  # match frame k with k+1 .. k+window (longer tracks: more parallax per track)
     min_keypoints: int = 20  # fewer keypoints: the frame has no usable texture (an error)
     init_max_gap: int = 10  # the two-view start is searched among pairs at most this far apart
     init_min_parallax_deg: float = 1.0  # median triangulation angle the start needs; below: no parallax
@@ -66,7 +66,7 @@ class SfmConfig:
     pnp_threshold_px: float = 2.0  # RANSAC inlier threshold of PnP
     essential_threshold_px: float = 1.0  # RANSAC inlier threshold of the essential matrix
     max_reprojection_px: float = 2.0  # triangulated points must reproject within this in both views
-    min_parallax_deg: float = 0.5  # and be seen under at least this angle
+    min_parallax_deg: float = 0.2  # and be seen under at least this angle (small: PnP needs directions more than depths)
     outlier_px: float = 3.0  # observations with a larger residual after bundle adjustment are dropped
     weak_observations: int = 40  # a frame with fewer inlier observations is reported as weak
     robust_scale_px: float = 1.0  # soft_l1 scale of the bundle adjustment
