@@ -9,7 +9,9 @@ folder and imported like a user's video (focal length unknown: guessed, refined)
 - focal length error and wall-clock seconds of the import.
 
     python examples/import_accuracy.py [--scenes photo_room,wall_disk,...] [--frames 24] [--subframes 16]
-        [--from DIR]   # reuse scene folders DIR/<preset> written by `d2gs make-scene` (same seed)
+        [--seed S] [--from DIR]   # reuse scene folders DIR/<preset> written by `d2gs make-scene` (same seed)
+
+A pure rotation (no parallax detected) has no trajectory to align: its ATE is reported as NaN.
 
 Writes runs/import_accuracy/results.json and prints a table.
 """
@@ -30,10 +32,10 @@ from d2gs_np.metrics import ate
 from d2gs_np.video.importer import import_video
 
 
-def measure(preset, out, frames=None, subframes=None, source=None):
+def measure(preset, out, frames=None, subframes=None, source=None, seed=0):
     overrides = {k: v for k, v in (("num_frames", frames), ("subframes", subframes)) if v is not None}
-    scene = load_scene(source) if source is not None else make_suite_scene(preset, 0, num_test_views=0, **overrides)
-    depth = build_suite_world(resolve(preset, 0, **overrides)).depth
+    scene = load_scene(source) if source is not None else make_suite_scene(preset, seed, num_test_views=0, **overrides)
+    depth = build_suite_world(resolve(preset, seed, **overrides)).depth
     folder = out / f"{preset}_frames"
     shutil.rmtree(folder, ignore_errors=True)
     folder.mkdir(parents=True)
@@ -50,7 +52,7 @@ def measure(preset, out, frames=None, subframes=None, source=None):
     imp = load_scene(out / f"{preset}_scene")
     gt = np.stack([f.gt_cam_T_world for f in scene.frames])
     est = np.stack([f.cam_T_world for f in imp.frames])
-    row.update(ate_rel=ate(est, gt) / depth, focal_err=rep["focal_px"] / scene.frames[0].K[0, 0] - 1.0,
+    row.update(ate_rel=float("nan") if rep["rotation_only"] else ate(est, gt) / depth, focal_err=rep["focal_px"] / scene.frames[0].K[0, 0] - 1.0,
                seconds=sec, points=rep["num_points"], weak=rep["weak_frames"], rotation_only=rep["rotation_only"])
     g = np.stack([f.mask for f in scene.frames])
     p = np.stack([f.mask for f in imp.frames])
@@ -66,13 +68,14 @@ def main():
     ap.add_argument("--frames", type=int, default=None)
     ap.add_argument("--subframes", type=int, default=None)
     ap.add_argument("--from", dest="src", default=None, help="folder of scene folders from d2gs make-scene")
+    ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default="runs/import_accuracy")
     a = ap.parse_args()
     out = Path(a.out)
     rows = []
     for preset in a.scenes.split(","):
         src = Path(a.src) / preset if a.src and (Path(a.src) / preset / "transforms.json").exists() else None
-        rows.append(measure(preset, out, a.frames, a.subframes, src))
+        rows.append(measure(preset, out, a.frames, a.subframes, src, a.seed))
         r = rows[-1]
         if "error" in r:
             print(f"{preset:11s} FAILED in {r['seconds']:.1f}s: {r['error']}")

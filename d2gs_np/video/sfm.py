@@ -10,8 +10,9 @@ Steps (``register_video``):
 3. Two-view start: among frame pairs at most ``init_max_gap`` apart, the essential matrix
    (RANSAC), ``recoverPose`` and a triangulation; the pair with the most points whose median
    triangulation angle reaches ``init_min_parallax_deg`` starts the reconstruction. A pair whose
-   inliers a homography H explains as well, with K^-1 H K a rotation (singular values equal within
-   that angle in radians), counts as angle 0: pure rotation makes the essential matrix degenerate.
+   matches one rotation (Kabsch on the unit bearings, refitted without mismatches) maps onto each
+   other within ``essential_threshold_px`` (median) counts as angle 0: pure rotation makes the essential matrix
+   degenerate, and its triangulation angles spurious.
    If no pair reaches it, the video is a pure rotation (no parallax): see ``rotation_only``.
 4. Every further frame (most 2D-3D correspondences first) by PnP with RANSAC, refined by
    Levenberg-Marquardt on the inliers; new tracks are triangulated from their two registered
@@ -64,6 +65,7 @@ class SfmConfig:
     init_min_points: int = 30  # points the two-view start needs
     min_pnp_inliers: int = 12  # a frame with fewer PnP inliers cannot be registered (an error)
     pnp_threshold_px: float = 2.0  # RANSAC inlier threshold of PnP
+    min_pnp_inlier_ratio: float = 0.25  # and at least this share of its 2D-3D matches must be inliers
     essential_threshold_px: float = 1.0  # RANSAC inlier threshold of the essential matrix
     max_reprojection_px: float = 2.0  # triangulated points must reproject within this in both views
     min_parallax_deg: float = 0.2  # and be seen under at least this angle (small: PnP needs directions more than depths)
@@ -80,7 +82,7 @@ class SfmConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
                 raise ValueError(f"SfmConfig.{name} must be an int >= 1; got {v!r}")
-        for name in ("init_min_parallax_deg", "pnp_threshold_px", "essential_threshold_px", "max_reprojection_px",
+        for name in ("init_min_parallax_deg", "pnp_threshold_px", "min_pnp_inlier_ratio", "essential_threshold_px", "max_reprojection_px",
                      "min_parallax_deg", "outlier_px", "robust_scale_px"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v) or v <= 0:
@@ -144,6 +146,26 @@ def _pose(R, t):
     return T
 
 
+def _rotation_fit_error(pa, pb, K, rounds=3, inlier_px=3.0):
+    """Pixel errors of the best pure rotation mapping pa -> pb: Kabsch on unit bearings, refitted on
+    the matches within ``inlier_px`` (``rounds`` times) so that a few mismatches do not bias it."""
+    Kinv = np.linalg.inv(K)
+    ba = np.c_[pa, np.ones(len(pa))] @ Kinv.T
+    bb = np.c_[pb, np.ones(len(pb))] @ Kinv.T
+    ua = ba / np.linalg.norm(ba, axis=1, keepdims=True)
+    ub = bb / np.linalg.norm(bb, axis=1, keepdims=True)
+    use = np.ones(len(pa), dtype=bool)
+    for _ in range(rounds):
+        U, _, Vt = np.linalg.svd(ub[use].T @ ua[use])
+        R = U @ np.diag([1.0, 1.0, np.linalg.det(U @ Vt)]) @ Vt  # ub ~ R ua
+        q = ba @ R.T @ K.T
+        err = np.linalg.norm(q[:, :2] / q[:, 2:3] - pb, axis=1)
+        if np.sum(err < inlier_px) < 3:
+            break
+        use = err < inlier_px
+    return err
+
+
 def _two_view(pa, pb, K, cfg):
     """Essential matrix + recoverPose + triangulation -> (T_b (4, 4), inlier mask, X, median parallax, good)."""
     E, mask = cv2.findEssentialMat(pa, pb, K, cv2.RANSAC, 0.999, cfg.essential_threshold_px)
@@ -156,14 +178,11 @@ def _two_view(pa, pb, K, cfg):
     with np.errstate(invalid="ignore"):
         good = inl & fin & (z0 > 0) & (z1 > 0) & (err <= cfg.max_reprojection_px)
     med = float(np.median(par[good])) if good.any() else 0.0
-    # Pure rotation makes E degenerate (any t fits), so the triangulation angle can be spurious: if a
-    # homography explains the same inliers and K^-1 H K is a rotation (equal singular values up to the
-    # parallax threshold), the pair has no parallax.
-    H, hmask = cv2.findHomography(pa, pb, cv2.RANSAC, cfg.essential_threshold_px)
-    if H is not None and hmask is not None and hmask.ravel().sum() >= 0.9 * inl.sum():
-        sv = np.linalg.svd(np.linalg.inv(K) @ H @ K, compute_uv=False)
-        if sv[0] / sv[-1] - 1.0 < np.radians(cfg.init_min_parallax_deg):
-            med = 0.0
+    # Pure rotation makes E degenerate (any t fits), so the triangulation angle can be spurious: if one
+    # rotation (Kabsch on the bearings, _rotation_fit_error) maps the matches onto each other within
+    # the RANSAC threshold (median over all of them), the pair has no usable parallax.
+    if np.median(_rotation_fit_error(pa, pb, K)) < cfg.essential_threshold_px:
+        med = 0.0
     return Tb, X, med, good
 
 
@@ -350,7 +369,7 @@ def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks
             img = obs_uv[lookup[k, tr]]
             retval, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=300,
                                                          reprojectionError=cfg.pnp_threshold_px, confidence=0.999)
-            if retval and inl is not None and len(inl) >= cfg.min_pnp_inliers:
+            if retval and inl is not None and len(inl) >= max(cfg.min_pnp_inliers, cfg.min_pnp_inlier_ratio * tr.size):
                 inl = inl.ravel()
                 rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
                 poses[k] = _pose(cv2.Rodrigues(rvec)[0], tvec)
@@ -366,9 +385,11 @@ def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks
         if registered.sum() >= 1.5 * last_ba:
             last_ba = int(registered.sum())
             use = ~bad_obs
-            poses, points_ba, _, resid, info = _ba(poses, points, K, obs_frame[use], obs_track[use], obs_uv[use],
-                                                   registered, a, cfg, False)
+            poses, points_ba, K, resid, info = _ba(poses, points, K, obs_frame[use], obs_track[use], obs_uv[use],
+                                                   registered, a, cfg, refine_focal and registered.sum() >= 5)
             points = points_ba
+            idx = np.flatnonzero(use)
+            bad_obs[idx[np.isfinite(resid) & (resid > cfg.outlier_px)]] = True  # mismatches, movers
             say(f"registered {registered.sum()}/{N} frames; bundle adjustment rms {info['rms_px']:.2f} px")
     if failed:
         tri = np.isfinite(points[:, 0])
@@ -405,6 +426,11 @@ def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks
         uvp[s] = project_points(pts[o_p[s]], poses[k], K)[0]
     rms = float(np.sqrt(np.mean(np.sum((uvp - o_uv) ** 2, axis=1)))) if len(o_uv) else float("nan")
     nobs = np.bincount(o_f, minlength=N)
+    lost = np.flatnonzero(nobs < cfg.min_pnp_inliers)
+    if lost.size:
+        raise ValueError(f"frames {lost.tolist()} keep only {nobs[lost].tolist()} consistent observations after bundle "
+                         f"adjustment (need >= {cfg.min_pnp_inliers}): their poses would be guesses; drop them "
+                         "(--start/--end, --stride, or delete them from the folder)")
     weak = [int(k) for k in np.flatnonzero(nobs < cfg.weak_observations)]
     # colours: mean over observations
     cols = np.zeros((len(pts), 3))
