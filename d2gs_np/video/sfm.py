@@ -21,6 +21,10 @@ Steps (``register_video``):
    (``d2gs_np.video.bundle``) each time the number of registered frames grows by half.
 5. A final bundle adjustment over all frames and points (and the focal length, unless given),
    observations with residual above ``outlier_px`` dropped, then a second one.
+6. If a frame cannot be registered, a frame keeps fewer than ``min_pnp_inliers`` consistent
+   observations, or the focal length leaves [0.5, 2] x its start, steps 4-5 are retried from the
+   next two-view starts (up to ``max_starts``, most points first), then from the same starts with
+   the focal length held at its start; the first error is raised if all fail.
 
 Rotation-only fallback (documented choice): all camera centres at the origin; rotations chained
 from the homographies between neighbouring frames, R = K^-1 H K made orthonormal; sparse points
@@ -73,12 +77,13 @@ class SfmConfig:
     weak_observations: int = 40  # a frame with fewer inlier observations is reported as weak
     robust_scale_px: float = 1.0  # soft_l1 scale of the bundle adjustment
     ba_max_nfev: int = 30  # function evaluations per bundle adjustment
+    max_starts: int = 3  # two-view starts tried before giving up (then again with the focal length fixed)
 
     def __post_init__(self):
         if not isinstance(self.features, FeatureConfig):
             raise TypeError(f"SfmConfig.features must be a FeatureConfig; got {type(self.features).__name__}")
         for name in ("match_window", "min_keypoints", "init_max_gap", "init_min_points", "min_pnp_inliers",
-                     "weak_observations", "ba_max_nfev"):
+                     "weak_observations", "ba_max_nfev", "max_starts"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
                 raise ValueError(f"SfmConfig.{name} must be an int >= 1; got {v!r}")
@@ -293,7 +298,7 @@ def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks
     lookup[obs_frame, obs_track] = np.arange(len(obs_frame))
 
     # ---- two-view start
-    best = None
+    starts = []
     best_par = 0.0
     for a in range(N):
         for b in range(a + 1, min(N, a + cfg.init_max_gap + 1)):
@@ -307,9 +312,8 @@ def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks
             Tb, X, par, good = res
             best_par = max(best_par, par)
             if par >= cfg.init_min_parallax_deg and good.sum() >= cfg.init_min_points:
-                if best is None or good.sum() > best[0]:
-                    best = (int(good.sum()), a, b, Tb, X, common, good, par)
-    if best is None:
+                starts.append((int(good.sum()), a, b, Tb, X, common, good, par))
+    if not starts:
         say(f"no frame pair has a median triangulation angle >= {cfg.init_min_parallax_deg} deg "
             f"(largest {best_par:.2f} deg): the camera only rotates, no parallax")
         poses, pts, pfr = _rotation_only(kps, matches, K, N, msgs)
@@ -317,134 +321,156 @@ def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks
         uv = np.concatenate([k.pts for k in kps])
         return SfmResult(poses, K, pts, _sample_colors(images, pfr, uv), pfr, np.arange(len(pts)), uv, nkp,
                          np.bincount(pfr, minlength=N), [], True, (0, 1), best_par, float("nan"), msgs)
-    _, a, b, Tb, X, common, good, par0 = best
-    say(f"two-view start: frames {a} and {b}, {good.sum()} points, median angle {par0:.2f} deg")
-    poses = np.tile(np.eye(4), (N, 1, 1))
-    poses[b] = Tb
-    registered = np.zeros(N, dtype=bool)
-    registered[[a, b]] = True
-    points = np.full((T, 3), np.nan)
-    points[common[good]] = X[good]
-    bad_obs = np.zeros(len(obs_frame), dtype=bool)
-    last_ba = 2
+    K_start = K.copy()
+    starts.sort(key=lambda c: -c[0])
+    errors = []
+    # Registration can fail from a start whose points lie on a mover or whose focal length drifts:
+    # try the next starts (most points first), then the best ones with the focal length held fixed.
+    plan = [(c, refine_focal) for c in starts[:cfg.max_starts]]
+    if refine_focal:
+        plan += [(c, False) for c in starts[:cfg.max_starts]]
+    def _attempt(best, refine_focal):
+        K = K_start.copy()
+        _, a, b, Tb, X, common, good, par0 = best
+        say(f"two-view start: frames {a} and {b}, {good.sum()} points, median angle {par0:.2f} deg")
+        poses = np.tile(np.eye(4), (N, 1, 1))
+        poses[b] = Tb
+        registered = np.zeros(N, dtype=bool)
+        registered[[a, b]] = True
+        points = np.full((T, 3), np.nan)
+        points[common[good]] = X[good]
+        bad_obs = np.zeros(len(obs_frame), dtype=bool)
+        last_ba = 2
 
-    def triangulate_new():
-        tri = np.isfinite(points[:, 0])
-        reg_obs = registered[obs_frame] & ~bad_obs
-        cnt = np.bincount(obs_track[reg_obs], minlength=T)
-        cand = np.flatnonzero(~tri & (cnt >= 2))
-        if cand.size == 0:
-            return 0
-        sub = lookup[:, cand]  # (N, M)
-        ok = (sub >= 0) & registered[:, None]
-        first = np.argmax(ok, axis=0)
-        last = N - 1 - np.argmax(ok[::-1], axis=0)
-        added = 0
-        for fa in np.unique(first):
-            for fb in np.unique(last[first == fa]):
-                s = (first == fa) & (last == fb)
-                tr = cand[s]
-                Xn, z0, z1, err, par, fin = triangulate_matches(obs_uv[lookup[fa, tr]], obs_uv[lookup[fb, tr]],
-                                                                poses[fa], poses[fb], K, K)
-                with np.errstate(invalid="ignore"):
-                    g = fin & (z0 > 0) & (z1 > 0) & (err <= cfg.max_reprojection_px) & (par >= cfg.min_parallax_deg)
-                points[tr[g]] = Xn[g]
-                added += int(g.sum())
-        return added
+        def triangulate_new():
+            tri = np.isfinite(points[:, 0])
+            reg_obs = registered[obs_frame] & ~bad_obs
+            cnt = np.bincount(obs_track[reg_obs], minlength=T)
+            cand = np.flatnonzero(~tri & (cnt >= 2))
+            if cand.size == 0:
+                return 0
+            sub = lookup[:, cand]  # (N, M)
+            ok = (sub >= 0) & registered[:, None]
+            first = np.argmax(ok, axis=0)
+            last = N - 1 - np.argmax(ok[::-1], axis=0)
+            added = 0
+            for fa in np.unique(first):
+                for fb in np.unique(last[first == fa]):
+                    s = (first == fa) & (last == fb)
+                    tr = cand[s]
+                    Xn, z0, z1, err, par, fin = triangulate_matches(obs_uv[lookup[fa, tr]], obs_uv[lookup[fb, tr]],
+                                                                    poses[fa], poses[fb], K, K)
+                    with np.errstate(invalid="ignore"):
+                        g = fin & (z0 > 0) & (z1 > 0) & (err <= cfg.max_reprojection_px) & (par >= cfg.min_parallax_deg)
+                    points[tr[g]] = Xn[g]
+                    added += int(g.sum())
+            return added
 
-    triangulate_new()
-    failed = []
-    while True:
-        todo = np.flatnonzero(~registered)
-        todo = np.array([k for k in todo if k not in failed], dtype=np.int64)
-        if todo.size == 0:
-            break
-        tri = np.isfinite(points[:, 0])
-        counts = np.array([int(np.sum((lookup[k] >= 0) & tri)) for k in todo])
-        k = int(todo[np.argmax(counts)])
-        tr = np.flatnonzero((lookup[k] >= 0) & tri)
-        ok = False
-        if tr.size >= cfg.min_pnp_inliers:
-            obj = points[tr]
-            img = obs_uv[lookup[k, tr]]
-            retval, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=300,
-                                                         reprojectionError=cfg.pnp_threshold_px, confidence=0.999)
-            if retval and inl is not None and len(inl) >= max(cfg.min_pnp_inliers, cfg.min_pnp_inlier_ratio * tr.size):
-                inl = inl.ravel()
-                rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
-                poses[k] = _pose(cv2.Rodrigues(rvec)[0], tvec)
-                outl = np.setdiff1d(np.arange(tr.size), inl)
-                bad_obs[lookup[k, tr[outl]]] = True
-                ok = True
-        if not ok:
-            failed.append(k)
-            continue
-        registered[k] = True
-        failed = []  # new points may now let a failed frame register
         triangulate_new()
-        if registered.sum() >= 1.5 * last_ba:
-            last_ba = int(registered.sum())
-            use = ~bad_obs
-            poses, points_ba, K, resid, info = _ba(poses, points, K, obs_frame[use], obs_track[use], obs_uv[use],
-                                                   registered, a, cfg, refine_focal and registered.sum() >= 5)
-            points = points_ba
-            idx = np.flatnonzero(use)
-            bad_obs[idx[np.isfinite(resid) & (resid > cfg.outlier_px)]] = True  # mismatches, movers
-            say(f"registered {registered.sum()}/{N} frames; bundle adjustment rms {info['rms_px']:.2f} px")
-    if failed:
-        tri = np.isfinite(points[:, 0])
-        detail = ", ".join(f"frame {k}: {nkp[k]} keypoints, {int(np.sum((lookup[k] >= 0) & tri))} seen 3D points"
-                           for k in sorted(failed))
-        raise ValueError(f"could not register frames {sorted(failed)} (PnP needs >= {cfg.min_pnp_inliers} inliers; "
-                         f"{detail}); they are too blurry or show too little of the rest of the video: drop them "
-                         "(--start/--end, --stride) or film more slowly")
+        failed = []
+        while True:
+            todo = np.flatnonzero(~registered)
+            todo = np.array([k for k in todo if k not in failed], dtype=np.int64)
+            if todo.size == 0:
+                break
+            tri = np.isfinite(points[:, 0])
+            counts = np.array([int(np.sum((lookup[k] >= 0) & tri)) for k in todo])
+            k = int(todo[np.argmax(counts)])
+            tr = np.flatnonzero((lookup[k] >= 0) & tri)
+            ok = False
+            if tr.size >= cfg.min_pnp_inliers:
+                obj = points[tr]
+                img = obs_uv[lookup[k, tr]]
+                retval, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, K, None, iterationsCount=300,
+                                                             reprojectionError=cfg.pnp_threshold_px, confidence=0.999)
+                if retval and inl is not None and len(inl) >= max(cfg.min_pnp_inliers, cfg.min_pnp_inlier_ratio * tr.size):
+                    inl = inl.ravel()
+                    rvec, tvec = cv2.solvePnPRefineLM(obj[inl], img[inl], K, None, rvec, tvec)
+                    poses[k] = _pose(cv2.Rodrigues(rvec)[0], tvec)
+                    outl = np.setdiff1d(np.arange(tr.size), inl)
+                    bad_obs[lookup[k, tr[outl]]] = True
+                    ok = True
+            if not ok:
+                failed.append(k)
+                continue
+            registered[k] = True
+            failed = []  # new points may now let a failed frame register
+            triangulate_new()
+            if registered.sum() >= 1.5 * last_ba:
+                last_ba = int(registered.sum())
+                use = ~bad_obs
+                poses, points_ba, K, resid, info = _ba(poses, points, K, obs_frame[use], obs_track[use], obs_uv[use],
+                                                       registered, a, cfg, refine_focal and registered.sum() >= 5)
+                points = points_ba
+                idx = np.flatnonzero(use)
+                bad_obs[idx[np.isfinite(resid) & (resid > cfg.outlier_px)]] = True  # mismatches, movers
+                say(f"registered {registered.sum()}/{N} frames; bundle adjustment rms {info['rms_px']:.2f} px")
+        if failed:
+            tri = np.isfinite(points[:, 0])
+            detail = ", ".join(f"frame {k}: {nkp[k]} keypoints, {int(np.sum((lookup[k] >= 0) & tri))} seen 3D points"
+                               for k in sorted(failed))
+            raise ValueError(f"could not register frames {sorted(failed)} (PnP needs >= {cfg.min_pnp_inliers} inliers; "
+                             f"{detail}); they are too blurry or show too little of the rest of the video: drop them "
+                             "(--start/--end, --stride) or film more slowly")
 
-    # ---- final bundle adjustment: all frames, focal length, outlier removal, again
-    use = ~bad_obs & np.isfinite(points[obs_track, 0])
-    for rnd in range(2):
-        o_f, o_t, o_uv = obs_frame[use], obs_track[use], obs_uv[use]
-        poses, points, K, resid, info = _ba(poses, points, K, o_f, o_t, o_uv, registered, a, cfg, refine_focal)
-        # residual and depth checks on the used observations
-        z = np.einsum("oij,oj->oi", poses[o_f, :3, :3], points[o_t])[:, 2] + poses[o_f, 2, 3]
-        keep = (resid <= cfg.outlier_px) & (z > 0)
-        idx = np.flatnonzero(use)
-        use[idx[~keep]] = False
-        say(f"bundle adjustment {rnd + 1}: rms {info['rms_px']:.2f} px (median {info['median_px']:.2f}), "
-            f"focal {K[0, 0]:.1f} px, {int((~keep).sum())} observations dropped")
-    # points with fewer than 2 remaining observations are dropped
-    cnt = np.bincount(obs_track[use], minlength=T)
-    pt_ok = (cnt >= 2) & np.isfinite(points[:, 0])
-    use &= pt_ok[obs_track]
-    new_id = np.full(T, -1)
-    new_id[pt_ok] = np.arange(pt_ok.sum())
-    o_f, o_p, o_uv = obs_frame[use], new_id[obs_track[use]], obs_uv[use]
-    pts = points[pt_ok]
-    # residual rms of the kept observations
-    uvp = np.zeros_like(o_uv)
-    for k in range(N):
-        s = o_f == k
-        uvp[s] = project_points(pts[o_p[s]], poses[k], K)[0]
-    rms = float(np.sqrt(np.mean(np.sum((uvp - o_uv) ** 2, axis=1)))) if len(o_uv) else float("nan")
-    nobs = np.bincount(o_f, minlength=N)
-    lost = np.flatnonzero(nobs < cfg.min_pnp_inliers)
-    if lost.size:
-        raise ValueError(f"frames {lost.tolist()} keep only {nobs[lost].tolist()} consistent observations after bundle "
-                         f"adjustment (need >= {cfg.min_pnp_inliers}): their poses would be guesses; drop them "
-                         "(--start/--end, --stride, or delete them from the folder)")
-    weak = [int(k) for k in np.flatnonzero(nobs < cfg.weak_observations)]
-    # colours: mean over observations
-    cols = np.zeros((len(pts), 3))
-    np.add.at(cols, o_p, _sample_colors(images, o_f, o_uv))
-    cols /= np.maximum(np.bincount(o_p, minlength=len(pts)), 1)[:, None]
-    # gauge: frame 0 at the identity, median point depth 1
-    T0 = poses[0].copy()
-    poses = poses @ np.linalg.inv(T0)
-    pts = pts @ T0[:3, :3].T + T0[:3, 3]
-    depths = np.einsum("oij,oj->oi", poses[o_f, :3, :3], pts[o_p])[:, 2] + poses[o_f, 2, 3]
-    s = 1.0 / float(np.median(depths))
-    pts = pts * s
-    poses[:, :3, 3] *= s
-    say(f"registered all {N} frames: {len(pts)} points, reprojection rms {rms:.2f} px; "
-        f"observations per frame {nobs.min()}-{nobs.max()}" + (f"; weakly constrained frames {weak}" if weak else ""))
-    return SfmResult(poses, K, pts, np.clip(cols, 0, 1), o_f, o_p, o_uv, nkp, nobs, weak, False, (a, b), par0, rms,
-                     msgs)
+        # ---- final bundle adjustment: all frames, focal length, outlier removal, again
+        use = ~bad_obs & np.isfinite(points[obs_track, 0])
+        for rnd in range(2):
+            o_f, o_t, o_uv = obs_frame[use], obs_track[use], obs_uv[use]
+            poses, points, K, resid, info = _ba(poses, points, K, o_f, o_t, o_uv, registered, a, cfg, refine_focal)
+            # residual and depth checks on the used observations
+            z = np.einsum("oij,oj->oi", poses[o_f, :3, :3], points[o_t])[:, 2] + poses[o_f, 2, 3]
+            keep = (resid <= cfg.outlier_px) & (z > 0)
+            idx = np.flatnonzero(use)
+            use[idx[~keep]] = False
+            say(f"bundle adjustment {rnd + 1}: rms {info['rms_px']:.2f} px (median {info['median_px']:.2f}), "
+                f"focal {K[0, 0]:.1f} px, {int((~keep).sum())} observations dropped")
+        # points with fewer than 2 remaining observations are dropped
+        cnt = np.bincount(obs_track[use], minlength=T)
+        pt_ok = (cnt >= 2) & np.isfinite(points[:, 0])
+        use &= pt_ok[obs_track]
+        new_id = np.full(T, -1)
+        new_id[pt_ok] = np.arange(pt_ok.sum())
+        o_f, o_p, o_uv = obs_frame[use], new_id[obs_track[use]], obs_uv[use]
+        pts = points[pt_ok]
+        # residual rms of the kept observations
+        uvp = np.zeros_like(o_uv)
+        for k in range(N):
+            s = o_f == k
+            uvp[s] = project_points(pts[o_p[s]], poses[k], K)[0]
+        rms = float(np.sqrt(np.mean(np.sum((uvp - o_uv) ** 2, axis=1)))) if len(o_uv) else float("nan")
+        nobs = np.bincount(o_f, minlength=N)
+        lost = np.flatnonzero(nobs < cfg.min_pnp_inliers)
+        if lost.size:
+            raise ValueError(f"frames {lost.tolist()} keep only {nobs[lost].tolist()} consistent observations after bundle "
+                             f"adjustment (need >= {cfg.min_pnp_inliers}): their poses would be guesses; drop them "
+                             "(--start/--end, --stride, or delete them from the folder)")
+        weak = [int(k) for k in np.flatnonzero(nobs < cfg.weak_observations)]
+        # colours: mean over observations
+        cols = np.zeros((len(pts), 3))
+        np.add.at(cols, o_p, _sample_colors(images, o_f, o_uv))
+        cols /= np.maximum(np.bincount(o_p, minlength=len(pts)), 1)[:, None]
+        # gauge: frame 0 at the identity, median point depth 1
+        T0 = poses[0].copy()
+        poses = poses @ np.linalg.inv(T0)
+        pts = pts @ T0[:3, :3].T + T0[:3, 3]
+        depths = np.einsum("oij,oj->oi", poses[o_f, :3, :3], pts[o_p])[:, 2] + poses[o_f, 2, 3]
+        s = 1.0 / float(np.median(depths))
+        pts = pts * s
+        poses[:, :3, 3] *= s
+        if not 0.5 <= K[0, 0] / K_start[0, 0] <= 2.0:
+            raise ValueError(f"the focal length drifted to {K[0, 0]:.1f} px from {K_start[0, 0]:.1f} px")
+        say(f"registered all {N} frames: {len(pts)} points, reprojection rms {rms:.2f} px; "
+            f"observations per frame {nobs.min()}-{nobs.max()}" + (f"; weakly constrained frames {weak}" if weak else ""))
+        return SfmResult(poses, K, pts, np.clip(cols, 0, 1), o_f, o_p, o_uv, nkp, nobs, weak, False, (a, b), par0, rms,
+                         msgs)
+
+    for best, refine in plan:
+        try:
+            return _attempt(best, refine)
+        except ValueError as e:
+            errors.append(e)
+            say(f"start at frames {best[1]} and {best[2]}{'' if refine else ' (focal fixed)'} failed: {str(e)[:160]}")
+    raise errors[0]
+
+
