@@ -1,4 +1,4 @@
-"""Command line: ``d2gs {demo, make-scene, train, eval, report, experiment, render, export-ply}``.
+"""Command line: ``d2gs {demo, make-scene, import-video, train, eval, report, experiment, render, export-ply, refcheck}``.
 
 Every command validates its inputs before starting work and exits with a
 one-line error (status 2) naming the problem. Each command's help names the
@@ -145,6 +145,23 @@ def _cmd_export_ply(args):
     print(f"wrote {ri['means'].shape[0]} Gaussians at t = {args.time} to {args.out}")
 
 
+def _parse_size(text):
+    try:
+        w, h = (int(v) for v in text.lower().split("x"))
+    except ValueError:
+        raise ValueError(f"--size must be WIDTHxHEIGHT in pixels, e.g. 320x180; got {text!r}") from None
+    return (w, h)
+
+
+def _cmd_import_video(args):
+    from d2gs_np.video.importer import ImportConfig, import_video
+
+    cfg = ImportConfig(stride=args.stride, max_frames=args.max_frames,
+                       size=None if args.size is None else _parse_size(args.size), focal=args.focal,
+                       start=args.start, end=args.end, masks=not args.no_masks)
+    import_video(args.video, args.out, cfg, overwrite=args.overwrite)
+
+
 def _cmd_demo(args):
     """Small built-in scene -> train the full method -> evaluate -> report.html."""
     from d2gs_np.data.suite import SUITE, write_suite_scene
@@ -273,6 +290,25 @@ def build_parser() -> argparse.ArgumentParser:
                         "fraction of the scene scale (regression presets)")
     m.add_argument("--overwrite", action="store_true", help="replace an existing scene folder")
     m.set_defaults(func=_cmd_make_scene)
+
+    v = sub.add_parser("import-video", help="video or image folder -> scene folder with classical poses, motion "
+                       "masks and sparse points (docs/dataset_format.md)",
+                       description="Import a casual video (any file OpenCV decodes) or a folder of images into a "
+                                   "scene folder: frames, camera poses and focal length from features, PnP and a "
+                                   "bundle adjustment, motion masks from optical flow, sparse points for "
+                                   "initialisation (docs/dataset_format.md §8).")
+    v.add_argument("video", help="video file (.mp4, .avi, .mov, ...) or folder of images (name order)")
+    v.add_argument("out", help="output scene folder")
+    v.add_argument("--stride", type=int, default=1, help="keep every K-th frame (default 1)")
+    v.add_argument("--max-frames", type=int, default=None, help="stop after this many kept frames")
+    v.add_argument("--size", default=None, help="resize frames to WIDTHxHEIGHT pixels (default: as decoded)")
+    v.add_argument("--focal", type=float, default=None,
+                   help="focal length in pixels at the output size (default: a 65 deg field of view, refined)")
+    v.add_argument("--start", type=float, default=None, help="start time in seconds (video files)")
+    v.add_argument("--end", type=float, default=None, help="end time in seconds (video files)")
+    v.add_argument("--no-masks", action="store_true", help="write empty motion masks (a static scene)")
+    v.add_argument("--overwrite", action="store_true", help="write into an existing, non-empty folder")
+    v.set_defaults(func=_cmd_import_video)
 
     t = sub.add_parser("train", help="train on a scene folder (docs/method.md §7-8)",
                        description="Train on a scene folder (docs/dataset_format.md). Stages, progressive "

@@ -53,6 +53,7 @@ __all__ = ["load_scene", "write_scene", "TRANSFORMS_FILE", "TRANSFORMS_TEST_FILE
 
 TRANSFORMS_FILE = "transforms.json"
 TRANSFORMS_TEST_FILE = "transforms_test.json"
+POINTS_FILE = "points3d.ply"  # sparse points written by write_scene when the scene has them
 
 _INTRINSIC_KEYS = ("w", "h", "fl_x", "fl_y", "cx", "cy")
 _DISTORTION_KEYS = ("k1", "k2", "k3", "k4", "p1", "p2")
@@ -177,6 +178,10 @@ def _top_level_optional(data, where):
     if v is not None and not isinstance(v, bool):
         raise ValueError(f"{where}: 'poses_trusted' must be true or false (are the given poses exact?); got {v!r}")
     out["poses_trusted"] = v
+    v = data.get("ply_file_path")
+    if v is not None and (not isinstance(v, str) or not v.strip() or os.path.isabs(v)):
+        raise ValueError(f"{where}: 'ply_file_path' must be a path relative to the scene folder; got {v!r}")
+    out["ply_file_path"] = v
     return out
 
 
@@ -329,6 +334,10 @@ def load_scene(path, load_images=True) -> Scene:
         _, test = _parse_file(root, tt, _top_intrinsics(data))
 
     # 2. files exist, headers agree with the intrinsics
+    ply_rel = optional.pop("ply_file_path")
+    if ply_rel is not None and not (root / ply_rel).is_file():
+        raise FileNotFoundError(f"{TRANSFORMS_FILE}: 'ply_file_path' {ply_rel!r} does not exist in {root}; "
+                                "fix the path or remove the field")
     for spec in train + test:
         w, h = spec.fields["width"], spec.fields["height"]
         _check_png(spec.image_file, spec.label, "image", w, h, gray=False)
@@ -348,12 +357,17 @@ def load_scene(path, load_images=True) -> Scene:
                 fr.sharp = _decode(spec.sharp_file, spec.label, "sharp image", gray=False)
         return fr
 
-    return Scene(
+    scene = Scene(
         frames=[build(s) for s in train],
         test_frames=[build(s) for s in test],
         root=root,
         **optional,
     )
+    if ply_rel is not None:  # optional sparse points (docs/dataset_format.md §4)
+        from d2gs_np.data.ply import read_points_ply
+
+        scene.points3d, scene.points3d_colors = read_points_ply(root / ply_rel)
+    return scene
 
 
 # --------------------------------------------------------------------- writing
@@ -501,6 +515,16 @@ def write_scene(scene: Scene, path, overwrite=False) -> None:
             raise ValueError(f"scene.poses_trusted must be True, False or None; got {scene.poses_trusted!r}")
         extra["poses_trusted"] = scene.poses_trusted
 
+    if scene.points3d is not None:
+        from d2gs_np.data.ply import write_points_ply
+
+        pts = np.asarray(scene.points3d, dtype=np.float64)
+        cols = np.full_like(pts, 0.5) if scene.points3d_colors is None else scene.points3d_colors
+        if pts.ndim != 2 or pts.shape[1] != 3 or np.shape(cols) != pts.shape or not np.all(np.isfinite(pts)):
+            raise ValueError(f"scene.points3d must be finite (P, 3) with points3d_colors of the same shape; got "
+                             f"{pts.shape} and {np.shape(cols)}")
+        extra["ply_file_path"] = POINTS_FILE
+
     used = {}
     plans = {}
     for attr in ("frames", "test_frames"):
@@ -521,6 +545,8 @@ def write_scene(scene: Scene, path, overwrite=False) -> None:
                 if not cv2.imwrite(str(out), px):
                     raise OSError(f"could not write {out}")
 
+    if scene.points3d is not None:
+        write_points_ply(root / POINTS_FILE, pts, cols)
     docs = [(TRANSFORMS_FILE, "frames", extra)]
     if scene.test_frames:
         docs.append((TRANSFORMS_TEST_FILE, "test_frames", {}))

@@ -42,6 +42,8 @@ class Scene:
     blur_subframes: Optional[int] = None
     root: Optional[Path] = None  # folder it was loaded from, if any
     poses_trusted: Optional[bool] = None  # True: the given poses are exact (no pose refinement)
+    points3d: Optional[np.ndarray] = None  # (P, 3) sparse static world points (optional ply_file_path)
+    points3d_colors: Optional[np.ndarray] = None  # (P, 3) their RGB in [0, 1]
 
     @property
     def num_frames(self) -> int:

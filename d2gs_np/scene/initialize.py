@@ -26,6 +26,11 @@ Static points
    If nothing could be triangulated, near / far fall back to ``fallback_depth_range`` times
    ``scene.scene_scale`` (an error if the scene has no scale).
 
+Sparse points given with the scene (``Scene.points3d``, the optional ``ply_file_path`` of
+docs/dataset_format.md §4, written by ``d2gs import-video``) replace steps 1-2's triangulation:
+no features are matched, each point counts as triangulated in the first frame that sees it.
+Without them nothing changes.
+
 Returned static points are ordered: triangulated, dense, fill (``info["num_static_triangulated"]``,
 ``info["num_static_dense"]``, ``info["num_static_fill"]`` of each).
 
@@ -286,6 +291,23 @@ def _random_pixels(rng, frames, pools, n):
     return frame_idx, pix
 
 
+def _scene_points(scene):
+    """The scene's sparse points (``Scene.points3d``, docs/dataset_format.md §4) in the layout of the
+    triangulated ones: (points, colours, source frame, depth there, reprojection error (NaN: unknown)).
+    A point's source frame is the first frame that sees it in front of the camera and inside the
+    image; points no frame sees are dropped."""
+    pts = np.asarray(scene.points3d, dtype=np.float64)
+    cols = np.full_like(pts, 0.5) if scene.points3d_colors is None else np.asarray(scene.points3d_colors, np.float64)
+    src = np.full(len(pts), -1, dtype=np.int64)
+    depth = np.full(len(pts), np.nan)
+    for k, f in enumerate(scene.frames):
+        uv, z = project_points(pts, f.cam_T_world, f.K)
+        vis = (src < 0) & (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < f.width) & (uv[:, 1] >= 0) & (uv[:, 1] < f.height)
+        src[vis], depth[vis] = k, z[vis]
+    keep = src >= 0
+    return pts[keep], cols[keep], src[keep], depth[keep], np.full(int(keep.sum()), np.nan)
+
+
 def initialize_points(scene, config: InitConfig = None, rng=None):
     """Initial static and dynamic points of ``scene`` (see the module docstring).
 
@@ -304,10 +326,11 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
     N = len(frames)
     fc = config.features
 
-    # ---- 1. features and matches on static pixels
-    keypoints = [detect_features(f.image, fc, f.mask) for f in frames]
+    # ---- 1. features and matches on static pixels (or the scene's own sparse points, below)
+    given = getattr(scene, "points3d", None) is not None and len(scene.points3d) > 0
+    keypoints = [] if given else [detect_features(f.image, fc, f.mask) for f in frames]
     skips = sorted({min(s, N - 1) for s in config.frame_skips}) if N > 1 else []
-    pairs = [(k, k + s) for s in skips for k in range(N - s)]
+    pairs = [] if given else [(k, k + s) for s in skips for k in range(N - s)]
     tri_pts, tri_cols, tri_src, tri_depth, tri_err = [], [], [], [], []
     num_matches = []
     for a, b in pairs:
@@ -335,6 +358,8 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
     else:
         tri_pts, tri_cols = np.zeros((0, 3)), np.zeros((0, 3))
         tri_src, tri_depth, tri_err = np.zeros(0, dtype=np.int64), np.zeros(0), np.zeros(0)
+    if given:  # sparse points of the scene folder (e.g. from d2gs import-video) replace the triangulation
+        tri_pts, tri_cols, tri_src, tri_depth, tri_err = _scene_points(scene)
     num_triangulated = tri_pts.shape[0]
     if num_triangulated > config.max_static_points:
         sel = np.sort(rng.choice(num_triangulated, config.max_static_points, replace=False))
@@ -427,7 +452,7 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
         "reproj_error_median_px": float(np.median(tri_err)) if tri_err.size else float("nan"),
         "num_triangulated_before_cap": int(num_triangulated),
         "num_pairs": len(pairs),
-        "num_keypoints_mean": float(np.mean([len(kp) for kp in keypoints])),
+        "num_keypoints_mean": float(np.mean([len(kp) for kp in keypoints])) if keypoints else 0.0,
         "fill_depth_near": float(near),
         "fill_depth_far": float(far),
         "fill_depth_source": depth_source,

@@ -1,0 +1,130 @@
+"""``d2gs import-video``: a video (or image folder) -> a scene folder with poses, masks, sparse points.
+
+Pipeline (docs/dataset_format.md §8): ``decode.read_frames`` -> intrinsics guess ->
+``sfm.register_video`` (features, two-view start, PnP, bundle adjustment with the focal
+length) -> ``masks.motion_masks`` -> a second bundle adjustment pass that leaves out features
+inside the masks (``ImportConfig.refine_with_masks``) -> ``write_scene`` with ``points3d.ply``
+and ``import_report.json`` (per-frame keypoints and inlier observations, weakly constrained
+frames, the focal length, the reprojection error).
+
+Intrinsics: ``focal`` (pixels, at the output size) if given and then kept fixed; otherwise the
+guess of a 65 degree horizontal field of view, f = 0.5 max(W, H) / tan(32.5 deg) = 0.785
+max(W, H) (a phone's main camera filming 16:9 video), refined by the bundle adjustment. The
+principal point is the image centre. Times are spread evenly over [0, 1] (``k / (N - 1)``);
+``exposure_fraction`` is left absent (unknown: learned, docs/method.md §4).
+"""
+from __future__ import annotations
+
+import json
+import numbers
+import time
+from dataclasses import asdict, dataclass, field
+from pathlib import Path
+
+import numpy as np
+
+from d2gs_np.data.io import write_scene
+from d2gs_np.data.scene import Frame, Scene
+from d2gs_np.geometry.camera import make_intrinsics
+from d2gs_np.video.decode import check_decode_args, read_frames
+from d2gs_np.video.masks import MaskConfig, motion_masks
+from d2gs_np.video.sfm import SfmConfig, register_video
+
+__all__ = ["ImportConfig", "import_video", "guess_focal", "REPORT_FILE", "GUESS_FOV_X_DEG"]
+
+REPORT_FILE = "import_report.json"
+GUESS_FOV_X_DEG = 65.0  # horizontal field of view assumed when no focal length is given
+
+
+def guess_focal(width, height):
+    """Focal length (pixels) of a GUESS_FOV_X_DEG field of view across the longer side."""
+    return 0.5 * max(width, height) / np.tan(np.radians(GUESS_FOV_X_DEG) / 2)
+
+
+@dataclass(frozen=True)
+class ImportConfig:
+    stride: int = 1
+    max_frames: int = None
+    size: tuple = None  # (W, H)
+    focal: float = None  # pixels at the output size; None: guessed and refined
+    start: float = None  # seconds (video only)
+    end: float = None
+    masks: bool = True  # compute motion masks
+    refine_with_masks: bool = False  # second registration pass without features on masked pixels
+    sfm: SfmConfig = field(default_factory=SfmConfig)
+    mask: MaskConfig = field(default_factory=MaskConfig)
+
+    def __post_init__(self):
+        if self.focal is not None and (isinstance(self.focal, bool) or not isinstance(self.focal, numbers.Real)
+                                       or not np.isfinite(self.focal) or self.focal <= 0):
+            raise ValueError(f"focal must be a positive number of pixels; got {self.focal!r}")
+        if not isinstance(self.sfm, SfmConfig) or not isinstance(self.mask, MaskConfig):
+            raise TypeError("ImportConfig.sfm must be an SfmConfig and ImportConfig.mask a MaskConfig")
+
+
+def _check_out(out, overwrite):
+    out = Path(out)
+    if out.exists() and (not out.is_dir() or any(out.iterdir())) and not overwrite:
+        raise ValueError(f"output scene folder {out} exists and is not empty; choose a new folder or pass "
+                         "--overwrite")
+    return out
+
+
+def import_video(source, out, config: ImportConfig = None, overwrite=False, log=print) -> dict:
+    """Import ``source`` into the scene folder ``out``; returns the report (also written as JSON)."""
+    cfg = ImportConfig() if config is None else config
+    if not isinstance(cfg, ImportConfig):
+        raise TypeError(f"config must be an ImportConfig; got {type(cfg).__name__}")
+    check_decode_args(source, cfg.stride, cfg.max_frames, cfg.size, cfg.start, cfg.end)
+    out = _check_out(out, overwrite)
+    t0 = time.perf_counter()
+    dec = read_frames(source, cfg.stride, cfg.max_frames, cfg.size, cfg.start, cfg.end, log=log)
+    imgs = dec.images
+    N = len(imgs)
+    H, W = imgs[0].shape[:2]
+    f0 = cfg.focal if cfg.focal is not None else guess_focal(W, H)
+    K = make_intrinsics(f0, f0, W / 2.0, H / 2.0)
+    if log:
+        log(f"intrinsics: focal {f0:.1f} px ({'given' if cfg.focal is not None else 'guessed, refined below'}), "
+            f"principal point at the centre")
+    res = register_video(imgs, K, cfg.sfm, refine_focal=cfg.focal is None, log=log)
+    masks = [np.zeros((H, W), dtype=bool) for _ in range(N)]
+    mask_info = {}
+    if cfg.masks:
+        masks, mask_info = motion_masks(imgs, res.cam_T_world, res.K, res.points, cfg.mask, log=log)
+        moving = float(np.mean(mask_info["moving_fraction"]))
+        if log:
+            log(f"motion masks: {100 * moving:.1f}% of pixels moving on average")
+        if cfg.refine_with_masks and not res.rotation_only and any(m.any() for m in masks):
+            res = register_video(imgs, res.K if cfg.focal is None else K, cfg.sfm, refine_focal=cfg.focal is None,
+                                 masks=masks, log=log)
+            masks, mask_info = motion_masks(imgs, res.cam_T_world, res.K, res.points, cfg.mask, log=log)
+    # scene scale: 95th percentile of the sparse points' depths in their frames
+    z = np.einsum("oij,oj->oi", res.cam_T_world[res.obs_frame, :3, :3], res.points[res.obs_point])[:, 2] \
+        + res.cam_T_world[res.obs_frame, 2, 3]
+    scale = float(np.percentile(z, 95)) if z.size else 1.0
+    frames = []
+    for k in range(N):
+        frames.append(Frame(file_path=f"images/{k:04d}.png", time=k / (N - 1), cam_T_world=res.cam_T_world[k],
+                            K=res.K.copy(), width=W, height=H, image=imgs[k].astype(np.float64) / 255.0,
+                            mask=masks[k], mask_path=f"masks/{k:04d}.png"))
+    scene = Scene(frames=frames, scene_scale=scale, points3d=res.points, points3d_colors=res.colors)
+    write_scene(scene, out, overwrite=overwrite)
+    report = {
+        "source": str(source), "frames": N, "size": [W, H], "source_frames": dec.source_index,
+        "source_names": dec.names, "fps": dec.fps, "focal_px": float(res.K[0, 0]),
+        "focal_given": cfg.focal is not None, "rotation_only": res.rotation_only,
+        "init_pair": list(res.init_pair), "init_parallax_deg": res.init_parallax_deg,
+        "reprojection_rms_px": res.reprojection_rms_px, "num_points": int(len(res.points)),
+        "keypoints_per_frame": res.num_keypoints.tolist(), "observations_per_frame": res.num_observations.tolist(),
+        "weak_frames": res.weak_frames, "moving_fraction": mask_info.get("moving_fraction"),
+        "seconds": time.perf_counter() - t0, "log": res.log,
+        "config": {k: v for k, v in asdict(cfg).items() if k not in ("sfm", "mask")},
+    }
+    with open(out / REPORT_FILE, "w", encoding="utf-8") as fh:
+        json.dump(report, fh, indent=2, default=float)
+        fh.write("\n")
+    if log:
+        log(f"wrote {N} frames, {len(res.points)} sparse points and masks to {out} in {report['seconds']:.1f}s"
+            + (f"; weakly constrained frames: {res.weak_frames}" if res.weak_frames else ""))
+    return report
