@@ -91,6 +91,9 @@ def static_depth(model, k: int, pose, scale: float = 1.0):
     return np.where(out["alpha"] >= POSE_DEPTH_ALPHA_MIN, out["expected_depth"], np.nan)
 
 
+# Solver statuses whose result the plugin writes (PoseSolverConfig.accept = "converged").
+CONVERGED = ("converged_cost", "converged_step")
+
 class PoseSolver(Plugin):
     name = "pose_solver"
 
@@ -154,7 +157,13 @@ class PoseSolver(Plugin):
                  "dropped": int(res.dropped), "rank": int(res.rank), "num_params": int(res.num_params),
                  "solver_seconds": float(res.wall_time)}
         ate_after = ate_before
-        if res.accepted:
+        trusted = self.pc.accept == "always" or (res.status in CONVERGED and res.rank == res.num_params)
+        entry["written"] = bool(res.accepted and trusted)
+        if res.accepted and not trusted:
+            self.note(f"step {state.step}: pose solver result not written ({res.status}, rank {res.rank}/"
+                      f"{res.num_params}): only converged, fully observed solves move the poses "
+                      "(pose_solver.accept = converged)")
+        if res.accepted and trusted:
             changed = [int(k) for k in problem.free if np.any(res.x[k] != 0)]
             state = write_mid_poses(state, res.mids, changed, C)
             entry["changed_frames"] = len(changed)

@@ -26,10 +26,15 @@ def noisy_scene():
     return make_scene("dynamic", 0, rot_noise_deg=0.5, **SMALL)
 
 
-def _config(iters=8, every=3, mode="on", **train):
+def _config(iters=8, every=3, mode="on", accept="always", gn=None, **train):
+    # accept="always": these tests check what a solve writes, on tiny scenes whose few-step fits
+    # rarely let the solver converge; the acceptance rule has its own test below
     base = dict(iters=iters, quiet=True, eval_every=0, log_every=1, checkpoint_every=0, prune_every=0)
     base.update(train)
-    return ExperimentConfig(train=TrainConfig(**base), pose_solver=PoseSolverConfig(mode=mode, every=every))
+    ps = PoseSolverConfig(mode=mode, every=every, accept=accept)
+    if gn is not None:
+        ps = dataclasses.replace(ps, gauss_newton=dataclasses.replace(ps.gauss_newton, **gn))
+    return ExperimentConfig(train=TrainConfig(**base), pose_solver=ps)
 
 
 def test_mode_and_trusted_poses_decide_and_the_log_says_why(noisy_scene):
@@ -141,3 +146,21 @@ def test_a_run_without_the_blur_model_refines_the_given_poses(tmp_path):
     assert len(tr.plugins[-1].history) == 1 and tr.plugins[-1].history[0]["status"] != "no_pairs"
     np.testing.assert_array_equal(tr.model.mid_poses(), tr.model.poses_ref)  # n = 1: the reference is the mid pose
     assert not np.array_equal(tr.model.poses_ref, tr.model.poses_est)
+
+
+def test_only_converged_full_rank_solves_move_the_poses(noisy_scene, tmp_path):
+    # one iteration cannot converge: the result is computed and logged but not written
+    tr = Trainer(noisy_scene, _config(iters=4, every=3, accept="converged", gn={"max_iters": 1}), tmp_path / "a")
+    tr.run()
+    h = tr.plugins[-1].history[0]
+    assert h["status"] == "max_iters" and h["accepted"] == 1 and h["written"] is False
+    np.testing.assert_array_equal(tr.model.poses_ref, tr.model.poses_est)
+    notes = json.loads((tmp_path / "a" / "log.json").read_text())["notes"]
+    assert any("not written (max_iters" in n for n in notes)
+    # the same call with "always" writes it
+    tr = Trainer(noisy_scene, _config(iters=4, every=3, accept="always", gn={"max_iters": 1}), tmp_path / "b")
+    tr.run()
+    assert tr.plugins[-1].history[0]["written"] is True
+    assert not np.array_equal(tr.model.poses_ref, tr.model.poses_est)
+    with pytest.raises(ValueError, match="accept"):
+        PoseSolverConfig(accept="sometimes")
