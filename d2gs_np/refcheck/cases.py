@@ -16,7 +16,8 @@ from dataclasses import dataclass, field
 import numpy as np
 
 from d2gs_np import constants as C
-from d2gs_np.refcheck.scenes import camera_scene, random_scene, safe_random_scene, threshold_margins
+from d2gs_np.refcheck.scenes import (camera_scene, extreme_anisotropy_scene, extreme_scales_scene, flat_covariance_scene,
+                                     near_plane_scene, random_scene, safe_random_scene, threshold_margins)
 from d2gs_np.render.config import RenderConfig
 
 __all__ = ["Case", "CASES", "DEFAULT_CASES", "DEFAULT_CASES_F32", "build_case", "render_case_inputs"]
@@ -146,13 +147,7 @@ def _tile_border():
 
 
 def _extreme_scales():
-    rng = np.random.default_rng(21)
-    n, W, H = 24, 30, 26
-    p_c = np.stack([rng.uniform(-0.6, 0.6, n), rng.uniform(-0.6, 0.6, n), rng.uniform(2, 6, n)], axis=1)
-    sig = 10.0 ** (rng.uniform(-6, 3, size=(n, 1)) + rng.uniform(0, 1, size=(n, 3)))
-    sig[0] = [1e-6, 2e-6, 3e-6]
-    sig[1] = [1e3, 2e3, 3e2]
-    scene = camera_scene(p_c, sig, rng.uniform(0.05, 0.9, n), rng.uniform(0, 1, (n, 3)), W, H, rng=rng)
+    scene = extreme_scales_scene()
     return _render("extreme_scales", "scales log-uniform in [1e-6, 1e3]: dilation-only points to "
                    "Gaussians far larger than the image", scene, seed=21)
 
@@ -160,13 +155,7 @@ def _extreme_scales():
 def _extreme_anisotropy():
     from d2gs_np import reference as ref
 
-    rng = np.random.default_rng(22)
-    n, W, H = 20, 30, 26
-    p_c = np.stack([rng.uniform(-0.6, 0.6, n), rng.uniform(-0.6, 0.6, n), rng.uniform(2, 6, n)], axis=1)
-    sig = 10.0 ** rng.uniform(-6, 3, size=(n, 3))
-    sig[0] = [1e3, 1e-6, 1e-6]
-    sig[1] = [1e3, 1e3, 1e-6]
-    scene = camera_scene(p_c, sig, rng.uniform(0.05, 0.9, n), rng.uniform(0, 1, (n, 3)), W, H, rng=rng)
+    scene = extreme_anisotropy_scene()
     _, saved = ref.render_fwd(**scene)
     cov, det = saved["proj"]["cov"], saved["proj"]["det"]
     kappa = float(np.max(cov[:, 0, 0] * cov[:, 1, 1] / det))
@@ -178,25 +167,13 @@ def _extreme_anisotropy():
 
 
 def _near_plane():
-    rng = np.random.default_rng(22)
-    near = C.NEAR_PLANE
-    p_c = np.array([[0.0, 0.0, near * 1.5], [0.001, 0.0, near], [0.0, 0.001, near * 0.5], [0.1, 0.1, -1.0],
-                    [0.2, -0.1, 3.0], [-0.3, 0.2, 2.5]])
-    sig = np.array([[1e-4, 2e-4, 1e-4], [0.1] * 3, [0.1] * 3, [0.1] * 3, [0.2, 0.1, 0.3], [0.1, 0.3, 0.2]])
-    scene = camera_scene(p_c, sig, [0.3, 0.9, 0.9, 0.9, 0.7, 0.6], rng.uniform(0, 1, (6, 3)), 24, 20, rng=rng)
-    scene["cam_T_world"] = np.eye(4)
-    scene["means"] = p_c
+    scene = near_plane_scene()
     return _render("near_plane", "z = 1.5 near (kept, huge footprint), z = near exactly, below near and "
                    "behind the camera (culled)", scene, seed=22)
 
 
 def _flat_covariance():
-    rng = np.random.default_rng(23)
-    n, W, H = 6, 20, 20
-    p_c = np.stack([rng.uniform(-0.4, 0.4, n), rng.uniform(-0.4, 0.4, n), rng.uniform(2, 4, n)], axis=1)
-    sig = np.array([[0.3, 0.2, 0.0], [0.0, 0.0, 0.25], [0.0, 0.0, 0.0], [0.2, 1e-12, 0.3], [0.15, 0.2, 0.1],
-                    [0.0, 0.3, 0.0]])
-    scene = camera_scene(p_c, sig, rng.uniform(0.2, 0.9, n), rng.uniform(0, 1, (n, 3)), W, H, rng=rng)
+    scene = flat_covariance_scene()
     return _render("flat_covariance", "singular 3D covariances: one, two or three scales exactly 0", scene,
                    seed=23)
 

@@ -18,7 +18,8 @@ import numpy as np
 
 from d2gs_np import constants as C
 
-__all__ = ["random_rotation", "random_scene", "cast_scene", "copy_scene", "safe_random_scene",
+__all__ = ["extreme_scales_scene", "extreme_anisotropy_scene", "near_plane_scene", "flat_covariance_scene",
+           "random_rotation", "random_scene", "cast_scene", "copy_scene", "safe_random_scene",
            "threshold_margins", "threshold_margin", "camera_scene"]
 
 
@@ -201,6 +202,54 @@ def camera_scene(p_c, sigmas, opacities, colors, width, height, f=None, quats=No
     return dict(means=means, quats=np.asarray(quats, float), scales=np.asarray(sigmas, float),
                 opacities=np.asarray(opacities, float), colors=np.asarray(colors, float),
                 cam_T_world=T, K=K, width=width, height=height, background=rng.uniform(0, 1, 3))
+
+
+def extreme_scales_scene():
+    """24 Gaussians, 30x26: scale magnitudes log-uniform in [1e-6, 1e3] (anisotropy <= 10 each), one
+    dilation-only point and one far larger than the image (seed 21)."""
+    rng = np.random.default_rng(21)
+    n, W, H = 24, 30, 26
+    p_c = np.stack([rng.uniform(-0.6, 0.6, n), rng.uniform(-0.6, 0.6, n), rng.uniform(2, 6, n)], axis=1)
+    sig = 10.0 ** (rng.uniform(-6, 3, size=(n, 1)) + rng.uniform(0, 1, size=(n, 3)))
+    sig[0] = [1e-6, 2e-6, 3e-6]
+    sig[1] = [1e3, 2e3, 3e2]
+    return camera_scene(p_c, sig, rng.uniform(0.05, 0.9, n), rng.uniform(0, 1, (n, 3)), W, H, rng=rng)
+
+
+def extreme_anisotropy_scene():
+    """20 Gaussians, 30x26: needles and pancakes, per-Gaussian scale ratios up to 1e9 (seed 22)."""
+    rng = np.random.default_rng(22)
+    n, W, H = 20, 30, 26
+    p_c = np.stack([rng.uniform(-0.6, 0.6, n), rng.uniform(-0.6, 0.6, n), rng.uniform(2, 6, n)], axis=1)
+    sig = 10.0 ** rng.uniform(-6, 3, size=(n, 3))
+    sig[0] = [1e3, 1e-6, 1e-6]
+    sig[1] = [1e3, 1e3, 1e-6]
+    return camera_scene(p_c, sig, rng.uniform(0.05, 0.9, n), rng.uniform(0, 1, (n, 3)), W, H, rng=rng)
+
+
+def near_plane_scene():
+    """6 Gaussians, 24x20, identity pose: z = 1.5 near (huge footprint), z = near exactly, below
+    near, behind the camera, and two ordinary ones (seed 22). The means are the exact camera-frame
+    positions, so z == near is exactly representable."""
+    rng = np.random.default_rng(22)
+    near = C.NEAR_PLANE
+    p_c = np.array([[0.0, 0.0, near * 1.5], [0.001, 0.0, near], [0.0, 0.001, near * 0.5], [0.1, 0.1, -1.0],
+                    [0.2, -0.1, 3.0], [-0.3, 0.2, 2.5]])
+    sig = np.array([[1e-4, 2e-4, 1e-4], [0.1] * 3, [0.1] * 3, [0.1] * 3, [0.2, 0.1, 0.3], [0.1, 0.3, 0.2]])
+    scene = camera_scene(p_c, sig, [0.3, 0.9, 0.9, 0.9, 0.7, 0.6], rng.uniform(0, 1, (6, 3)), 24, 20, rng=rng)
+    scene["cam_T_world"] = np.eye(4)
+    scene["means"] = p_c
+    return scene
+
+
+def flat_covariance_scene():
+    """6 Gaussians, 20x20: singular 3D covariances, one, two or all three scales exactly 0 (seed 23)."""
+    rng = np.random.default_rng(23)
+    n, W, H = 6, 20, 20
+    p_c = np.stack([rng.uniform(-0.4, 0.4, n), rng.uniform(-0.4, 0.4, n), rng.uniform(2, 4, n)], axis=1)
+    sig = np.array([[0.3, 0.2, 0.0], [0.0, 0.0, 0.25], [0.0, 0.0, 0.0], [0.2, 1e-12, 0.3], [0.15, 0.2, 0.1],
+                    [0.0, 0.3, 0.0]])
+    return camera_scene(p_c, sig, rng.uniform(0.2, 0.9, n), rng.uniform(0, 1, (n, 3)), W, H, rng=rng)
 
 
 def _hat(phi):

@@ -21,6 +21,8 @@ from numba import types
 import render_fixtures as rf
 from d2gs_np import constants as C
 from d2gs_np import reference as ref
+from d2gs_np.refcheck.scenes import (extreme_anisotropy_scene, extreme_scales_scene, flat_covariance_scene,
+                                     near_plane_scene)
 from d2gs_np.render import RenderConfig, render_bwd, render_fwd
 from d2gs_np.render import api as fast_api
 from d2gs_np.render import project as fast_project
@@ -212,13 +214,7 @@ def test_all_culled_scene_matches_reference():
 def test_extreme_scale_magnitudes():
     """Scale magnitudes log-uniform in [1e-6, 1e3] (anisotropy <= 10 per Gaussian): sub-pixel
     points where the dilation dominates, up to Gaussians far larger than the image."""
-    rng = np.random.default_rng(21)
-    n, W, H = 24, 30, 26
-    p_c = np.stack([rng.uniform(-0.6, 0.6, n), rng.uniform(-0.6, 0.6, n), rng.uniform(2, 6, n)], axis=1)
-    sig = 10.0 ** (rng.uniform(-6, 3, size=(n, 1)) + rng.uniform(0, 1, size=(n, 3)))
-    sig[0] = [1e-6, 2e-6, 3e-6]
-    sig[1] = [1e3, 2e3, 3e2]
-    scene = camera_scene(p_c, sig, rng.uniform(0.05, 0.9, n), rng.uniform(0, 1, (n, 3)), W, H, rng=rng)
+    scene = extreme_scales_scene()
     assert_margin(scene)
     out, _, _ = compare_with_reference(scene, seed=21)
     assert out["radii"][1, 0] > 1000  # far larger than the image
@@ -232,13 +228,7 @@ def test_extreme_anisotropy():
     log10(kappa) digits, kappa = c00 c11 / det (the dilation keeps det >= 0.09, so kappa stays
     finite). Their difference is ~eps * kappa relative, so the tolerance is scaled by kappa_max.
     """
-    rng = np.random.default_rng(22)
-    n, W, H = 20, 30, 26
-    p_c = np.stack([rng.uniform(-0.6, 0.6, n), rng.uniform(-0.6, 0.6, n), rng.uniform(2, 6, n)], axis=1)
-    sig = 10.0 ** rng.uniform(-6, 3, size=(n, 3))
-    sig[0] = [1e3, 1e-6, 1e-6]
-    sig[1] = [1e3, 1e3, 1e-6]
-    scene = camera_scene(p_c, sig, rng.uniform(0.05, 0.9, n), rng.uniform(0, 1, (n, 3)), W, H, rng=rng)
+    scene = extreme_anisotropy_scene()
     assert_margin(scene)
     _, saved_r = ref.render_fwd(**scene)
     cov, det = saved_r["proj"]["cov"], saved_r["proj"]["det"]
@@ -249,14 +239,9 @@ def test_extreme_anisotropy():
 
 def test_near_plane_and_behind_camera():
     """z just above the near plane (huge footprint), z == near, z below it, z < 0."""
-    rng = np.random.default_rng(22)
     near = C.NEAR_PLANE
-    p_c = np.array([[0.0, 0.0, near * 1.5], [0.001, 0.0, near], [0.0, 0.001, near * 0.5], [0.1, 0.1, -1.0],
-                    [0.2, -0.1, 3.0], [-0.3, 0.2, 2.5]])
-    sig = np.array([[1e-4, 2e-4, 1e-4], [0.1] * 3, [0.1] * 3, [0.1] * 3, [0.2, 0.1, 0.3], [0.1, 0.3, 0.2]])
-    scene = camera_scene(p_c, sig, [0.3, 0.9, 0.9, 0.9, 0.7, 0.6], rng.uniform(0, 1, (6, 3)), 24, 20, rng=rng)
-    scene["cam_T_world"] = np.eye(4)
-    scene["means"] = p_c  # exact camera-frame depths, so z == near is exactly representable
+    scene = near_plane_scene()  # exact camera-frame depths, so z == near is exactly representable
+    p_c = scene["means"]
     # the fixture's near-plane margin is signed (negative for the Gaussians culled on purpose)
     assert_margin(scene, ignore=("near_plane",))
     z = p_c[:, 2]
@@ -271,12 +256,7 @@ def test_near_plane_and_behind_camera():
 def test_flat_covariance(antialiased):
     """Degenerate 3D covariances: one, two or all three scales exactly 0."""
     cfg = RenderConfig(antialiased=antialiased)
-    rng = np.random.default_rng(23)
-    n, W, H = 6, 20, 20
-    p_c = np.stack([rng.uniform(-0.4, 0.4, n), rng.uniform(-0.4, 0.4, n), rng.uniform(2, 4, n)], axis=1)
-    sig = np.array([[0.3, 0.2, 0.0], [0.0, 0.0, 0.25], [0.0, 0.0, 0.0], [0.2, 1e-12, 0.3], [0.15, 0.2, 0.1],
-                    [0.0, 0.3, 0.0]])
-    scene = camera_scene(p_c, sig, rng.uniform(0.2, 0.9, n), rng.uniform(0, 1, (n, 3)), W, H, rng=rng)
+    scene = flat_covariance_scene()
     assert_margin(scene, cfg)
     out, _, _ = compare_with_reference(scene, config=cfg, seed=23)
     assert np.all(out["radii"] > 0)
