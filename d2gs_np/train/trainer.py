@@ -93,7 +93,8 @@ class Trainer:
         # notes wait for the log, whose columns follow the terms.
         pending = []
         if resume:
-            components = Components(**load_checkpoint(ckpt)[1]["components"])
+            saved = load_checkpoint(ckpt)  # read once: the components here, the rest in _restore
+            components = Components(**saved[1]["components"])
         else:
             components = decide_components(scene, config, pending.append)
         self.terms = loss_terms(config.loss, components, pending.append)
@@ -110,7 +111,7 @@ class Trainer:
         self.plugins = (default_plugins(scene, config, self.extent, self.log.note, run_dir=self.run_dir)
                         + [p for t in self.terms for p in getattr(t, "plugins", ())] + list(plugins))
         if resume:
-            self._restore(ckpt)
+            self._restore(ckpt, *saved)
         else:
             for line in composition_notes([t.name for t in self.terms], [p.name for p in self.plugins]):
                 self.log.note(line)
@@ -283,8 +284,7 @@ class Trainer:
         save_checkpoint(self.run_dir / (FINAL_NAME if final else CHECKPOINT_NAME), arrays, meta)
         self.log.save()
 
-    def _restore(self, path):
-        arrays, meta = load_checkpoint(path)
+    def _restore(self, path, arrays, meta):
         saved_cfg = ExperimentConfig.from_dict(meta["config"])
         # A resumed run continues the saved experiment: only the run length and output may change.
         free = {"iters", "time_budget", "quiet"}
