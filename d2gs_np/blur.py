@@ -78,6 +78,8 @@ __all__ = [
     "BlurConfig",
     "N_SCHEDULES",
     "views_at_scale",
+    "views_for_length",
+    "blur_length_px",
     "EXPOSURE_BLOCK",
     "exposure_offsets",
     "subframe_times",
@@ -98,7 +100,7 @@ _RENDER_FIELDS = ("means", "quats", "scales", "opacities", "colors")
 _OUTPUT_KEYS = ("image", "alpha", "depth", "expected_depth")
 
 
-N_SCHEDULES = ("fixed", "scale")
+N_SCHEDULES = ("fixed", "scale", "length")
 
 
 @dataclass(frozen=True)
@@ -110,11 +112,18 @@ class BlurConfig:
     n_schedule: how many of them a training render at render scale r uses
         (``views_at_scale``): "fixed", n at every scale; "scale", fewer while the progressive
         schedule renders small images, so the virtual views stay as far apart in pixels as n
-        views are at full resolution (the blur's length in pixels scales with r).
+        views are at full resolution (the blur's length in pixels scales with r); "length", per
+        frame and step from the blur's current length in render pixels (``blur_length_px`` of
+        the current endpoints and scene, ``views_for_length``): just enough views to keep
+        neighbouring views at most ``view_spacing_px`` render pixels apart, at most n. It
+        follows the render scale too, and gives a short blur few views.
+    view_spacing_px: the largest gap, in render pixels, between neighbouring virtual views of
+        the "length" schedule (> 0).
     """
 
     num_virtual: int = 8
     n_schedule: str = "fixed"
+    view_spacing_px: float = 1.0
 
     def __post_init__(self):
         n = self.num_virtual
@@ -122,6 +131,9 @@ class BlurConfig:
             raise ValueError(f"BlurConfig.num_virtual must be an int >= 1; got {n!r}")
         if self.n_schedule not in N_SCHEDULES:
             raise ValueError(f"BlurConfig.n_schedule must be one of {N_SCHEDULES}; got {self.n_schedule!r}")
+        d = self.view_spacing_px
+        if isinstance(d, bool) or not isinstance(d, numbers.Real) or not (0.0 < d < float("inf")):
+            raise ValueError(f"BlurConfig.view_spacing_px must be a finite number of pixels > 0; got {d!r}")
 
 
 def views_at_scale(n, scale, schedule="fixed"):
@@ -137,10 +149,65 @@ def views_at_scale(n, scale, schedule="fixed"):
         raise ValueError(f"scale must be a real number in (0, 1]; got {scale!r}")
     if schedule not in N_SCHEDULES:
         raise ValueError(f"n schedule must be one of {N_SCHEDULES}; got {schedule!r}")
+    if schedule == "length":
+        raise ValueError("the 'length' n schedule depends on the frame's blur, not only the scale: use "
+                         "views_for_length(n, blur_length_px(...), spacing)")
     if schedule == "fixed" or n <= 2:
         return n
     # the tiny slack keeps exact scales (r (n - 1) an integer up to rounding) from taking one view too many
     return int(min(n, max(2, 1 + math.ceil(scale * (n - 1) - 1e-9))))
+
+
+def views_for_length(n, length_px, spacing_px=1.0):
+    """Virtual views of the "length" n schedule: 1 + ceil(L / d), at least 2 and at most n, for a
+    blur L render pixels long and a largest gap d between neighbouring views (n views of a blur L
+    long are L / (n - 1) apart). n <= 2 stays n. A zero-length blur gets 2 views (the model's
+    smallest n > 1; with identical endpoints both are the same render).
+    Example, d = 1: L = 0 -> 2, L = 2.5 -> 4, L = 20 -> n."""
+    n = _check_n(n)
+    L = _check_real(length_px, "length_px", low=0.0)
+    d = _check_real(spacing_px, "spacing_px")
+    if d <= 0.0:
+        raise ValueError(f"spacing_px must be > 0; got {d}")
+    if n <= 2:
+        return n
+    return int(min(n, max(2, 1 + math.ceil(L / d - 1e-9))))
+
+
+def blur_length_px(means_start, means_end, pose_start, pose_end, K, width, height, quantile=0.99):
+    """Length in pixels of a frame's blur: the ``quantile`` of the image-space distance between
+    each point projected at the exposure start (``means_start`` (N, 3) world points through
+    ``pose_start``, a (4, 4) cam_T_world) and at its end (``means_end`` through ``pose_end``),
+    over the points in front of both cameras (z > 1e-6) whose start projection falls inside the
+    width x height image of intrinsics K. A high quantile rather than the maximum, so one stray
+    point near the camera does not decide the length. 0.0 when no point qualifies.
+
+    Pass the same array twice for a static scene; the dynamic set's points at the start and end
+    sub-frame times for a moving one."""
+    ms = np.asarray(means_start, dtype=np.float64)
+    me = np.asarray(means_end, dtype=np.float64)
+    if ms.ndim != 2 or ms.shape[1] != 3 or me.shape != ms.shape:
+        raise ValueError(f"means_start and means_end must both be (N, 3); got {ms.shape} and {me.shape}")
+    if not 0.0 < quantile <= 1.0:
+        raise ValueError(f"quantile must be in (0, 1]; got {quantile}")
+    if ms.shape[0] == 0:
+        return 0.0
+    K = np.asarray(K, dtype=np.float64)
+    Ts, Te = np.asarray(pose_start, np.float64), np.asarray(pose_end, np.float64)
+    cs = ms @ Ts[:3, :3].T + Ts[:3, 3]
+    ce = me @ Te[:3, :3].T + Te[:3, 3]
+    ok = (cs[:, 2] > 1e-6) & (ce[:, 2] > 1e-6)
+    if not ok.any():
+        return 0.0
+    cs, ce = cs[ok], ce[ok]
+    ps = cs[:, :2] / cs[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
+    pe = ce[:, :2] / ce[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
+    inside = (ps[:, 0] >= 0) & (ps[:, 0] < width) & (ps[:, 1] >= 0) & (ps[:, 1] < height)
+    if not inside.any():
+        return 0.0
+    d = np.linalg.norm(pe[inside] - ps[inside], axis=1)
+    d = d[np.isfinite(d)]
+    return float(np.quantile(d, quantile)) if d.size else 0.0
 
 
 # ---------------------------------------------------------------------------------------------

@@ -31,7 +31,9 @@ from d2gs_np.blur import (
     virtual_poses,
     virtual_poses_bwd,
     virtual_poses_fwd,
+    blur_length_px,
     views_at_scale,
+    views_for_length,
 )
 from d2gs_np.geometry import matrix_grad_to_left_tangent, se3_exp, se3_interpolate, se3_inverse, se3_log
 from d2gs_np.scene.deformation import DeformConfig
@@ -487,3 +489,58 @@ def test_views_at_scale_examples_and_errors():
         views_at_scale(8, 0.5, "linear")
     with pytest.raises(ValueError, match="n_schedule"):
         BlurConfig(n_schedule="sometimes")
+
+
+# ---------------------------------------------------------------------------------------------
+# Virtual views per blur length (BlurConfig.n_schedule = "length")
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("n", [3, 5, 8, 16])
+@pytest.mark.parametrize("spacing", [0.5, 1.0, 2.5])
+def test_views_for_length_keep_neighbouring_views_within_the_spacing(n, spacing):
+    for L in np.linspace(0.0, 40.0, 161):
+        m = views_for_length(n, float(L), spacing)
+        assert 2 <= m <= n
+        if m < n:  # not capped: the gap is at most the spacing, and one view fewer would exceed it
+            assert L / (m - 1) <= spacing + 1e-12
+            if m > 2:
+                assert L / (m - 2) > spacing
+    assert views_for_length(n, 1e6, spacing) == n
+
+
+def test_views_for_length_examples_and_errors():
+    assert [views_for_length(8, L, 1.0) for L in (0.0, 1.0, 2.5, 7.0, 20.0)] == [2, 2, 4, 8, 8]
+    assert views_for_length(1, 50.0) == 1 and views_for_length(2, 50.0) == 2
+    for bad in (-1.0, float("nan"), float("inf")):
+        with pytest.raises(ValueError, match="length_px"):
+            views_for_length(8, bad)
+    with pytest.raises(ValueError, match="spacing_px"):
+        views_for_length(8, 3.0, 0.0)
+    with pytest.raises(ValueError, match="view_spacing_px"):
+        BlurConfig(n_schedule="length", view_spacing_px=0.0)
+    with pytest.raises(ValueError, match="views_for_length"):
+        views_at_scale(8, 0.5, "length")
+
+
+def test_blur_length_of_a_sideways_camera_shift_is_f_times_shift_over_depth():
+    K = np.array([[100.0, 0.0, 40.0], [0.0, 100.0, 30.0], [0.0, 0.0, 1.0]])
+    rng = np.random.default_rng(0)
+    pts = np.c_[rng.uniform(-0.3, 0.3, (500, 2)), np.full(500, 2.0)]  # a fronto-parallel plane, depth 2
+    Ts, Te = np.eye(4), np.eye(4)
+    Te[0, 3] = 0.05  # 5 cm sideways: every point moves f * 0.05 / 2 = 2.5 px
+    assert blur_length_px(pts, pts, Ts, Te, K, 80, 60) == pytest.approx(2.5, rel=1e-12)
+    assert blur_length_px(pts, pts, Ts, Ts, K, 80, 60) == 0.0  # zero-length exposure
+    # an object moving 0.1 to the side under a still camera: 5 px
+    assert blur_length_px(pts, pts + [0.1, 0.0, 0.0], Ts, Ts, K, 80, 60) == pytest.approx(5.0, rel=1e-12)
+    # points behind either camera or outside the image do not count; none left gives 0
+    behind = pts * [1, 1, -1]
+    assert blur_length_px(behind, behind, Ts, Te, K, 80, 60) == 0.0
+    far_off = pts + [10.0, 0.0, 0.0]
+    assert blur_length_px(far_off, far_off, Ts, Te, K, 80, 60) == 0.0
+    assert blur_length_px(np.zeros((0, 3)), np.zeros((0, 3)), Ts, Te, K, 80, 60) == 0.0
+    # one stray point at the camera does not decide the length (99th percentile)
+    stray = np.vstack([pts, [[0.0, 0.0, 1e-3]]])
+    assert blur_length_px(stray, stray, Ts, Te, K, 80, 60) == pytest.approx(2.5, rel=1e-9)
+    with pytest.raises(ValueError, match="means_start"):
+        blur_length_px(pts, pts[:3], Ts, Te, K, 80, 60)

@@ -119,5 +119,8 @@ def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Cal
         if config.blur.n_schedule == "scale":
             say(f"virtual views follow the render scale r: 1 + ceil(r (n - 1)) of n = {config.blur.num_virtual} "
                 "(blur.n_schedule = scale)")
+        elif config.blur.n_schedule == "length":
+            say(f"virtual views follow each frame's blur length: 1 + ceil(L / {config.blur.view_spacing_px:g} px), "
+                f"2 to n = {config.blur.num_virtual} (blur.n_schedule = length)")
         say(f"trajectory model: {config.trajectory.kind}")
     return Components(dynamic=dynamic, blur=blur, learn_exposure=learn, exposure_fraction=float(ef or 0.0))

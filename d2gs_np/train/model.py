@@ -43,6 +43,7 @@ from d2gs_np.render.api import _render_bwd, _render_fwd
 from d2gs_np.scene import gaussians
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
 from d2gs_np.scene.initialize import initialize_points
+from d2gs_np.scene.deformation import _deform_fwd
 from d2gs_np.scene.model import RENDER_FIELDS, _evaluate_bwd, _evaluate_fwd, evaluate_fwd
 from d2gs_np.scene.motion_init import initialize_deformation
 from d2gs_np.train.components import Components
@@ -262,7 +263,7 @@ def frame_render_fwd(model: Model, k: int, K, width: int, height: int, static_on
             tau = float(tau)
         else:
             tau = blur_model.exposure_from_scene(model.components.exposure_fraction, model.num_frames)
-        n = blur_model.views_at_scale(cfg.blur.num_virtual, min(1.0, width / model.widths[k]), cfg.blur.n_schedule)
+        n = frame_views(model, k, scene, xs[0], xe[0], tau, K, width, height)
         out, saved["render"] = _blur_render_fwd(
             scene, t, tau, model.poses_ref[k], xs[0], xe[0], K, width, height, model.background, n,
             cfg.deform, cfg.render, (_render_fwd, _render_bwd), (_evaluate_fwd, _evaluate_bwd))
@@ -271,6 +272,30 @@ def frame_render_fwd(model: Model, k: int, K, width: int, height: int, static_on
         out, saved["render"] = _render_fwd(ri["means"], ri["quats"], ri["scales"], ri["opacities"], ri["colors"],
                                            model.poses_ref[k], K, width, height, model.background, cfg.render)
     return out, saved
+
+
+def frame_views(model: Model, k: int, scene, xi_start, xi_end, tau, K, width, height) -> int:
+    """Virtual views of frame k's blurry render at width x height (``blur.n_schedule``): n
+    ("fixed"), by render scale ("scale") or by the blur's current length in render pixels
+    ("length": the static means through the current endpoint poses, and the dynamic set's
+    deformed means at the first and last sub-frame times; the longer of the two blurs)."""
+    bc = model.config.blur
+    if bc.n_schedule != "length":
+        return blur_model.views_at_scale(bc.num_virtual, min(1.0, width / model.widths[k]), bc.n_schedule)
+    T = np.asarray(model.poses_ref[k], dtype=np.float64)
+    Ts, Te = se3_exp(np.asarray(xi_start, np.float64)) @ T, se3_exp(np.asarray(xi_end, np.float64)) @ T
+    m = scene[f"{STATIC}.means"]
+    length = blur_model.blur_length_px(m, m, Ts, Te, K, width, height)
+    if f"{DYNAMIC}.means" in scene and scene[f"{DYNAMIC}.means"].shape[0] > 0:
+        t = float(model.times[k])
+        ends = []
+        for ti in (t - 0.5 * tau, t + 0.5 * tau):
+            (dm, _, _), _ = _deform_fwd(*(scene[f"{DYNAMIC}.{f}"] for f in
+                                          ("means", "quats", "colors", "deform_means", "deform_quats",
+                                           "deform_colors")), ti, model.config.deform)
+            ends.append(dm)
+        length = max(length, blur_model.blur_length_px(ends[0], ends[1], Ts, Te, K, width, height))
+    return blur_model.views_for_length(bc.num_virtual, length, bc.view_spacing_px)
 
 
 def frame_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth=None):

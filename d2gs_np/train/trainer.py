@@ -26,7 +26,6 @@ from typing import Optional
 
 import numpy as np
 
-from d2gs_np.blur import views_at_scale
 from d2gs_np.data.scene import Scene
 from d2gs_np.optim import adam
 from d2gs_np.render.api import warm_up
@@ -173,10 +172,8 @@ class Trainer:
         plan = self.planner.plan(step, step if sched is None else sched)
         state, k = self.state, plan.frame
         tgt = self.cache.get(k, plan.scale)
-        views = views_at_scale(self.config.blur.num_virtual, min(1.0, tgt.width / self.frames[k].width),
-                               self.config.blur.n_schedule) if state.model.components.blur else 1
         record = {"step": step, "frame": k, "stage": plan.stage.name, "scale": plan.scale, "width": tgt.width,
-                  "height": tgt.height, "views": views}
+                  "height": tgt.height, "views": 0}
         # Moving pixels carry no loss while only the static set is rendered (warm-up stage).
         ignore = tgt.mask if (plan.stage.static_only and tgt.mask is not None) else None
         loss_mask = None if ignore is None else (~ignore).astype(state.params[f"{STATIC}.means"].dtype)
@@ -184,6 +181,7 @@ class Trainer:
             self.state = state.replace(aux={})
             return {**record, "loss": float("nan"), "train_psnr": float("nan")}
         out, saved = frame_render_fwd(state.model, k, tgt.K, tgt.width, tgt.height, plan.stage.static_only)
+        record["views"] = int(out["poses"].shape[0]) if "poses" in out else 1
         inputs = TermInputs(out, tgt.image, loss_mask, state.model, k, plan.stage)
         loss, values, v_render, v_terms = terms_fwd_bwd(self.terms, inputs)
         grads, aux = frame_render_bwd(saved, **{f"v_{n}": v for n, v in v_render.items()})

@@ -1,6 +1,7 @@
 """The trainer end to end on tiny synthetic scenes: it learns, leaves out what a scene does not
 need (and never calls the skipped code), resumes exactly, respects the time budget, and
 rejects bad input before doing any work."""
+import csv
 import dataclasses
 import json
 import shutil
@@ -485,3 +486,35 @@ def test_n_schedule_renders_fewer_views_at_small_scales_and_n_at_full(dynamic_sc
     for w, n in calls:
         assert n == blur_model.views_at_scale(8, min(1.0, w / width), "scale")
     assert min(n for _, n in calls) < 8 and calls[-1] == (width, 8)
+
+
+def test_length_schedule_gives_each_frame_the_views_its_blur_length_needs(dynamic_scene, tmp_path, monkeypatch):
+    calls = []
+    real = blur_model._blur_render_fwd
+
+    def spy(*args, **kwargs):
+        calls.append(args[10])  # n
+        return real(*args, **kwargs)
+
+    from d2gs_np.train import model as model_module
+    monkeypatch.setattr(model_module, "_blur_render_fwd", spy)
+    lengths = []
+    real_length = blur_model.blur_length_px
+
+    def length_spy(*args, **kwargs):
+        lengths.append(real_length(*args, **kwargs))
+        return lengths[-1]
+
+    monkeypatch.setattr(blur_model, "blur_length_px", length_spy)
+    cfg = _config(iters=10, warmup_fraction=0.0, deform_fraction=0.0)
+    cfg = cfg.replace(blur=dataclasses.replace(cfg.blur, n_schedule="length", view_spacing_px=1.0))
+    run = tmp_path / "run"
+    Trainer(dynamic_scene, cfg, run).run()
+    assert len(calls) == 10
+    # two lengths per step (static set, dynamic set at the sub-frame times); n from the longer
+    per_step = [max(lengths[2 * i], lengths[2 * i + 1]) for i in range(10)]
+    assert calls == [blur_model.views_for_length(8, L, 1.0) for L in per_step]
+    assert len(set(calls)) > 1 or 2 < calls[0] < 8, "the blur lengths of this scene should not all clip"
+    with open(run / "log.csv") as fh:
+        logged = {int(r["step"]): int(r["views"]) for r in csv.DictReader(fh)}
+    assert logged and all(calls[step] == v for step, v in logged.items())
