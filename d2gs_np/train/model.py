@@ -42,7 +42,7 @@ from d2gs_np.render import render_fwd
 from d2gs_np.render.api import _render_bwd, _render_fwd
 from d2gs_np.scene import gaussians
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
-from d2gs_np.scene.initialize import initialize_points
+from d2gs_np.scene.initialize import initialize_points, pixel_scale_cap
 from d2gs_np.scene.deformation import _deform_fwd
 from d2gs_np.scene.model import RENDER_FIELDS, _evaluate_bwd, _evaluate_fwd, evaluate_fwd
 from d2gs_np.scene.motion_init import initialize_deformation
@@ -85,6 +85,11 @@ class Model:
         if not components.dynamic:
             d_pts, d_col = None, None
         params = gaussians.init_params(s_pts, s_col, d_pts, d_col, deform_config=config.deform, rng=rng)
+        for prefix, pts, src in ((STATIC, s_pts, info["static_source_frames"]),
+                                 (DYNAMIC, d_pts, info["dynamic_source_frames"])):
+            if pts is not None and len(pts):
+                cap = pixel_scale_cap(pts, src, frames, config.init.max_scale_px)
+                params[f"{prefix}.log_scales"] = np.minimum(params[f"{prefix}.log_scales"], cap[:, None])
         if d_pts is not None and config.motion_init.enabled:
             means, coefs, minfo = initialize_deformation(
                 scene, d_pts, info["dynamic_source_frames"], info["dynamic_source_pixels"], config.deform,
