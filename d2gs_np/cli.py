@@ -85,7 +85,9 @@ def _cmd_train(args):
 def _cmd_eval(args):
     from d2gs_np.evaluate import evaluate_run
 
-    result = evaluate_run(args.run, args.scene)
+    if args.test_pose_opt < 0:
+        raise SystemExit(f"--test-pose-opt must be >= 0 steps; got {args.test_pose_opt}")
+    result = evaluate_run(args.run, args.scene, test_pose_steps=args.test_pose_opt)
     print(json.dumps(result, indent=2))
     print(f"wrote {Path(args.run) / 'metrics.json'}")
 
@@ -338,6 +340,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "docs/dataset_format.md §6).")
     e.add_argument("run")
     e.add_argument("--scene", default=None, help="scene folder (default: the one the run was trained on)")
+    e.add_argument("--test-pose-opt", type=int, default=0, metavar="N",
+                   help="also score novel views after refining each test pose on the frozen scene for N steps "
+                        "(the BARF / BAD-Gaussians protocol; reported as nvs_pose_opt beside nvs). Default 0: off")
     e.set_defaults(func=_cmd_eval)
 
     r = sub.add_parser("render", help="render a run at a time and pose to PNG (docs/conventions.md)",

@@ -218,6 +218,7 @@ _METRIC_ROWS = (
     ("blurry input vs sharp: SSIM", ("input_blur", "ssim"), ".3f"),
     ("novel views: PSNR [dB]", ("nvs", "psnr"), ".2f"),
     ("novel views: SSIM", ("nvs", "ssim"), ".3f"),
+    ("novel views, test poses refined: PSNR [dB]", ("nvs_pose_opt", "psnr"), ".2f"),
     ("ATE, given poses", ("trajectory", "initial", "ate"), ".4f"),
     ("ATE, refined poses", ("trajectory", "ate"), ".4f"),
     ("RPE_t, given -> refined", None, None),

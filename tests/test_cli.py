@@ -30,6 +30,21 @@ def test_eval_writes_metrics_with_the_documented_keys(trained):
     assert "pose_refinement" in m["left_out"]
 
 
+def test_eval_with_test_pose_refinement_reports_both_novel_view_scores(trained):
+    scene, run = trained
+    assert main(["eval", str(run), "--test-pose-opt", "8"]) == 0
+    m = json.loads((run / "metrics.json").read_text())
+    opt, plain = m["nvs_pose_opt"], m["nvs"]
+    assert opt["steps"] == 8 and opt["num_images"] == plain["num_images"]
+    # each view keeps its best pose, its start included: never below the plain score
+    assert opt["psnr"] >= plain["psnr"] - 1e-9
+    assert opt["mean_rotation_deg"] >= 0.0 and np.isfinite(opt["mean_translation"])
+    assert main(["eval", str(run)]) == 0  # off by default: the key is absent
+    assert "nvs_pose_opt" not in json.loads((run / "metrics.json").read_text())
+    with pytest.raises(SystemExit):
+        main(["eval", str(run), "--test-pose-opt", "-1"])
+
+
 def test_render_and_export_ply(trained, tmp_path):
     _, run = trained
     png = tmp_path / "r.png"
