@@ -56,3 +56,16 @@ def load_checkpoint(path):
     except Exception as e:  # zipfile/ValueError/KeyError: name the file
         raise ValueError(f"checkpoint {path} is unreadable ({e}); delete it or retrain") from e
     return arrays, meta
+
+
+def load_checkpoint_meta(path) -> dict:
+    """Only the metadata of a checkpoint (its step, seconds, ...), without reading the arrays: an
+    .npz is a zip whose members are read on access. Same errors as ``load_checkpoint``."""
+    path = Path(path)
+    if not path.exists():
+        raise FileNotFoundError(f"checkpoint {path} does not exist; train first (d2gs train SCENE --out RUN)")
+    try:
+        with np.load(path, allow_pickle=False) as z:
+            return json.loads(bytes(z["__meta__"]).decode("utf-8"))
+    except Exception as e:
+        raise ValueError(f"checkpoint {path} is unreadable ({e}); delete it or retrain") from e

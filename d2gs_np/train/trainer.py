@@ -30,7 +30,7 @@ from d2gs_np.data.scene import Scene
 from d2gs_np.optim import adam
 from d2gs_np.render.api import warm_up
 from d2gs_np.scene.gaussians import STATIC, num_static
-from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint, save_checkpoint
+from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint, load_checkpoint_meta, save_checkpoint
 from d2gs_np.train.components import Components, composition_notes, decide_components
 from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.log import RunLog, Stopwatch, psnr_from_mse
@@ -53,7 +53,7 @@ def latest_checkpoint(run_dir):
     for name in (CHECKPOINT_NAME, FINAL_NAME):
         path = Path(run_dir) / name
         if path.exists():
-            step = int(load_checkpoint(path)[1]["step"])
+            step = int(load_checkpoint_meta(path)["step"])
             if step > best_step:
                 best, best_step = path, step
     return best

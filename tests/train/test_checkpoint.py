@@ -44,12 +44,19 @@ def test_failed_write_keeps_previous_checkpoint_and_leaves_no_temp(tmp_path, mon
 
 
 def test_missing_and_corrupt_checkpoints_name_the_file(tmp_path):
-    with pytest.raises(FileNotFoundError, match="nope.npz"):
-        ck.load_checkpoint(tmp_path / "nope.npz")
-    bad = tmp_path / "bad.npz"
-    bad.write_bytes(b"not a zip file")
-    with pytest.raises(ValueError, match="bad.npz"):
-        ck.load_checkpoint(bad)
+    for load in (ck.load_checkpoint, ck.load_checkpoint_meta):
+        with pytest.raises(FileNotFoundError, match="nope.npz"):
+            load(tmp_path / "nope.npz")
+        bad = tmp_path / "bad.npz"
+        bad.write_bytes(b"not a zip file")
+        with pytest.raises(ValueError, match="bad.npz"):
+            load(bad)
+
+
+def test_the_metadata_alone_is_the_full_load_s_metadata(tmp_path):
+    meta = {"step": 41, "seconds": 3.5, "left_out": ["blur_model"]}
+    ck.save_checkpoint(tmp_path / "c.npz", _arrays(np.random.default_rng(3)), meta)
+    assert ck.load_checkpoint_meta(tmp_path / "c.npz") == ck.load_checkpoint(tmp_path / "c.npz")[1] == meta
 
 
 def test_atomic_write_text_replaces_whole_file(tmp_path):
