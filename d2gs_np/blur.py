@@ -61,6 +61,7 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from d2gs_np.geometry.camera import project_points
 from d2gs_np.geometry.se3 import (
     check_rigid,
     matrix_grad_to_left_tangent,
@@ -195,17 +196,10 @@ def blur_length_px(means_start, means_end, pose_start, pose_end, K, width, heigh
         raise ValueError(f"quantile must be in (0, 1]; got {quantile}")
     if ms.shape[0] == 0:
         return 0.0
-    K = np.asarray(K, dtype=np.float64)
-    Ts, Te = np.asarray(pose_start, np.float64), np.asarray(pose_end, np.float64)
-    cs = ms @ Ts[:3, :3].T + Ts[:3, 3]
-    ce = me @ Te[:3, :3].T + Te[:3, 3]
-    ok = (cs[:, 2] > 1e-6) & (ce[:, 2] > 1e-6)
-    if not ok.any():
-        return 0.0
-    cs, ce = cs[ok], ce[ok]
-    ps = cs[:, :2] / cs[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
-    pe = ce[:, :2] / ce[:, 2:3] * K[[0, 1], [0, 1]] + K[:2, 2]
-    inside = (ps[:, 0] >= 0) & (ps[:, 0] < width) & (ps[:, 1] >= 0) & (ps[:, 1] < height)
+    ps, zs = project_points(ms, pose_start, np.asarray(K, dtype=np.float64))
+    pe, ze = project_points(me, pose_end, np.asarray(K, dtype=np.float64))
+    inside = ((zs > 1e-6) & (ze > 1e-6) & (ps[:, 0] >= 0) & (ps[:, 0] < width) & (ps[:, 1] >= 0)
+              & (ps[:, 1] < height))
     if not inside.any():
         return 0.0
     d = np.linalg.norm(pe[inside] - ps[inside], axis=1)

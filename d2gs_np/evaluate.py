@@ -28,7 +28,7 @@ from d2gs_np.geometry.camera import camera_center
 from d2gs_np.pose_fit import PoseFitConfig, fit_pose
 from d2gs_np.scene.model import evaluate_fwd
 from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint
-from d2gs_np.train.model import Model
+from d2gs_np.train.model import SCENE_PREFIXES, Model
 from d2gs_np.train.trainer import CHECKPOINT_NAME, FINAL_NAME
 
 
@@ -127,7 +127,7 @@ def _trajectory_and_nvs(run: LoadedRun, scene, mids, test_pose_steps=0) -> dict:
             pose = metrics.sim3_apply_to_poses(s, R, t, f.cam_T_world)
             pairs.append((model.render(pose, f.time, f.K, f.width, f.height), f.image))
             if test_pose_steps > 0:
-                scene_params = {n: v for n, v in model.params.items() if n.startswith(("static.", "dynamic."))}
+                scene_params = {n: v for n, v in model.params.items() if n.startswith(SCENE_PREFIXES)}
                 ri, _ = evaluate_fwd(scene_params, float(f.time), model.config.deform)
                 pose_fit, info = fit_pose(ri, pose, f.K, f.width, f.height, f.image, model.background,
                                           PoseFitConfig(steps=int(test_pose_steps)), model.config.render)

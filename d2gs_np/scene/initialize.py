@@ -272,6 +272,20 @@ def interpolate_inverse_depth(uv, z, query, outlier_rel=0.15, neighbours=8):
     return out, kept
 
 
+def depth_from_points(points, frame, query, outlier_rel, max_points=None):
+    """Depth (Q,) at pixels ``query`` (Q, 2) of ``frame``, interpolated (``interpolate_inverse_depth``)
+    from the ``points`` (M, 3) it sees in front of it and inside the image; at most ``max_points``
+    of them, evenly spread over the list (None: all). NaN where there are fewer than three."""
+    if points.shape[0] < 3:
+        return np.full(len(query), np.nan)
+    uv, z = project_points(points, frame.cam_T_world, frame.K)
+    vis = np.flatnonzero((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < frame.width) & (uv[:, 1] >= 0)
+                         & (uv[:, 1] < frame.height))
+    if max_points is not None:
+        vis = vis[::max(1, len(vis) // max_points)]
+    return interpolate_inverse_depth(uv[vis], z[vis], query, outlier_rel)[0]
+
+
 def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, stereo=None, depth_range=None,
                skips=(2, 4, 8)):
     """Pixel-grid points of each keyframe's static pixels at their stereo depth, else at depths
@@ -314,11 +328,9 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
                 anc_uv = np.stack([anc[:, 1] + PIXEL_CENTER_OFFSET, anc[:, 0] + PIXEL_CENTER_OFFSET], axis=1)
                 miss = ~np.isfinite(depth)
                 depth[miss], _ = interpolate_inverse_depth(anc_uv, dmap[anc[:, 0], anc[:, 1]], pix[miss], outlier_rel)
-        if not np.all(np.isfinite(depth)) and ref_points.shape[0] >= 3:
-            uv, z = project_points(ref_points, f.cam_T_world, f.K)
-            vis = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < f.width) & (uv[:, 1] >= 0) & (uv[:, 1] < f.height)
+        if not np.all(np.isfinite(depth)):
             miss = ~np.isfinite(depth)
-            depth[miss], _ = interpolate_inverse_depth(uv[vis], z[vis], pix[miss], outlier_rel)
+            depth[miss] = depth_from_points(ref_points, f, pix[miss], outlier_rel)
         ok = np.isfinite(depth) & (depth > 0)
         if not np.any(ok):
             continue
@@ -462,15 +474,9 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
         anchors = np.concatenate([tri_pts, dense_pts]) if config.fill_on_surface else np.zeros((0, 3))
         for k in np.unique(fill_src):
             s = fill_src == k
-            if anchors.shape[0] >= 3:  # on the surface the seeds describe, where they describe one
-                f = frames[k]
-                uv, z = project_points(anchors, f.cam_T_world, f.K)
-                vis = np.flatnonzero((z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < f.width) & (uv[:, 1] >= 0)
-                                     & (uv[:, 1] < f.height))
-                vis = vis[::max(1, len(vis) // 4000)]
-                if len(vis) >= 3:
-                    d, _ = interpolate_inverse_depth(uv[vis], z[vis], pix[s], config.dense_outlier_rel)
-                    depth[s] = np.where(np.isfinite(d) & (d > 0), d, depth[s])
+            # on the surface the seeds describe, where they describe one
+            d = depth_from_points(anchors, frames[k], pix[s], config.dense_outlier_rel, max_points=4000)
+            depth[s] = np.where(np.isfinite(d) & (d > 0), d, depth[s])
             fill_pts[s] = unproject_points(pix[s], depth[s], frames[k].cam_T_world, frames[k].K)
             fill_cols[s] = sample_image_bilinear(frames[k].image, pix[s])
 
