@@ -56,12 +56,15 @@ def load_run(run_dir) -> LoadedRun:
 
 
 def _image_metrics(pairs):
-    """Mean PSNR and SSIM over image pairs. PSNR of identical images is infinite; strict JSON has
-    no infinity, so it is written as null (with ``identical: true``)."""
+    """Mean PSNR, SSIM and FLIP (``metrics.flip``, lower is better) over image pairs. PSNR of
+    identical images is infinite; strict JSON has no infinity, so it is written as null (with
+    ``identical: true``)."""
     ps = [metrics.psnr(a, b) for a, b in pairs]
     ss = [metrics.ssim(a, b) for a, b in pairs]
+    fl = [metrics.flip(a, b) for a, b in pairs]
     mean_psnr = float(np.mean(ps))
-    out = {"psnr": mean_psnr if np.isfinite(mean_psnr) else None, "ssim": float(np.mean(ss)), "num_images": len(pairs)}
+    out = {"psnr": mean_psnr if np.isfinite(mean_psnr) else None, "ssim": float(np.mean(ss)),
+           "flip": float(np.mean(fl)), "num_images": len(pairs)}
     if not np.isfinite(mean_psnr):
         out["identical"] = True
     return out

@@ -227,6 +227,7 @@ def flatten(m: dict) -> dict:
     return {
         "dvs_psnr": g("dvs", "psnr"), "dvs_ssim": g("dvs", "ssim"), "input_psnr": g("input_blur", "psnr"),
         "input_ssim": g("input_blur", "ssim"), "nvs_psnr": g("nvs", "psnr"), "nvs_ssim": g("nvs", "ssim"),
+        "dvs_flip": g("dvs", "flip"), "input_flip": g("input_blur", "flip"), "nvs_flip": g("nvs", "flip"),
         "ate": g("trajectory", "ate"), "ate_initial": g("trajectory", "initial", "ate"),
         "num_gaussians": g("num_gaussians"), "steps": g("steps"), "train_seconds": g("train_seconds"),
         "wall_seconds": g("wall_seconds"),
@@ -310,14 +311,15 @@ def _fmt(x, spec=".2f"):
 
 
 def table(records) -> str:
-    lines = ["| scene | seed | variant | status | input dB | DVS PSNR dB | DVS SSIM | NVS PSNR dB | NVS SSIM | "
-             "ATE initial -> trained | Gaussians | steps | train s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| scene | seed | variant | status | input dB | DVS PSNR dB | DVS SSIM | DVS FLIP | NVS PSNR dB | "
+             "NVS SSIM | ATE initial -> trained | Gaussians | steps | train s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in records:
         status = r["status"] if r["status"] == "ok" else f"FAILED: {r.get('error', '')}"
         lines.append(
             f"| {r['scene']} | {r['seed']} | {r['variant']} | {status} | {_fmt(r.get('input_psnr'))} | "
-            f"{_fmt(r.get('dvs_psnr'))} | {_fmt(r.get('dvs_ssim'), '.3f')} | {_fmt(r.get('nvs_psnr'))} | "
+            f"{_fmt(r.get('dvs_psnr'))} | {_fmt(r.get('dvs_ssim'), '.3f')} | {_fmt(r.get('dvs_flip'), '.4f')} | "
+            f"{_fmt(r.get('nvs_psnr'))} | "
             f"{_fmt(r.get('nvs_ssim'), '.3f')} | {_fmt(r.get('ate_initial'), '.4f')} -> {_fmt(r.get('ate'), '.4f')} | "
             f"{_fmt(r.get('num_gaussians'), 'd')} | {_fmt(r.get('steps'), 'd')} | {_fmt(r.get('train_seconds'), '.0f')} |")
     return "\n".join(lines)
@@ -326,7 +328,7 @@ def table(records) -> str:
 def write_outputs(name, out, records, command=""):
     out = Path(out)
     fields = ["scene", "seed", "variant", "status", "attempts", "input_psnr", "dvs_psnr", "dvs_ssim", "nvs_psnr",
-              "nvs_ssim", "ate_initial", "ate", "num_gaussians", "steps", "train_seconds", "wall_seconds", "run",
+              "nvs_ssim", "input_flip", "dvs_flip", "nvs_flip", "ate_initial", "ate", "num_gaussians", "steps", "train_seconds", "wall_seconds", "run",
               "error"]
     with open(out / f"{name}.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")

@@ -214,10 +214,13 @@ def _get(d, *keys):
 _METRIC_ROWS = (
     ("deblurred render vs sharp: PSNR [dB]", ("dvs", "psnr"), ".2f"),
     ("deblurred render vs sharp: SSIM", ("dvs", "ssim"), ".3f"),
+    ("deblurred render vs sharp: FLIP (lower is better)", ("dvs", "flip"), ".4f"),
     ("blurry input vs sharp: PSNR [dB]", ("input_blur", "psnr"), ".2f"),
     ("blurry input vs sharp: SSIM", ("input_blur", "ssim"), ".3f"),
+    ("blurry input vs sharp: FLIP (lower is better)", ("input_blur", "flip"), ".4f"),
     ("novel views: PSNR [dB]", ("nvs", "psnr"), ".2f"),
     ("novel views: SSIM", ("nvs", "ssim"), ".3f"),
+    ("novel views: FLIP (lower is better)", ("nvs", "flip"), ".4f"),
     ("novel views, test poses refined: PSNR [dB]", ("nvs_pose_opt", "psnr"), ".2f"),
     ("ATE, given poses", ("trajectory", "initial", "ate"), ".4f"),
     ("ATE, refined poses", ("trajectory", "ate"), ".4f"),

@@ -1,4 +1,4 @@
-"""Evaluation metrics: image quality (PSNR, SSIM) and camera trajectory (ATE, RPE).
+"""Evaluation metrics: image quality (PSNR, SSIM, FLIP) and camera trajectory (ATE, RPE).
 
 Definitions follow ``docs/dataset_format.md §6`` (the evaluation protocol) and
 ``docs/method.md §10``.
@@ -16,6 +16,14 @@ Images
   covariances (factor 121/120), and the SSIM map averaged over the interior
   (a 5-pixel border is dropped) and over channels. The map comes from
   ``d2gs_np.losses.ssim.ssim_map``, the same code as the training loss.
+- ``flip`` is the mean LDR-FLIP error (Andersson et al. 2020, "FLIP: A Difference Evaluator for
+  Alternating Images"), computed by NVIDIA's reference implementation (the ``flip-evaluator``
+  package): a perceptual difference in [0, 1], 0 for identical images, lower is better, at
+  67 pixels per degree (FLIP's default viewing condition: a 0.7 m wide 4K monitor seen from
+  0.7 m). Inputs are treated as sRGB display values, as our PNG frames are, and clipped to
+  [0, 1] first (FLIP's LDR mode requires it; a render may overshoot by rounding). It is the
+  offline perceptual metric of docs/method.md §10: LPIPS needs network weights we cannot
+  fetch.
 - Masks are (H, W) bool arrays; a masked metric averages over the pixels where
   the mask is True (for SSIM: the True pixels of the interior).
 
@@ -49,6 +57,7 @@ from d2gs_np.losses.ssim import SSIM_WINDOW, ssim_map
 __all__ = [
     "psnr",
     "ssim",
+    "flip",
     "lpips",
     "umeyama",
     "align_trajectory",
@@ -148,6 +157,32 @@ def ssim(img, ref, mask=None):
     return float(np.mean(smap[m], dtype=np.float64))
 
 
+FLIP_PPD = 67.02064514160156  # FLIP's default pixels per degree (0.7 m wide 3840-px monitor at 0.7 m)
+
+
+def flip(img, ref, ppd=FLIP_PPD):
+    """Mean LDR-FLIP error of ``img`` against ``ref`` (module docstring), in [0, 1]; 0 when equal.
+
+    img, ref: (H, W, 3) float arrays of sRGB values, clipped to [0, 1]. ppd: pixels per degree of
+    visual angle (FLIP's default 67; larger = viewed from farther, small errors matter less).
+    """
+    img, ref = _check_image_pair(img, ref)
+    if img.shape[2] != 3:
+        raise ValueError(f"flip needs RGB images (H, W, 3); got {img.shape}")
+    ppd = float(ppd)
+    if not (np.isfinite(ppd) and ppd > 0):
+        raise ValueError(f"ppd (pixels per degree) must be a positive finite number; got {ppd}")
+    try:
+        import flip_evaluator
+    except ImportError as e:  # a dependency in setup.cfg; only a broken install gets here
+        raise ImportError("flip needs the flip-evaluator package (pip install flip-evaluator)") from e
+    a = np.ascontiguousarray(np.clip(img, 0.0, 1.0), dtype=np.float32)
+    b = np.ascontiguousarray(np.clip(ref, 0.0, 1.0), dtype=np.float32)
+    _, mean, _ = flip_evaluator.evaluate(b, a, "LDR", inputsRGB=True, applyMagma=False,
+                                         computeMeanError=True, parameters={"ppd": ppd})
+    return float(mean)
+
+
 def lpips(img, ref, *args, **kwargs):
     """LPIPS is not available: it needs pretrained network weights (AlexNet/VGG
     plus the LPIPS linear heads) that cannot be downloaded in this environment.
@@ -155,7 +190,7 @@ def lpips(img, ref, *args, **kwargs):
     raise NotImplementedError(
         "LPIPS needs pretrained network weights (AlexNet/VGG and the LPIPS linear layers) "
         "that cannot be downloaded in this environment, so d2gs_np does not compute it. "
-        "Report PSNR and SSIM, or compute LPIPS offline (e.g. with the `lpips` package) "
+        "Report PSNR, SSIM and FLIP (d2gs_np.metrics.flip), or compute LPIPS offline (e.g. with the `lpips` package) "
         "on the saved renders."
     )
 

@@ -90,6 +90,7 @@ def run_cell(out, scene, variant, seed, budget, iters, size, threads, config_pat
     from d2gs_np.data.io import load_scene
     from d2gs_np.data.suite import write_suite_scene
     from d2gs_np.evaluate import evaluate_run
+    from d2gs_np.experiments import flatten
     from d2gs_np.train.config import ExperimentConfig
     from d2gs_np.train.trainer import Trainer
 
@@ -120,25 +121,6 @@ def run_cell(out, scene, variant, seed, budget, iters, size, threads, config_pat
 
 def _none_for_nan(x):
     return None
-
-
-def flatten(m):
-    g = lambda *ks: _get(m, ks)  # noqa: E731
-    return {
-        "dvs_psnr": g("dvs", "psnr"), "dvs_ssim": g("dvs", "ssim"),
-        "input_psnr": g("input_blur", "psnr"), "input_ssim": g("input_blur", "ssim"),
-        "nvs_psnr": g("nvs", "psnr"), "nvs_ssim": g("nvs", "ssim"), "num_gaussians": m.get("num_gaussians"),
-        "ate": g("trajectory", "ate"), "ate_initial": g("trajectory", "initial", "ate"),
-        "steps": m.get("steps"), "train_seconds": m.get("train_seconds"), "wall_seconds": m.get("wall_seconds"),
-    }
-
-
-def _get(d, keys):
-    for k in keys:
-        if not isinstance(d, dict) or k not in d:
-            return None
-        d = d[k]
-    return d
 
 
 def fmt(x, spec=".2f"):

@@ -23,7 +23,8 @@ def test_eval_writes_metrics_with_the_documented_keys(trained):
     assert main(["eval", str(run)]) == 0
     m = json.loads((run / "metrics.json").read_text())
     for key in ("dvs", "nvs", "input_blur"):
-        assert set(m[key]) >= {"psnr", "ssim"} and np.isfinite(m[key]["psnr"])
+        assert set(m[key]) >= {"psnr", "ssim", "flip"} and np.isfinite(m[key]["psnr"])
+        assert 0.0 < m[key]["flip"] < 1.0  # perceptual difference of unequal images, lower is better
     assert set(m["trajectory"]) >= {"ate", "rpe_t", "rpe_r", "initial"}
     assert set(m["trajectory"]["initial"]) == {"ate", "rpe_t", "rpe_r"}
     assert m["train_seconds"] > 0

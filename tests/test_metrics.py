@@ -10,6 +10,7 @@ from d2gs_np.geometry.camera import camera_center, look_at
 from d2gs_np.metrics import (
     align_trajectory,
     ate,
+    flip,
     lpips,
     psnr,
     rpe,
@@ -136,6 +137,63 @@ def test_image_metric_errors():
         ssim(a[:10], b[:10])
     with pytest.raises(ValueError, match="data_range"):
         psnr(a, b, data_range=0.0)
+
+
+# ----------------------------------------------------------------------------- FLIP
+# metrics.flip wraps NVIDIA's reference implementation (flip-evaluator); these tests check what
+# the wrapper owns (clipping, dtype, argument passing, errors) and the properties any perceptual
+# difference must have. Its arithmetic is float32 inside the package: 1e-6 bounds rounding when
+# only the input's dtype changes.
+FLIP_DTYPE_TOL = 1e-6
+
+
+def test_flip_is_zero_for_identical_images_and_positive_otherwise():
+    rng = np.random.default_rng(0)
+    a, b = _random_pair(rng, 40, 48)
+    assert flip(a, a) == 0.0
+    assert 0.0 < flip(b, a) < 1.0
+
+
+def test_flip_grows_with_the_noise_level():
+    rng = np.random.default_rng(1)
+    ref = rng.random((48, 64, 3))
+    noise = rng.standard_normal(ref.shape)
+    errs = [flip(np.clip(ref + s * noise, 0, 1), ref) for s in (0.005, 0.02, 0.05, 0.2)]
+    assert all(e1 < e2 for e1, e2 in zip(errs, errs[1:])), errs
+
+
+def test_flip_sees_blur_less_from_farther_away():
+    """Blur removes fine detail; at more pixels per degree (viewed from farther) that detail is
+    less visible, so FLIP's contrast-sensitivity filtering must rate the blur lower."""
+    import cv2
+    ref = np.random.default_rng(2).random((64, 64, 3))
+    blurred = cv2.GaussianBlur(ref, (0, 0), 1.5)
+    near, default, far = (flip(blurred, ref, ppd=p) for p in (20.0, 67.0, 200.0))
+    assert near > default > far > 0.0
+
+
+def test_flip_clips_to_the_ldr_range_and_accepts_float32():
+    rng = np.random.default_rng(3)
+    a, b = _random_pair(rng, 32, 40)
+    over = a.copy()
+    over[:4] += 0.3  # overshoot above 1, as a render may
+    over[-4:] -= 0.3
+    assert flip(over, b) == flip(np.clip(over, 0, 1), b)
+    assert abs(flip(a.astype(np.float32), b.astype(np.float32)) - flip(a, b)) < FLIP_DTYPE_TOL
+
+
+def test_flip_errors():
+    a = np.zeros((16, 16, 3))
+    with pytest.raises(ValueError, match="RGB"):
+        flip(np.zeros((16, 16, 1)), np.zeros((16, 16, 1)))
+    with pytest.raises(ValueError, match="NaN"):
+        flip(np.full((16, 16, 3), np.nan), a)
+    with pytest.raises(ValueError, match="same shape"):
+        flip(a, np.zeros((16, 17, 3)))
+    with pytest.raises(ValueError, match="ppd"):
+        flip(a, a, ppd=0.0)
+    with pytest.raises(TypeError, match="floating-point"):
+        flip(np.zeros((16, 16, 3), np.uint8), a)
 
 
 def test_lpips_raises_not_implemented():

@@ -93,3 +93,5 @@ def test_baselines_on_the_local_process_pool(tmp_path):
     sharp = json.loads((tmp_path / "runs" / "dynamic_s0_sharp_bound" / "metrics.json").read_text())
     assert sharp["input_blur"]["psnr"] is None or sharp["input_blur"].get("identical") or \
         sharp["input_blur"]["psnr"] > by["full"]["input_psnr"]  # sharp inputs: far closer to the truth
+    # FLIP agrees: the sharp inputs are perceptually nearer the truth than the blurry ones
+    assert sharp["input_blur"]["flip"] < by["full"]["input_flip"]
