@@ -116,8 +116,12 @@ def _trajectory_and_nvs(run: LoadedRun, scene, mids, test_pose_steps=0) -> dict:
     rpe_t, rpe_r = metrics.rpe(mids, gt)
     ate0 = metrics.ate(run.model.poses_est, gt)
     rpe_t0, rpe_r0 = metrics.rpe(run.model.poses_est, gt)
-    out["trajectory"] = {"ate": float(ate), "rpe_t": float(rpe_t), "rpe_r": float(rpe_r),
-                         "initial": {"ate": float(ate0), "rpe_t": float(rpe_t0), "rpe_r": float(rpe_r0)}}
+    # The alignment's own scale: ATE is taken after a free Sim(3), so a trajectory that shrank or
+    # grew as a whole keeps a small ATE; "scale" (gt ~= scale R est + t) says when it did.
+    scale, scale0 = metrics.align_trajectory(mids, gt)[0], metrics.align_trajectory(run.model.poses_est, gt)[0]
+    out["trajectory"] = {"ate": float(ate), "rpe_t": float(rpe_t), "rpe_r": float(rpe_r), "scale": float(scale),
+                         "initial": {"ate": float(ate0), "rpe_t": float(rpe_t0), "rpe_r": float(rpe_r0),
+                                     "scale": float(scale0)}}
     if scene.test_frames:
         # Test views are given in the true frame; the similarity aligning our trajectory to the
         # truth, inverted, carries them into the reconstruction's frame. It is fitted on camera

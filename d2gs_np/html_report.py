@@ -224,6 +224,7 @@ _METRIC_ROWS = (
     ("novel views, test poses refined: PSNR [dB]", ("nvs_pose_opt", "psnr"), ".2f"),
     ("ATE, given poses", ("trajectory", "initial", "ate"), ".4f"),
     ("ATE, refined poses", ("trajectory", "ate"), ".4f"),
+    ("ATE alignment scale, given -> refined (1 = kept its size)", None, None),
     ("RPE_t, given -> refined", None, None),
     ("RPE_r [deg], given -> refined", None, None),
     ("training steps", ("steps",), "d"),
@@ -239,7 +240,7 @@ def _metrics_table(runs):
         for r in runs:
             m = r["result"]
             if keys is None:
-                key = "rpe_t" if "RPE_t" in label else "rpe_r"
+                key = "rpe_t" if "RPE_t" in label else "rpe_r" if "RPE_r" in label else "scale"
                 a, b = _get(m, "trajectory", "initial", key), _get(m, "trajectory", key)
                 cells.append(f"{_fmt(a, '.4f')} &rarr; {_fmt(b, '.4f')}")
             else:

@@ -26,7 +26,8 @@ def test_eval_writes_metrics_with_the_documented_keys(trained):
         assert set(m[key]) >= {"psnr", "ssim", "flip"} and np.isfinite(m[key]["psnr"])
         assert 0.0 < m[key]["flip"] < 1.0  # perceptual difference of unequal images, lower is better
     assert set(m["trajectory"]) >= {"ate", "rpe_t", "rpe_r", "initial"}
-    assert set(m["trajectory"]["initial"]) == {"ate", "rpe_t", "rpe_r"}
+    assert set(m["trajectory"]["initial"]) == {"ate", "rpe_t", "rpe_r", "scale"}
+    assert 0.0 < m["trajectory"]["scale"] < float("inf")
     assert m["train_seconds"] > 0
     assert "pose_refinement" in m["left_out"]
 

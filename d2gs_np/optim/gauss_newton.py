@@ -11,6 +11,13 @@ mid pose ``M_k = T_s exp(log(T_s^-1 T_e) / 2)`` (geodesic midpoint), so:
 - the spread ``b_k - a_k`` is held by a prior residual ``(b_k - a_k) / spread_sigma`` (6 rows);
 - the gauge (a global rigid motion, and the scale the depths fix only softly) is held by keeping
   the frames in ``fixed`` (frame 0 by default) out of the unknowns;
+- optionally (``PoseProblem.prior_poses``), each free frame's mid pose is held near a given pose
+  G_k (the poses the video came with) by 6 rows ``(c(M_k) - c(G_k)) / sigma_t`` (camera centres)
+  and ``log(R(M_k) R(G_k)^T) / sigma_r`` (rotation), the maximum a posteriori form of "the given
+  poses are right to about sigma". Measured why (docs/method.md §5): without it the depths of a
+  partly trained scene, biased low by semi-transparent Gaussians, pulled the cameras together
+  call after call; on photo_room (12 frames 160x90, noisy poses) the trajectory shrank to 0.52x
+  its size and turned 2.5 deg while the centre-aligned ATE, blind to both, fell;
 - Levenberg-Marquardt damping makes every step solvable even where the data leave directions
   unobserved (a frame without matches, matches on a line, points at infinity).
 
@@ -248,9 +255,23 @@ def _match_function() -> ca.Function:
                        ["Mk", "Mj", "cam", "obs"], ["r", "dr_dMk", "dr_dMj"])
 
 
+@functools.lru_cache(maxsize=None)
+def _prior_function() -> ca.Function:
+    """(M 12, G 12, sigma 2 = sigma_t sigma_r) -> (r 6, dr/dM 6x12): the pose prior rows of the
+    module docstring, camera centres c = -R^T t first, then the rotation log."""
+    m, g, sig = ca.SX.sym("M", 12), ca.SX.sym("G", 12), ca.SX.sym("sigma", 2)
+    Rm, tm = _pose_sym(m)
+    Rg, tg = _pose_sym(g)
+    dc = -ca.mtimes(Rm.T, tm) + ca.mtimes(Rg.T, tg)
+    phi = _se3_log_sym(ca.mtimes(Rm, Rg.T), ca.SX.zeros(3))[3:6]
+    r = ca.vertcat(dc / sig[0], phi / sig[1])
+    return ca.Function("gn_prior", [m, g, sig], [r, ca.jacobian(r, m)], ["M", "G", "sigma"], ["r", "dr_dM"])
+
+
 @functools.lru_cache(maxsize=64)
 def _mapped(kind: str, n: int) -> ca.Function:
-    return (_mid_function() if kind == "mid" else _match_function()).map(n, "serial")
+    base = {"mid": _mid_function, "match": _match_function, "prior": _prior_function}[kind]()
+    return base.map(n, "serial")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -320,6 +341,8 @@ class PoseProblem:
     Ks: np.ndarray  # (N, 3, 3)
     pairs: list  # list[PairObservations]
     fixed: tuple = (0,)  # frames held fixed (the gauge)
+    prior_poses: np.ndarray = None  # (N, 4, 4) cam_T_world the free mid poses are held near; None: no prior
+    prior_sigma: tuple = (1.0, 1.0)  # (sigma_t world units, sigma_r radians) of the prior rows
 
     def __post_init__(self):
         for name in ("starts", "ends"):
@@ -343,6 +366,18 @@ class PoseProblem:
                                 f"{type(p).__name__}")
             if not (0 <= p.k < N and 0 <= p.j < N) or p.k == p.j:
                 raise ValueError(f"PoseProblem: pair ({p.k}, {p.j}) must name two different frames in [0, {N})")
+        if self.prior_poses is not None:
+            G = np.ascontiguousarray(self.prior_poses, dtype=np.float64)
+            if G.shape != (N, 4, 4):
+                raise ValueError(f"PoseProblem.prior_poses must be (N, 4, 4) = ({N}, 4, 4) cam_T_world poses; got "
+                                 f"{G.shape}")
+            check_rigid(G, "PoseProblem.prior_poses")
+            self.prior_poses = G
+            sig = tuple(float(v) for v in self.prior_sigma)
+            if len(sig) != 2 or not all(math.isfinite(v) and v > 0 for v in sig):
+                raise ValueError(f"PoseProblem.prior_sigma must be two finite numbers > 0 (sigma_t in world units, "
+                                 f"sigma_r in radians); got {self.prior_sigma!r}")
+            self.prior_sigma = sig
         self.free = np.array([k for k in range(N) if k not in self.fixed], dtype=np.int64)
         self._build_obs()
 
@@ -391,18 +426,28 @@ class PoseProblem:
         mid, _, s, e = f(x.T, self._flat_s.T, self._flat_e.T)
         return flat_to_pose(np.array(s).T), flat_to_pose(np.array(e).T), flat_to_pose(np.array(mid).T)
 
+    @property
+    def num_prior_rows(self) -> int:
+        """Rows of the pose prior: 6 per free frame when ``prior_poses`` is given, else 0."""
+        return 0 if self.prior_poses is None else 6 * len(self.free)
+
     def residuals(self, x_free, beta, spread_sigma, jacobian=True):
-        """Residual vector and its Jacobian at x: (r (3M + 6F,), J (3M + 6F, 12F) or None).
-        Rows: 3 per match (u, v, depth) in match order, then 6 prior rows per free frame."""
-        N, F, M = self.num_frames, len(self.free), self.num_matches
+        """Residual vector and its Jacobian at x: (r (3M + 6F + P,), J (3M + 6F + P, 12F) or None).
+        Rows: 3 per match (u, v, depth) in match order, then 6 spread-prior rows per free frame,
+        then (with ``prior_poses``) P = 6 pose-prior rows per free frame."""
+        N, F, M, P = self.num_frames, len(self.free), self.num_matches, self.num_prior_rows
         x = self.full_x(x_free)
         mid, dmid, _, _ = _mapped("mid", N)(x.T, self._flat_s.T, self._flat_e.T)
         mid = np.array(mid).T  # (N, 12)
         dmid = np.array(dmid).reshape(12, N, 12).transpose(1, 0, 2)  # (N, 12 out, 12 in)
         xf = x[self.free]
         prior = (xf[:, 6:] - xf[:, :6]) / spread_sigma  # (F, 6)
-        r = np.empty(3 * M + 6 * F)
-        r[3 * M:] = prior.reshape(-1)
+        r = np.empty(3 * M + 6 * F + P)
+        r[3 * M:3 * M + 6 * F] = prior.reshape(-1)
+        if P:
+            sig = np.tile(np.asarray(self.prior_sigma, dtype=np.float64)[:, None], (1, F))
+            rp, jp = _mapped("prior", F)(mid[self.free].T, pose_to_flat(self.prior_poses[self.free]).T, sig)
+            r[3 * M + 6 * F:] = np.array(rp).T.reshape(-1)
         J = None
         if M:
             obs = np.concatenate([self._obs, np.full((M, 1), float(beta))], axis=1)
@@ -412,7 +457,7 @@ class PoseProblem:
             return r, None
         col = np.full(N, -1, dtype=np.int64)
         col[self.free] = np.arange(F)
-        J = np.zeros((3 * M + 6 * F, NUM_VARS * F))
+        J = np.zeros((3 * M + 6 * F + P, NUM_VARS * F))
         if M:
             jk = np.array(jk).reshape(3, M, 12).transpose(1, 0, 2)  # (M, 3, 12) dr/dM_k
             jj = np.array(jj).reshape(3, M, 12).transpose(1, 0, 2)
@@ -429,6 +474,12 @@ class PoseProblem:
         for i in range(F):
             J[3 * M + 6 * i:3 * M + 6 * i + 6, NUM_VARS * i:NUM_VARS * i + 6] = -eye
             J[3 * M + 6 * i:3 * M + 6 * i + 6, NUM_VARS * i + 6:NUM_VARS * i + 12] = eye
+        if P:
+            jp = np.array(jp).reshape(6, F, 12).transpose(1, 0, 2)  # (F, 6, 12) dr/dM
+            gp = np.einsum("fab,fbc->fac", jp, dmid[self.free])  # (F, 6, 12) dr/dx
+            base = 3 * M + 6 * F
+            for i in range(F):
+                J[base + 6 * i:base + 6 * i + 6, NUM_VARS * i:NUM_VARS * i + 12] = gp[i]
         return r, J
 
 

@@ -52,7 +52,8 @@ from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.plugins import Plugin
 from d2gs_np.train.state import TrainState, entered_period
 
-__all__ = ["PoseSolver", "use_pose_solver", "static_depth", "write_mid_poses", "HISTORY_FILE"]
+__all__ = ["PoseSolver", "use_pose_solver", "static_depth", "write_mid_poses", "hold_trajectory_scale",
+           "HISTORY_FILE"]
 
 HISTORY_FILE = "pose_solver.json"
 
@@ -188,8 +189,17 @@ class PoseSolver(Plugin):
         depth = {k: static_depth(model, k, mids[k], s) for k in frames}
         obs = [gn.pair_observations(p.k, p.j, p.pts_k, p.pts_j, gn.sample_depth(depth[p.k], p.pts_k * s),
                                     gn.sample_depth(depth[p.j], p.pts_j * s)) for p in pairs]
-        problem = gn.PoseProblem(starts, ends, model.Ks, obs, fixed=(0,))
-        return problem, gn.solve(problem, self.pc.gauss_newton), C
+        prior = {}
+        if self.pc.prior_rot_deg > 0:
+            depths = np.concatenate([o.depth_k for o in obs] + [o.depth_j for o in obs] + [np.ones(0)])
+            scale = float(np.median(depths)) if depths.size else 1.0
+            prior = {"prior_poses": model.poses_est,
+                     "prior_sigma": (self.pc.prior_trans_rel * scale, np.deg2rad(self.pc.prior_rot_deg))}
+        problem = gn.PoseProblem(starts, ends, model.Ks, obs, fixed=(0,), **prior)
+        res = gn.solve(problem, self.pc.gauss_newton)
+        if self.pc.hold_scale and res.accepted:
+            res.mids = hold_trajectory_scale(mids, res.mids, anchor=0)
+        return problem, res, C
 
     def _endpoints(self, model):
         """(starts, ends, C): the exposure endpoints (N, 4, 4) and the midpoints C_k of exp(xi_s),
@@ -218,6 +228,23 @@ def write_mid_poses(state: TrainState, mids, frames, C=None) -> TrainState:
         new_ref[k] = mids[k] if C is None else se3_inverse(C[k]) @ mids[k]
     new_model = model.replace(poses_ref=np.ascontiguousarray(new_ref)).validate()
     return state.replace(model=new_model, adam=_reset_rows(state.adam, model.params, list(frames)))
+
+
+def hold_trajectory_scale(before, after, anchor=0):
+    """``after`` (N, 4, 4) cam_T_world with its camera centres rescaled about frame ``anchor``'s
+    centre so that their summed distance from it equals that of ``before``; rotations unchanged.
+    A trajectory whose centres all coincide with the anchor's (no size to hold) is returned as is."""
+    before, after = np.asarray(before, dtype=np.float64), np.asarray(after, dtype=np.float64)
+    c_b = -np.einsum("nji,nj->ni", before[:, :3, :3], before[:, :3, 3])
+    c_a = -np.einsum("nji,nj->ni", after[:, :3, :3], after[:, :3, 3])
+    size_b = np.linalg.norm(c_b - c_b[anchor], axis=1).sum()
+    size_a = np.linalg.norm(c_a - c_a[anchor], axis=1).sum()
+    if not (size_a > 0 and size_b > 0 and np.isfinite(size_a) and np.isfinite(size_b)):
+        return after.copy()
+    c = c_a[anchor] + (size_b / size_a) * (c_a - c_a[anchor])
+    out = after.copy()
+    out[:, :3, 3] = -np.einsum("nij,nj->ni", after[:, :3, :3], c)
+    return out
 
 
 def se3_interpolate_batch(starts, ends):
