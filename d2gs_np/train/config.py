@@ -180,6 +180,14 @@ class PoseSolverConfig:
     # had before the call (the scale is a gauge the rendered depths fix only softly, and biased).
     # Measured without both (docs/method.md §5): photo_room at 12 frames 160x90, noisy poses: the
     # calls shrank the trajectory to 0.52x and turned it 2.5 deg (centre error 0.080 -> 0.242).
+    # Real (not schedule) steps a call needs since the previous call, or since the start: the
+    # depths a call reads come from the scene Adam fitted since. The cadence ``every`` runs on the
+    # schedule's clock (a budget run makes ~13 calls whatever its speed), so on a slow or loaded
+    # machine the calls came every ~12 real steps, from the first at real step 12 (photo_room,
+    # noisy poses, 160 steps in 600 s): the scene never caught up. 40 is about the real steps one
+    # period takes on an idle machine in the 600 s suite runs (2000-step schedule in ~700 steps),
+    # so it changes nothing there.
+    min_steps: int = 40
     prior_rot_deg: float = 1.0
     prior_trans_rel: float = 0.02
     hold_scale: bool = True
@@ -192,6 +200,9 @@ class PoseSolverConfig:
         if (self.prior_rot_deg == 0.0) != (self.prior_trans_rel == 0.0):
             raise ValueError("PoseSolverConfig.prior_rot_deg and prior_trans_rel must both be > 0 (the pose prior) "
                              f"or both 0 (no prior); got {self.prior_rot_deg}, {self.prior_trans_rel}")
+        if isinstance(self.min_steps, bool) or not isinstance(self.min_steps, int) or self.min_steps < 0:
+            raise ValueError(f"PoseSolverConfig.min_steps must be an int >= 0 (real steps between calls); got "
+                             f"{self.min_steps!r}")
         if not isinstance(self.hold_scale, bool):
             raise ValueError(f"PoseSolverConfig.hold_scale must be true or false; got {self.hold_scale!r}")
         if self.mode not in _AUTO:

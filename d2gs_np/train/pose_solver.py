@@ -1,6 +1,7 @@
 """The "pose_solver" step plugin: Gauss-Newton pose refinement between Adam steps (docs/method.md §5).
 
-Every ``pose_solver.every`` schedule steps (``entered_period``, so it follows a time budget):
+Every ``pose_solver.every`` schedule steps (``entered_period``, so it follows a time budget), if at
+least ``pose_solver.min_steps`` real steps passed since the previous call (or the start):
 
 1. correspondences of the video (``correspond.py``), computed on the first call and cached in the
    run folder (a resumed run reads the file); the per-pair report goes to the run log once;
@@ -71,9 +72,9 @@ def use_pose_solver(scene, config: ExperimentConfig, note=None) -> bool:
     if getattr(scene, "poses_trusted", None):
         say("pose solver: left out (the scene flags its poses as exact: poses_trusted)")
         return False
-    if config.train.iters <= pc.every:
+    if config.train.iters <= max(pc.every, pc.min_steps):
         say(f"pose solver: left out (a run of {config.train.iters} steps ends before its first call at step "
-            f"{pc.every}; set pose_solver.every lower or mode = on)")
+            f"{max(pc.every, pc.min_steps)}; set pose_solver.every and min_steps lower or mode = on)")
         return False
     say(f"pose solver: on (poses not flagged exact), every {pc.every} steps")
     return True
@@ -130,6 +131,9 @@ class PoseSolver(Plugin):
 
     def on_step(self, state: TrainState) -> TrainState:
         if not entered_period(state, self.pc.every):
+            return state
+        since = state.step - (self.history[-1]["step"] if self.history else 0)
+        if since < self.pc.min_steps:  # the scene has not trained enough since (PoseSolverConfig.min_steps)
             return state
         state, entry = self.refine(state)
         entry["step"] = int(state.step)

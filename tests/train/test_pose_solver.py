@@ -31,7 +31,7 @@ def _config(iters=8, every=3, mode="on", accept="always", gn=None, **train):
     # rarely let the solver converge; the acceptance rule has its own test below
     base = dict(iters=iters, quiet=True, eval_every=0, log_every=1, checkpoint_every=0, prune_every=0)
     base.update(train)
-    ps = PoseSolverConfig(mode=mode, every=every, accept=accept)
+    ps = PoseSolverConfig(mode=mode, every=every, accept=accept, min_steps=0)
     if gn is not None:
         ps = dataclasses.replace(ps, gauss_newton=dataclasses.replace(ps.gauss_newton, **gn))
     return ExperimentConfig(train=TrainConfig(**base), pose_solver=ps)
@@ -125,6 +125,18 @@ def test_bad_config_is_named():
         PoseSolverConfig(hold_scale=1)
     cfg = ExperimentConfig(pose_solver=PoseSolverConfig(every=7, prior_rot_deg=0.5, prior_trans_rel=0.01))
     assert ExperimentConfig.from_json(cfg.to_json()) == cfg
+
+
+def test_calls_wait_for_min_steps_of_training(noisy_scene, tmp_path):
+    """Periods of 2 schedule steps, but at least 5 real steps between calls (and before the first):
+    calls at steps 6 and 12 (the periods entered at 2, 4, 8, 10 come too early)."""
+    cfg = _config(iters=13, every=2)
+    cfg = cfg.replace(pose_solver=dataclasses.replace(cfg.pose_solver, min_steps=5))
+    tr = Trainer(noisy_scene, cfg, tmp_path / "run")
+    tr.run()
+    assert [h["step"] for h in tr.plugins[-1].history] == [6, 12]
+    with pytest.raises(ValueError, match="min_steps"):
+        PoseSolverConfig(min_steps=-1)
 
 
 def _centres(T):
