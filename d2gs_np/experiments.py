@@ -10,7 +10,8 @@ failed in the table and the return value, never silently dropped.
 Variants (``EXPERIMENTS``):
 - ``baselines``: the full method; no blur model (n = 1, no pose refinement: the paper's
   GaussianFlow row); a two-stage baseline (``d2gs_np/baselines.py``: each frame deconvolved
-  with a kernel from the given poses, then trained without the blur model); the sharp-input
+  with a kernel from the given poses, then trained without the blur model and without pose
+  refinement, as the no-blur row); the sharp-input
   upper bound (sharp frames, true poses).
 - ``progressive``: the paper's Table VI: no progressive resolution, linear, exponential, cosine.
 - ``virtual-views``: n in {1, 2, 4, 8, 16}: quality against time.
@@ -71,8 +72,8 @@ _SHARP = {"exposure_fraction": 0.0, **_TRUE_POSES}
 EXPERIMENTS = {
     "baselines": (
         Variant("full"),
-        Variant("noblur", config={"train": {"blur": "off"}}),
-        Variant("two_stage", config={"train": {"blur": "off"}}, two_stage=True),
+        Variant("noblur", config={"train": {"blur": "off"}, "pose_solver": {"mode": "off"}}),
+        Variant("two_stage", config={"train": {"blur": "off"}, "pose_solver": {"mode": "off"}}, two_stage=True),
         Variant("sharp_bound", scene=_SHARP),
     ),
     "progressive": (

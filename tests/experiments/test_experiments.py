@@ -17,6 +17,11 @@ def test_every_variant_of_every_experiment_is_a_valid_config():
             assert cfg.train.iters == 7
     vv = {v.name: ex.variant_config(v) for v in ex.EXPERIMENTS["virtual-views"]}
     assert vv["n16"].blur.num_virtual == 16 and vv["n1"].train.blur == "off"
+    base = {v.name: ex.variant_config(v) for v in ex.EXPERIMENTS["baselines"]}
+    # the no-blur and two-stage rows are the paper's GaussianFlow-like rows: no blur model, no pose solver
+    for name in ("noblur", "two_stage"):
+        assert (base[name].train.blur, base[name].pose_solver.mode) == ("off", "off")
+    assert (base["full"].train.blur, base["full"].pose_solver.mode) == ("auto", "auto")
     prog = {v.name: ex.variant_config(v) for v in ex.EXPERIMENTS["progressive"]}
     assert not prog["none"].train.progressive and prog["linear"].schedule.kind == "linear"
     abl = {v.name: ex.variant_config(v) for v in ex.EXPERIMENTS["ablation"]}
