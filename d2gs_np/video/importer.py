@@ -15,6 +15,7 @@ principal point is the image centre. Times are spread evenly over [0, 1] (``k / 
 """
 from __future__ import annotations
 
+import dataclasses
 import json
 import numbers
 import time
@@ -27,7 +28,7 @@ from d2gs_np.data.io import write_scene
 from d2gs_np.data.scene import Frame, Scene
 from d2gs_np.geometry.camera import make_intrinsics
 from d2gs_np.video.decode import check_decode_args, read_frames
-from d2gs_np.video.masks import MaskConfig, motion_masks
+from d2gs_np.video.masks import MaskConfig, static_motion_masks
 from d2gs_np.video.sfm import SfmConfig, register_video
 
 __all__ = ["ImportConfig", "import_video", "guess_focal", "REPORT_FILE", "GUESS_FOV_X_DEG"]
@@ -50,7 +51,7 @@ class ImportConfig:
     start: float = None  # seconds (video only)
     end: float = None
     masks: bool = True  # compute motion masks
-    refine_with_masks: bool = False  # second registration pass without features on masked pixels
+    mask_rounds: int = 1  # EXPERIMENT registration passes without features on masked pixels
     sfm: SfmConfig = field(default_factory=SfmConfig)
     mask: MaskConfig = field(default_factory=MaskConfig)
 
@@ -60,6 +61,15 @@ class ImportConfig:
             raise ValueError(f"focal must be a positive number of pixels; got {self.focal!r}")
         if not isinstance(self.sfm, SfmConfig) or not isinstance(self.mask, MaskConfig):
             raise TypeError("ImportConfig.sfm must be an SfmConfig and ImportConfig.mask a MaskConfig")
+
+
+def _drop_points(res, keep):
+    """SfmResult without the sparse points where keep (P,) is False (and their observations)."""
+    new_id = np.full(len(res.points), -1)
+    new_id[keep] = np.arange(int(keep.sum()))
+    o = keep[res.obs_point]
+    return dataclasses.replace(res, points=res.points[keep], colors=res.colors[keep], obs_frame=res.obs_frame[o],
+                               obs_point=new_id[res.obs_point[o]], obs_uv=res.obs_uv[o])
 
 
 def _check_out(out, overwrite):
@@ -91,14 +101,24 @@ def import_video(source, out, config: ImportConfig = None, overwrite=False, log=
     masks = [np.zeros((H, W), dtype=bool) for _ in range(N)]
     mask_info = {}
     if cfg.masks:
-        masks, mask_info = motion_masks(imgs, res.cam_T_world, res.K, res.points, cfg.mask, log=log)
-        moving = float(np.mean(mask_info["moving_fraction"]))
+        def _masks(res):
+            return static_motion_masks(imgs, res.cam_T_world, res.K, res.points, res.obs_frame, res.obs_point,
+                                       res.obs_uv, cfg.mask, log=log)
+        masks, mask_info = _masks(res)
+        for rnd in range(cfg.mask_rounds):
+            if res.rotation_only or not any(m.any() for m in masks):
+                break
+            try:
+                res2 = register_video(imgs, K, cfg.sfm, refine_focal=cfg.focal is None, masks=masks, log=log)
+            except ValueError as e:
+                if log:
+                    log(f"registration without the masked pixels failed ({str(e)[:200]}); keeping the previous one")
+                break
+            res = res2
+            masks, mask_info = _masks(res)
+        res = _drop_points(res, mask_info["static_points"])
         if log:
-            log(f"motion masks: {100 * moving:.1f}% of pixels moving on average")
-        if cfg.refine_with_masks and not res.rotation_only and any(m.any() for m in masks):
-            res = register_video(imgs, res.K if cfg.focal is None else K, cfg.sfm, refine_focal=cfg.focal is None,
-                                 masks=masks, log=log)
-            masks, mask_info = motion_masks(imgs, res.cam_T_world, res.K, res.points, cfg.mask, log=log)
+            log(f"motion masks: {100 * float(np.mean(mask_info['moving_fraction'])):.1f}% of pixels moving on average")
     # scene scale: 95th percentile of the sparse points' depths in their frames
     z = np.einsum("oij,oj->oi", res.cam_T_world[res.obs_frame, :3, :3], res.points[res.obs_point])[:, 2] \
         + res.cam_T_world[res.obs_frame, 2, 3]

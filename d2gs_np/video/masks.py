@@ -35,7 +35,7 @@ from d2gs_np.features import to_gray_u8
 from d2gs_np.geometry.camera import project_points
 from d2gs_np.scene.initialize import interpolate_inverse_depth
 
-__all__ = ["MaskConfig", "motion_masks", "expected_flow", "observed_flow"]
+__all__ = ["MaskConfig", "motion_masks", "expected_flow", "observed_flow", "points_off_masks", "static_motion_masks"]
 
 
 @dataclass(frozen=True)
@@ -62,6 +62,10 @@ class MaskConfig:
     # frame k and the neighbour sampled along each flow, both low-passed by a Gaussian of photo_sigma_px)
     photo_threshold: float = 0.01
     photo_sigma_px: float = 1.5
+    geometric: bool = False  # EXPERIMENT
+    static_residual: float = 0.0  # EXPERIMENT
+    prune_rounds: int = 2  # EXPERIMENT
+    prune_share: float = 0.3  # EXPERIMENT
 
     def __post_init__(self):
         for name in ("gap", "open_px", "close_px", "grow_px"):
@@ -219,10 +223,14 @@ def motion_masks(images, cam_T_world, K, points, config: MaskConfig = None, log=
             if np.linalg.norm(trans) > 0:  # a moving camera centre: epipolar test where depth is unsupported
                 epi = epipolar_distance(obs, cam_T_world[k], cam_T_world[j], K) > cfg.threshold_px
                 full = np.where(dist <= support, full, epi)
+            if not cfg.geometric:
+                full = np.ones_like(full)
             if cfg.photo_threshold > 0:
                 r_static = photometric_residual(images[k], images[j], exp, cfg.photo_sigma_px)
                 r_obs = photometric_residual(images[k], images[j], obs, cfg.photo_sigma_px)
                 full &= r_static - r_obs > cfg.photo_threshold
+                if cfg.static_residual > 0:
+                    full &= r_static > cfg.static_residual
             votes.append(full)
         moving = np.logical_and.reduce(votes) if cfg.combine == "all" else np.logical_or.reduce(votes)
         masks.append(_clean(moving, cfg))
@@ -230,3 +238,40 @@ def motion_masks(images, cam_T_world, K, points, config: MaskConfig = None, log=
             log(f"motion masks: {k + 1}/{N} frames")
     frac = [float(m.mean()) for m in masks]
     return masks, {"moving_fraction": frac}
+
+
+def points_off_masks(obs_frame, obs_point, obs_uv, masks, num_points, max_share):
+    """(P,) bool: sparse points with at most ``max_share`` of their observations inside the masks.
+
+    obs_frame, obs_point (O,) ints, obs_uv (O, 2) pixels (our convention); masks (N, H, W) bool."""
+    M = np.asarray(masks, dtype=bool)
+    if M.ndim != 3:
+        raise ValueError(f"masks must be (N, H, W) bool; got shape {M.shape}")
+    N, H, W = M.shape
+    obs_frame = np.asarray(obs_frame, dtype=np.int64)
+    obs_point = np.asarray(obs_point, dtype=np.int64)
+    if obs_frame.size and (obs_frame.min() < 0 or obs_frame.max() >= N):
+        raise ValueError(f"obs_frame must index the {N} masks; got frames {obs_frame.min()}..{obs_frame.max()}")
+    ij = np.floor(np.asarray(obs_uv, dtype=np.float64)).astype(np.int64)
+    on = M[obs_frame, np.clip(ij[:, 1], 0, H - 1), np.clip(ij[:, 0], 0, W - 1)]
+    cnt = np.bincount(obs_point, minlength=num_points)
+    inside = np.bincount(obs_point, weights=on.astype(np.float64), minlength=num_points)
+    return inside <= max_share * cnt
+
+
+def static_motion_masks(images, cam_T_world, K, points, obs_frame, obs_point, obs_uv, config: MaskConfig = None,
+                        log=None):
+    """``motion_masks`` from the sparse points that are not on movers (EXPERIMENT docstring).
+
+    Returns (masks, info) with info["static_points"] (P,) bool."""
+    cfg = MaskConfig() if config is None else config
+    keep = np.ones(len(points), dtype=bool)
+    masks, info = motion_masks(images, cam_T_world, K, points, cfg, log=log)
+    for _ in range(cfg.prune_rounds):
+        new = points_off_masks(obs_frame, obs_point, obs_uv, masks, len(points), cfg.prune_share)
+        if np.array_equal(new, keep):
+            break
+        keep = new
+        masks, info = motion_masks(images, cam_T_world, K, points[keep], cfg, log=log)
+    info["static_points"] = keep
+    return masks, info
