@@ -139,10 +139,12 @@ def test_untextured_and_unregistrable_frames_are_named(tmp_path):
     flat[3] = np.full_like(imgs[0], 0.5)
     with pytest.raises(ValueError, match=r"frames \[3\] have no usable texture"):
         register_video(flat, K, log=None)
-    # a frame of another place: textured (smoothed noise), but nothing matches the rest
+    # a frame of another place: textured (smoothed noise), but nothing matches the rest. (Six frames
+    # of photo_room keep at most ~1.5 px of parallax between the KLT tracks: they may count as a pure
+    # rotation, whose fallback names the pair it cannot chain.)
     noise = cv2.GaussianBlur(np.random.default_rng(0).random((H, W, 3)), (0, 0), 1.0)
     other = list(imgs) + [noise]
-    with pytest.raises(ValueError, match=r"(could not register frames|frames) \[6\]"):
+    with pytest.raises(ValueError, match=r"(could not register frames|frames) \[6\]|frames 5 and 6: too few matches"):
         register_video(other, K, log=None)
 
 
