@@ -3,8 +3,8 @@
 Pipeline (docs/dataset_format.md §8): ``decode.read_frames`` -> intrinsics guess ->
 ``sfm.register_video`` (KLT tracks, two-view start, PnP, bundle adjustment with the focal
 length) -> ``masks.static_motion_masks`` -> a second registration that leaves out features
-inside the masks, and new masks (``ImportConfig.mask_rounds``; if that registration fails the
-first one is kept) -> sparse points on the masks dropped -> ``write_scene`` with ``points3d.ply``
+inside the masks, and new masks (``ImportConfig.mask_rounds``; if that registration fails, or
+leaves frames weakly constrained that were not, the first one is kept) -> sparse points on the masks dropped -> ``write_scene`` with ``points3d.ply``
 and ``import_report.json`` (per-frame keypoints and inlier observations, weakly constrained
 frames, the focal length, the reprojection error).
 
@@ -120,6 +120,12 @@ def import_video(source, out, config: ImportConfig = None, overwrite=False, log=
             except ValueError as e:
                 if log:
                     log(f"registration without the masked pixels failed ({str(e)[:200]}); keeping the previous one")
+                break
+            weaker = sorted(set(res2.weak_frames) - set(res.weak_frames))
+            if weaker:  # the masks took too much of these frames: their poses would rest on a few points
+                if log:
+                    log(f"registration without the masked pixels leaves frames {weaker} weakly constrained; keeping "
+                        "the previous one")
                 break
             res = res2
             masks, mask_info = _masks(res)
