@@ -4,7 +4,8 @@ Pipeline (docs/dataset_format.md §8): ``decode.read_frames`` -> intrinsics gues
 ``sfm.register_video`` (KLT tracks, two-view start, PnP, bundle adjustment with the focal
 length) -> ``masks.static_motion_masks`` -> a second registration that leaves out features
 inside the masks, and new masks (``ImportConfig.mask_rounds``; if that registration fails, or
-leaves frames weakly constrained that were not, the first one is kept) -> sparse points on the masks dropped -> ``write_scene`` with ``points3d.ply``
+leaves frames weakly constrained that were not, the first one is kept) -> sparse points on the
+masks dropped -> ``write_scene`` with ``points3d.ply``
 and ``import_report.json`` (per-frame keypoints and inlier observations, weakly constrained
 frames, the focal length, the reprojection error).
 
