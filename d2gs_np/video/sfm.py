@@ -1,12 +1,13 @@
 """Classical structure from motion for a video (docs/dataset_format.md §8).
 
 Steps (``register_video``):
-1. SIFT features per frame (``d2gs_np.features``); a frame with fewer than
-   ``SfmConfig.min_keypoints`` has no usable texture: a ValueError naming the frames, before
-   any matching.
-2. Matches between frame k and k + 1 .. k + ``match_window`` (ratio test, RANSAC on F), joined
-   into tracks (connected components of the match graph; a track that visits one frame twice
-   is dropped).
+1. Tracks (``SfmConfig.tracker``): "klt" (default), Lucas-Kanade tracks through the frames
+   (``d2gs_np.video.tracks``: why not SIFT on blurry frames); "sift", SIFT features per frame
+   (``d2gs_np.features``) matched between frame k and k + 1 .. k + ``match_window`` (ratio test,
+   RANSAC on F) and joined into tracks (connected components of the match graph; a track that
+   visits one frame twice is dropped). A frame with fewer than ``SfmConfig.min_keypoints`` points
+   has no usable texture: a ValueError naming the frames, before any registration. Features and
+   tracks avoid the motion masks when given (the importer's second pass).
 3. Two-view start: among frame pairs at most ``init_max_gap`` apart, the essential matrix
    (RANSAC), ``recoverPose`` and a triangulation; the pair with the most points whose median
    triangulation angle reaches ``init_min_parallax_deg`` starts the reconstruction. A pair whose
@@ -48,6 +49,7 @@ from d2gs_np.geometry.camera import project_points
 from d2gs_np.geometry.so3 import so3_orthonormalize
 from d2gs_np.scene.initialize import triangulate_matches
 from d2gs_np.video.bundle import BundleProblem, bundle_adjust, params_to_poses, poses_to_params
+from d2gs_np.video.tracks import TrackConfig, klt_tracks
 
 __all__ = ["SfmConfig", "SfmResult", "register_video", "build_tracks", "NoParallaxError"]
 
@@ -62,6 +64,12 @@ class SfmConfig:
 
     # SIFT at a low contrast threshold: blurry frames lose DoG contrast (as in InitConfig)
     features: FeatureConfig = field(default_factory=lambda: FeatureConfig(contrast_threshold=0.01))
+    # "klt": Lucas-Kanade tracks (d2gs_np.video.tracks: why); "sift": SIFT matches of each frame with the
+    # next match_window frames joined into tracks. Measured on the blurry suite, seeds 0 / 1, ATE/depth
+    # sift -> klt: photo_room 0.54 / 0.76 -> 0.16 / 0.17 %, wall_disk 0.93 / 4.10 -> 0.10 / 0.08 %,
+    # cube_sign 2.63 / 2.02 -> 2.40 / 1.58 %, crossing refused / refused -> 0.99 / 1.91 %
+    tracker: str = "klt"
+    tracks: TrackConfig = field(default_factory=TrackConfig)
     match_window: int = 4  # match frame k with k+1 .. k+window (longer tracks: more parallax per track)
     min_keypoints: int = 20  # fewer keypoints: the frame has no usable texture (an error)
     init_max_gap: int = 10  # the two-view start is searched among pairs at most this far apart
@@ -82,6 +90,10 @@ class SfmConfig:
     def __post_init__(self):
         if not isinstance(self.features, FeatureConfig):
             raise TypeError(f"SfmConfig.features must be a FeatureConfig; got {type(self.features).__name__}")
+        if not isinstance(self.tracks, TrackConfig):
+            raise TypeError(f"SfmConfig.tracks must be a TrackConfig; got {type(self.tracks).__name__}")
+        if self.tracker not in ("klt", "sift"):
+            raise ValueError(f"SfmConfig.tracker must be 'klt' or 'sift'; got {self.tracker!r}")
         for name in ("match_window", "min_keypoints", "init_max_gap", "init_min_points", "min_pnp_inliers",
                      "weak_observations", "ba_max_nfev", "max_starts"):
             v = getattr(self, name)
@@ -214,16 +226,17 @@ def _ba(poses, points, K, obs_frame, obs_point, obs_uv, registered, fixed, cfg, 
     return poses, points, K, resid, info
 
 
-def _rotation_only(keypoints, matches, K, N, log):
-    """Fallback for a camera that only rotates (module docstring)."""
+def _rotation_only(frame_pts, pairs, K, N, log):
+    """Fallback for a camera that only rotates (module docstring). frame_pts: list of (n_k, 2) feature
+    pixels per frame; pairs: {(k, k + 1): (pts in k, pts in k + 1)}."""
     Kinv = np.linalg.inv(K)
     R = [np.eye(3)]
     for k in range(N - 1):
-        m = matches.get((k, k + 1))
-        if m is None or m.num_inliers < 8:
-            raise ValueError(f"frames {k} and {k + 1}: too few matches ({0 if m is None else m.num_inliers}) to "
+        p0, p1 = pairs.get((k, k + 1), (np.zeros((0, 2)), np.zeros((0, 2))))
+        if len(p0) < 8:
+            raise ValueError(f"frames {k} and {k + 1}: too few matches ({len(p0)}) to "
                              "estimate the rotation between them; the video cannot be registered")
-        H, _ = cv2.findHomography(m.pts0, m.pts1, cv2.RANSAC, 2.0)
+        H, _ = cv2.findHomography(p0, p1, cv2.RANSAC, 2.0)
         if H is None:
             raise ValueError(f"frames {k} and {k + 1}: no homography found; the video cannot be registered")
         M = Kinv @ H @ K
@@ -231,10 +244,10 @@ def _rotation_only(keypoints, matches, K, N, log):
         R.append(so3_orthonormalize(M) @ R[-1])
     poses = np.stack([_pose(r, np.zeros(3)) for r in R])
     pts, fr = [], []
-    for k, kp in enumerate(keypoints):
+    for k, kp in enumerate(frame_pts):
         if len(kp) == 0:
             continue
-        rays = np.c_[(kp.pts - K[:2, 2]) / np.diag(K)[:2], np.ones(len(kp))]
+        rays = np.c_[(kp - K[:2, 2]) / np.diag(K)[:2], np.ones(len(kp))]
         rays /= rays[:, 2:3]
         pts.append(rays @ R[k])  # depth 1 in frame k, world = R_k^T x_cam
         fr.append(np.full(len(kp), k))
@@ -276,24 +289,36 @@ def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks
         if log is not None:
             log(s)
 
-    fc = cfg.features
-    kps = [detect_features(im, fc, None if masks is None else masks[k]) for k, im in enumerate(images)]
-    nkp = np.array([len(k) for k in kps])
+    if masks is not None and (len(masks) != N or any(np.shape(m) != np.shape(images[0])[:2] for m in masks)):
+        raise ValueError(f"masks must be one (H, W) bool array per frame ({N} frames of "
+                         f"{np.shape(images[0])[:2]}); got {len(masks)}")
+    if cfg.tracker == "klt":
+        obs_frame, obs_track, obs_uv, T, nkp = klt_tracks(images, cfg.tracks, masks, seed=cfg.features.seed)
+        frame_pts = [obs_uv[obs_frame == k] for k in range(N)]
+    else:
+        fc = cfg.features
+        kps = [detect_features(im, fc, None if masks is None else masks[k]) for k, im in enumerate(images)]
+        nkp = np.array([len(k) for k in kps])
+        frame_pts = [k.pts for k in kps]
     flat = np.flatnonzero(nkp < cfg.min_keypoints)
     if flat.size:
         raise ValueError(
             f"frames {flat.tolist()} have no usable texture ({nkp[flat].tolist()} keypoints, need >= "
             f"{cfg.min_keypoints}); remove them (--start/--end, or delete them from the folder), or film textured "
             "surfaces")
-    say(f"features: {nkp.min()}-{nkp.max()} keypoints per frame (median {int(np.median(nkp))})")
-    matches = {}
-    for a in range(N):
-        for b in range(a + 1, min(N, a + cfg.match_window + 1)):
-            m = match_keypoints(kps[a], kps[b], fc)
-            if m.num_inliers:
-                matches[(a, b)] = m
-    obs_frame, obs_track, obs_uv, T = build_tracks(kps, matches)
-    say(f"tracks: {T} over {len(matches)} matched pairs")
+    say(f"{cfg.tracker}: {nkp.min()}-{nkp.max()} points per frame (median {int(np.median(nkp))})")
+    if cfg.tracker != "klt":
+        matches = {}
+        for a in range(N):
+            for b in range(a + 1, min(N, a + cfg.match_window + 1)):
+                m = match_keypoints(kps[a], kps[b], fc)
+                if m.num_inliers:
+                    matches[(a, b)] = m
+        obs_frame, obs_track, obs_uv, T = build_tracks(kps, matches)
+        say(f"tracks: {T} over {len(matches)} matched pairs")
+    else:
+        say(f"tracks: {T}, {len(obs_frame)} observations, median length {int(np.median(np.bincount(obs_track)))}"
+            if T else "tracks: none")
     lookup = np.full((N, max(T, 1)), -1, dtype=np.int64)
     lookup[obs_frame, obs_track] = np.arange(len(obs_frame))
 
@@ -316,9 +341,13 @@ def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks
     if not starts:
         say(f"no frame pair has a median triangulation angle >= {cfg.init_min_parallax_deg} deg "
             f"(largest {best_par:.2f} deg): the camera only rotates, no parallax")
-        poses, pts, pfr = _rotation_only(kps, matches, K, N, msgs)
+        pairs = {}
+        for k in range(N - 1):
+            both = np.flatnonzero((lookup[k] >= 0) & (lookup[k + 1] >= 0))
+            pairs[(k, k + 1)] = (obs_uv[lookup[k, both]], obs_uv[lookup[k + 1, both]])
+        poses, pts, pfr = _rotation_only(frame_pts, pairs, K, N, msgs)
         log and log(msgs[-1])
-        uv = np.concatenate([k.pts for k in kps])
+        uv = np.concatenate(frame_pts)
         return SfmResult(poses, K, pts, _sample_colors(images, pfr, uv), pfr, np.arange(len(pts)), uv, nkp,
                          np.bincount(pfr, minlength=N), [], True, (0, 1), best_par, float("nan"), msgs)
     K_start = K.copy()

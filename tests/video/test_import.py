@@ -84,6 +84,22 @@ def test_motion_masks_find_the_mover(tmp_path):
     assert iou > 0.5, iou
 
 
+def test_movers_neither_pull_the_poses_nor_escape_the_masks(tmp_path):
+    """cube_sign: a tumbling cube and a swinging sign, 13 % of the pixels. With SIFT tracks this import
+    was refused at this size (frames 11-23 could not be registered); with KLT tracks and the former
+    masks (flow-disagreement gate, no point pruning, no second pass) it gave ATE 0.47 % but IoU 0.48;
+    now 1.6 % and 0.63."""
+    sc = _scene("cube_sign")
+    rep = import_video(_write_folder(sc, tmp_path / "frames"), tmp_path / "scene", log=None)
+    out = load_scene(tmp_path / "scene")
+    gt = np.stack([f.gt_cam_T_world for f in sc.frames])
+    assert ate(np.stack([f.cam_T_world for f in out.frames]), gt) / _depth("cube_sign") < 0.02
+    g = np.stack([f.mask for f in sc.frames])
+    p = np.stack([f.mask for f in out.frames])
+    assert (g & p).sum() / (g | p).sum() > 0.5
+    assert rep["num_points"] == len(out.points3d)
+
+
 def test_pure_rotation_is_detected_and_falls_back(tmp_path):
     cfg = resolve("photo_room", 0, **SMALL)
     world = build_suite_world(cfg)
@@ -139,10 +155,12 @@ def test_untextured_and_unregistrable_frames_are_named(tmp_path):
     flat[3] = np.full_like(imgs[0], 0.5)
     with pytest.raises(ValueError, match=r"frames \[3\] have no usable texture"):
         register_video(flat, K, log=None)
-    # a frame of another place: textured (smoothed noise), but nothing matches the rest
+    # a frame of another place: textured (smoothed noise), but nothing matches the rest. (Six frames
+    # of photo_room keep at most ~1.5 px of parallax between the KLT tracks: they may count as a pure
+    # rotation, whose fallback names the pair it cannot chain.)
     noise = cv2.GaussianBlur(np.random.default_rng(0).random((H, W, 3)), (0, 0), 1.0)
     other = list(imgs) + [noise]
-    with pytest.raises(ValueError, match=r"(could not register frames|frames) \[6\]"):
+    with pytest.raises(ValueError, match=r"(could not register frames|frames) \[6\]|frames 5 and 6: too few matches"):
         register_video(other, K, log=None)
 
 
