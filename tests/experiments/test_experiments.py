@@ -70,7 +70,7 @@ def test_a_sweep_on_a_two_worker_cluster_retries_reports_and_resumes(tmp_path, c
                              scheduler=cluster, retries=1, **TINY)
     by = {r["variant"]: r for r in recs}
     assert [r["variant"] for r in recs] == ["n1", "n2", "n4"]  # in the experiment's order
-    assert by["n1"]["status"] == "ok" and by["n1"]["attempts"] == 1
+    assert by["n1"]["status"] == "ok" and by["n1"]["attempts"] == 1, by["n1"].get("traceback")
     assert by["n2"]["status"] == "ok" and by["n2"]["attempts"] == 2
     assert by["n4"]["status"] == "failed" and "always fails" in by["n4"]["error"] and by["n4"]["attempts"] == 2
     assert by["n1"]["steps"] == 3 and by["n1"]["dvs_psnr"] is not None
