@@ -39,6 +39,9 @@ from __future__ import annotations
 import copy
 import csv
 import json
+import os
+import shutil
+import threading
 import time
 import traceback
 from dataclasses import dataclass, field
@@ -158,14 +161,32 @@ def _make_scene(out, scene, variant, seed, size, frames) -> Path:
     o = _scene_overrides(scene, variant, size)
     if frames:
         o["num_frames"] = frames
-    raw = folder.with_name(folder.name + "_raw") if variant.two_stage else folder
-    if scene in SUITE:
-        write_suite_scene(raw, scene, seed, overwrite=True, **o)
-    else:
-        write_synthetic_scene(raw, scene, seed, overwrite=True, **o)
-    if variant.two_stage:
-        rep = deblur_scene(raw, folder, overwrite=True)
-        (folder / "deblur_report.json").write_text(json.dumps(rep, indent=1) + "\n")
+    # Cells that share a scene may start together (threads of one worker, or workers on a shared
+    # file system): each writes its own copy under a private name and publishes it by one atomic
+    # rename, so a cell never reads a folder another is still writing (a sweep test saw a cell
+    # fail that way). The first rename wins; a later writer finds the folder there and discards
+    # its copy, which is the same scene (same generator, seed and settings).
+    tag = f".tmp-{os.getpid()}-{threading.get_ident()}"
+    tmp = folder.with_name(folder.name + tag)
+    raw = folder.with_name(folder.name + "_raw" + tag) if variant.two_stage else tmp
+    for d in {tmp, raw}:
+        shutil.rmtree(d, ignore_errors=True)
+    try:
+        if scene in SUITE:
+            write_suite_scene(raw, scene, seed, overwrite=True, **o)
+        else:
+            write_synthetic_scene(raw, scene, seed, overwrite=True, **o)
+        if variant.two_stage:
+            rep = deblur_scene(raw, tmp, overwrite=True)
+            (tmp / "deblur_report.json").write_text(json.dumps(rep, indent=1) + "\n")
+        try:
+            os.rename(tmp, folder)
+        except OSError:
+            if not folder.is_dir():  # not "another writer published it first"
+                raise
+    finally:
+        for d in {tmp, raw}:
+            shutil.rmtree(d, ignore_errors=True)
     done.write_text("ok\n")
     return folder
 

@@ -100,3 +100,33 @@ def test_baselines_on_the_local_process_pool(tmp_path):
         sharp["input_blur"]["psnr"] > by["full"]["input_psnr"]  # sharp inputs: far closer to the truth
     # FLIP agrees: the sharp inputs are perceptually nearer the truth than the blurry ones
     assert sharp["input_blur"]["flip"] < by["full"]["input_flip"]
+
+
+def test_cells_sharing_a_scene_never_read_it_half_written(tmp_path):
+    """Four threads make the same scene at once (as cells of one sweep do) and each loads it at
+    once: every load sees a whole scene, one folder is published, no private copy is left."""
+    import threading
+
+    from d2gs_np.data.io import load_scene
+
+    v = ex.EXPERIMENTS["virtual-views"][0]
+    barrier, errors, folders = threading.Barrier(4), [], []
+
+    def cell():
+        try:
+            barrier.wait()
+            f = ex._make_scene(tmp_path, "dynamic", v, 0, TINY["size"], TINY["frames"])
+            folders.append(f)
+            sc = load_scene(f)
+            assert sc.num_frames == TINY["frames"]
+        except Exception as e:  # noqa: BLE001 - reported below
+            errors.append(repr(e))
+
+    threads = [threading.Thread(target=cell) for _ in range(4)]
+    for t in threads:
+        t.start()
+    for t in threads:
+        t.join()
+    assert not errors, errors
+    assert len(set(folders)) == 1 and folders[0].with_suffix(".done").exists()
+    assert not [p.name for p in folders[0].parent.iterdir() if ".tmp-" in p.name]
