@@ -42,7 +42,7 @@ from d2gs_np import metrics
 from d2gs_np import trajectory as traj_model
 from d2gs_np.constants import POSE_DEPTH_ALPHA_MIN
 from d2gs_np.correspond import correspondences
-from d2gs_np.geometry.camera import scale_intrinsics
+from d2gs_np.geometry.camera import camera_center, scale_intrinsics
 from d2gs_np.geometry.se3 import se3_exp, se3_interpolate, se3_inverse
 from d2gs_np.optim import gauss_newton as gn
 from d2gs_np.render.api import _render_fwd
@@ -195,7 +195,7 @@ class PoseSolver(Plugin):
                                     gn.sample_depth(depth[p.j], p.pts_j * s)) for p in pairs]
         prior = {}
         if self.pc.prior_rot_deg > 0:
-            depths = np.concatenate([o.depth_k for o in obs] + [o.depth_j for o in obs] + [np.ones(0)])
+            depths = np.concatenate([np.r_[o.depth_k, o.depth_j] for o in obs])
             scale = float(np.median(depths)) if depths.size else 1.0
             prior = {"prior_poses": model.poses_est,
                      "prior_sigma": (self.pc.prior_trans_rel * scale, np.deg2rad(self.pc.prior_rot_deg))}
@@ -238,17 +238,14 @@ def hold_trajectory_scale(before, after, anchor=0):
     """``after`` (N, 4, 4) cam_T_world with its camera centres rescaled about frame ``anchor``'s
     centre so that their summed distance from it equals that of ``before``; rotations unchanged.
     A trajectory whose centres all coincide with the anchor's (no size to hold) is returned as is."""
-    before, after = np.asarray(before, dtype=np.float64), np.asarray(after, dtype=np.float64)
-    c_b = -np.einsum("nji,nj->ni", before[:, :3, :3], before[:, :3, 3])
-    c_a = -np.einsum("nji,nj->ni", after[:, :3, :3], after[:, :3, 3])
+    after = np.asarray(after, dtype=np.float64)
+    c_b, c_a = camera_center(before), camera_center(after)
     size_b = np.linalg.norm(c_b - c_b[anchor], axis=1).sum()
     size_a = np.linalg.norm(c_a - c_a[anchor], axis=1).sum()
     if not (size_a > 0 and size_b > 0 and np.isfinite(size_a) and np.isfinite(size_b)):
         return after.copy()
-    c = c_a[anchor] + (size_b / size_a) * (c_a - c_a[anchor])
-    out = after.copy()
-    out[:, :3, 3] = -np.einsum("nij,nj->ni", after[:, :3, :3], c)
-    return out
+    lam = size_b / size_a  # the similarity x -> lam x + (1 - lam) c_anchor, no rotation
+    return metrics.sim3_apply_to_poses(lam, np.eye(3), (1.0 - lam) * c_a[anchor], after)
 
 
 def se3_interpolate_batch(starts, ends):

@@ -235,9 +235,9 @@ def motion_masks(images, cam_T_world, K, points, config: MaskConfig = None, log=
                 continue
             obs = observed_flow(images[k], images[j], cfg.flow)
             exp, trans = expected_flow(depth, cam_T_world[k], cam_T_world[j], K)
-            e = np.nan_to_num(np.linalg.norm(obs - exp, axis=2), nan=0.0)
-            thr = cfg.threshold_px + cfg.relative * np.nan_to_num(np.linalg.norm(trans, axis=2))
             if cfg.geometric:
+                e = np.nan_to_num(np.linalg.norm(obs - exp, axis=2), nan=0.0)
+                thr = cfg.threshold_px + cfg.relative * np.nan_to_num(np.linalg.norm(trans, axis=2))
                 full = e > thr
                 if np.linalg.norm(trans) > 0:  # a moving camera centre: epipolar test where depth is unsupported
                     epi = epipolar_distance(obs, cam_T_world[k], cam_T_world[j], K) > cfg.threshold_px
