@@ -122,6 +122,13 @@ def _trajectory_and_nvs(run: LoadedRun, scene, mids, test_pose_steps=0) -> dict:
     out["trajectory"] = {"ate": float(ate), "rpe_t": float(rpe_t), "rpe_r": float(rpe_r), "scale": float(scale),
                          "initial": {"ate": float(ate0), "rpe_t": float(rpe_t0), "rpe_r": float(rpe_r0),
                                      "scale": float(scale0)}}
+    P0 = run.model.poses_init
+    if P0 is not None and not np.array_equal(P0, run.model.poses_est):
+        # training started from the bundle adjustment of the given poses (pose_init.py)
+        rpe_tb, rpe_rb = metrics.rpe(P0, gt)
+        out["trajectory"]["bundle_adjusted"] = {"ate": float(metrics.ate(P0, gt)), "rpe_t": float(rpe_tb),
+                                                "rpe_r": float(rpe_rb),
+                                                "scale": float(metrics.align_trajectory(P0, gt)[0])}
     if scene.test_frames:
         # Test views are given in the true frame; the similarity aligning our trajectory to the
         # truth, inverted, carries them into the reconstruction's frame. It is fitted on camera

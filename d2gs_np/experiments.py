@@ -251,6 +251,7 @@ def flatten(m: dict) -> dict:
         "input_ssim": g("input_blur", "ssim"), "nvs_psnr": g("nvs", "psnr"), "nvs_ssim": g("nvs", "ssim"),
         "dvs_flip": g("dvs", "flip"), "input_flip": g("input_blur", "flip"), "nvs_flip": g("nvs", "flip"),
         "ate": g("trajectory", "ate"), "ate_initial": g("trajectory", "initial", "ate"),
+        "ate_bundle": g("trajectory", "bundle_adjusted", "ate"),
         "num_gaussians": g("num_gaussians"), "steps": g("steps"), "train_seconds": g("train_seconds"),
         "wall_seconds": g("wall_seconds"),
     }
@@ -350,7 +351,7 @@ def table(records) -> str:
 def write_outputs(name, out, records, command=""):
     out = Path(out)
     fields = ["scene", "seed", "variant", "status", "attempts", "input_psnr", "dvs_psnr", "dvs_ssim", "nvs_psnr",
-              "nvs_ssim", "input_flip", "dvs_flip", "nvs_flip", "ate_initial", "ate", "num_gaussians", "steps", "train_seconds", "wall_seconds", "run",
+              "nvs_ssim", "input_flip", "dvs_flip", "nvs_flip", "ate_initial", "ate_bundle", "ate", "num_gaussians", "steps", "train_seconds", "wall_seconds", "run",
               "error"]
     with open(out / f"{name}.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")

@@ -223,6 +223,7 @@ _METRIC_ROWS = (
     ("novel views: FLIP (lower is better)", ("nvs", "flip"), ".4f"),
     ("novel views, test poses refined: PSNR [dB]", ("nvs_pose_opt", "psnr"), ".2f"),
     ("ATE, given poses", ("trajectory", "initial", "ate"), ".4f"),
+    ("ATE, given poses after bundle adjustment (start of training)", ("trajectory", "bundle_adjusted", "ate"), ".4f"),
     ("ATE, refined poses", ("trajectory", "ate"), ".4f"),
     ("ATE alignment scale, given -> refined (1 = kept its size)", None, None),
     ("RPE_t, given -> refined", None, None),

@@ -17,6 +17,7 @@ from typing import Optional
 from d2gs_np.blur import BlurConfig
 from d2gs_np.correspond import CorrespondConfig
 from d2gs_np.optim.gauss_newton import GaussNewtonConfig
+from d2gs_np.pose_init import PoseInitConfig
 from d2gs_np.render.config import RenderConfig
 from d2gs_np.scene.deformation import DeformConfig
 from d2gs_np.scene.initialize import InitConfig
@@ -236,6 +237,7 @@ class ExperimentConfig:
     densify: DensifyConfig = field(default_factory=DensifyConfig)
     prune: PruneConfig = field(default_factory=PruneConfig)
     pose_solver: PoseSolverConfig = field(default_factory=PoseSolverConfig)
+    pose_init: PoseInitConfig = field(default_factory=PoseInitConfig)
 
     def to_dict(self) -> dict:
         return _to_plain(self)

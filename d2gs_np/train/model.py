@@ -7,9 +7,11 @@ same ``render`` and ``mid_pose`` (docs/method.md §4, §10). It holds plain arra
   ``dynamic.*``) and, with the blur model, the endpoint model (``camera.xi_start`` /
   ``camera.xi_end`` or ``posenet.*``) and a learned exposure length (``camera.exposure_logit``).
 - camera state: ``poses_est`` (N, 4, 4), the given mid-exposure estimates, never changed (the
-  'initial' trajectory of evaluation); ``poses_ref`` (N, 4, 4), the reference poses T̂_k the
-  endpoints perturb, a copy of ``poses_est`` until a pose solver refines them (docs/method.md
-  §5); intrinsics ``Ks`` (N, 3, 3) and image sizes of the training frames.
+  'initial' trajectory of evaluation); ``poses_init`` (N, 4, 4), the poses training started
+  from: the given ones, or their bundle adjustment before training (``pose_init.py``), which the
+  pose solver's prior holds; ``poses_ref`` (N, 4, 4), the reference poses T̂_k the endpoints
+  perturb, a copy of ``poses_init`` until a pose solver refines them (docs/method.md §5);
+  intrinsics ``Ks`` (N, 3, 3) and image sizes of the training frames.
 - ``times`` (N,), ``components`` (what the run models, ``train/components.py``) and the config.
 
 The mid-exposure pose of frame k is the geodesic midpoint of its exposure endpoints with the blur
@@ -30,6 +32,7 @@ import dataclasses
 import numbers
 import time
 from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
@@ -54,6 +57,7 @@ __all__ = ["Model", "SCENE_PREFIXES", "frame_render_fwd", "frame_render_bwd"]
 SCENE_PREFIXES = (f"{STATIC}.", f"{DYNAMIC}.")
 PARAMS_KEY = "params/"  # checkpoint array keys of the blocks
 POSES_REF_KEY = "camera/poses_ref"
+POSES_INIT_KEY = "camera/poses_init"
 
 
 @dataclass(frozen=True, eq=False)
@@ -67,16 +71,27 @@ class Model:
     Ks: np.ndarray  # (N, 3, 3) intrinsics of the training frames
     widths: tuple  # (N,) ints
     heights: tuple  # (N,) ints
+    poses_init: Optional[np.ndarray] = None  # (N, 4, 4) where training started; None: poses_est
 
     # ------------------------------------------------------------------ construction
     @classmethod
-    def from_scene(cls, scene, config: ExperimentConfig, components: Components, note=None) -> "Model":
+    def from_scene(cls, scene, config: ExperimentConfig, components: Components, note=None,
+                   poses=None) -> "Model":
         """The initial model of a scene (docs/method.md §8): initial static and dynamic points
         (``scene/initialize.py``), motion from mask tracks (``scene/motion_init.py``), the endpoint
         model and the exposure length. One seeded generator (``config.train.seed``) draws all of it,
-        in this order."""
+        in this order. ``poses`` (N, 4, 4): start from these instead of the scene's given poses
+        (the bundle adjustment of ``pose_init.py``); the given ones stay ``poses_est``."""
         say = note if note is not None else (lambda m: None)
         rng = np.random.default_rng(config.train.seed)
+        given = np.stack([f.cam_T_world for f in scene.frames]).astype(np.float64)
+        if poses is not None:
+            poses = np.ascontiguousarray(poses, dtype=np.float64)
+            if poses.shape != given.shape:
+                raise ValueError(f"Model.from_scene: poses must have shape {given.shape}; got {poses.shape}")
+            check_rigid(poses, "Model.from_scene poses")
+            scene = dataclasses.replace(scene, frames=[dataclasses.replace(f, cam_T_world=P)
+                                                       for f, P in zip(scene.frames, poses)])
         frames = scene.frames
         times = np.array([f.time for f in frames], dtype=np.float64)
         poses = np.stack([f.cam_T_world for f in frames]).astype(np.float64)
@@ -106,16 +121,17 @@ class Model:
                 exposure_fraction=None if components.learn_exposure else components.exposure_fraction))
             if components.learn_exposure:
                 params.update(blur_model.init_exposure())
-        return cls(params=params, config=config, components=components, times=times, poses_est=poses,
+        return cls(params=params, config=config, components=components, times=times, poses_est=given,
                    poses_ref=poses.copy(), Ks=np.stack([np.asarray(f.K, dtype=np.float64) for f in frames]),
                    widths=tuple(int(f.width) for f in frames),
-                   heights=tuple(int(f.height) for f in frames)).validate()
+                   heights=tuple(int(f.height) for f in frames), poses_init=poses.copy()).validate()
 
     def to_checkpoint(self):
         """(arrays, meta) of the model, for ``train.checkpoint.save_checkpoint`` (which the trainer
         extends with its own state)."""
         arrays = {f"{PARAMS_KEY}{n}": v for n, v in self.params.items()}
         arrays[POSES_REF_KEY] = self.poses_ref
+        arrays[POSES_INIT_KEY] = self.start_poses
         meta = {"config": self.config.to_dict(), "components": dataclasses.asdict(self.components),
                 "poses_est": self.poses_est.tolist(), "times": self.times.tolist(),
                 "K": [K.tolist() for K in self.Ks], "width": list(self.widths), "height": list(self.heights)}
@@ -124,15 +140,16 @@ class Model:
     @classmethod
     def from_checkpoint(cls, arrays: dict, meta: dict) -> "Model":
         """Inverse of ``to_checkpoint`` (checkpoints written before the camera state had
-        ``poses_ref`` load with ``poses_ref = poses_est``); validated."""
+        ``poses_ref`` / ``poses_init`` load with ``poses_est`` there); validated."""
         params = {k[len(PARAMS_KEY):]: v for k, v in arrays.items() if k.startswith(PARAMS_KEY)}
         poses_est = np.asarray(meta["poses_est"], dtype=np.float64)
         poses_ref = np.array(arrays.get(POSES_REF_KEY, poses_est), dtype=np.float64)
+        poses_init = np.array(arrays.get(POSES_INIT_KEY, poses_est), dtype=np.float64)
         return cls(params=params, config=ExperimentConfig.from_dict(meta["config"]),
                    components=Components(**meta["components"]), times=np.asarray(meta["times"], dtype=np.float64),
                    poses_est=poses_est, poses_ref=poses_ref, Ks=np.asarray(meta["K"], dtype=np.float64),
                    widths=tuple(int(w) for w in meta["width"]),
-                   heights=tuple(int(h) for h in meta["height"])).validate()
+                   heights=tuple(int(h) for h in meta["height"]), poses_init=poses_init).validate()
 
     def replace(self, **changes) -> "Model":
         """A copy with some fields changed (``params=...``, ``poses_ref=...``); not validated."""
@@ -151,6 +168,12 @@ class Model:
             raise ValueError(f"Model.times must hold N >= 1 finite times; got {self.times}")
         check_rigid(self.poses_est, "Model.poses_est")
         check_rigid(self.poses_ref, "Model.poses_ref")
+        if self.poses_init is not None:
+            P = self.poses_init
+            if not isinstance(P, np.ndarray) or P.dtype != np.float64 or P.shape != (N, 4, 4):
+                raise ValueError(f"Model.poses_init must be None or a float64 array of shape {(N, 4, 4)}; got "
+                                 f"{getattr(P, 'dtype', type(P).__name__)} {np.shape(P)}")
+            check_rigid(P, "Model.poses_init")
         for k in range(N):
             check_intrinsics(self.Ks[k], f"Model.Ks[{k}]")
         for name, sizes in (("widths", self.widths), ("heights", self.heights)):
@@ -175,6 +198,11 @@ class Model:
         return self
 
     # ------------------------------------------------------------------ queries
+    @property
+    def start_poses(self) -> np.ndarray:
+        """(N, 4, 4) the poses training started from (``poses_init``, else the given ``poses_est``)."""
+        return self.poses_est if self.poses_init is None else self.poses_init
+
     @property
     def num_frames(self) -> int:
         return len(self.times)

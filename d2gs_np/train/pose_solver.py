@@ -197,7 +197,7 @@ class PoseSolver(Plugin):
         if self.pc.prior_rot_deg > 0:
             depths = np.concatenate([np.r_[o.depth_k, o.depth_j] for o in obs])
             scale = float(np.median(depths)) if depths.size else 1.0
-            prior = {"prior_poses": model.poses_est,
+            prior = {"prior_poses": model.start_poses,
                      "prior_sigma": (self.pc.prior_trans_rel * scale, np.deg2rad(self.pc.prior_rot_deg))}
         problem = gn.PoseProblem(starts, ends, model.Ks, obs, fixed=(0,), **prior)
         res = gn.solve(problem, self.pc.gauss_newton)

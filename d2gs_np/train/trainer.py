@@ -28,6 +28,7 @@ import numpy as np
 
 from d2gs_np.data.scene import Scene
 from d2gs_np.optim import adam
+from d2gs_np.pose_init import initial_poses
 from d2gs_np.render.api import warm_up
 from d2gs_np.scene.gaussians import STATIC, num_static
 from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint, load_checkpoint_meta, save_checkpoint
@@ -114,7 +115,8 @@ class Trainer:
         else:
             for line in composition_notes([t.name for t in self.terms], [p.name for p in self.plugins]):
                 self.log.note(line)
-            model = Model.from_scene(scene, config, components, self.log.note)
+            model = Model.from_scene(scene, config, components, self.log.note,
+                                     poses=initial_poses(scene, config, self.log.note))
             for p in self.plugins:
                 p.on_init(model)
             self.state = TrainState(model, adam.adam_init(model.params), self._initial_rows(model.params))

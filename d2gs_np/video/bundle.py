@@ -24,10 +24,10 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
 
-from d2gs_np.geometry.so3 import hat, left_jacobian, so3_exp, so3_log
+from d2gs_np.geometry.so3 import hat, left_jacobian, left_jacobian_inv, so3_exp, so3_log
 
-__all__ = ["reprojection_fwd", "reprojection_bwd", "reprojection_jacobian", "BundleProblem", "bundle_adjust",
-           "poses_to_params", "params_to_poses"]
+__all__ = ["reprojection_fwd", "reprojection_bwd", "reprojection_jacobian", "pose_prior_fwd", "BundleProblem",
+           "bundle_adjust", "poses_to_params", "params_to_poses"]
 
 
 def poses_to_params(cam_T_world):
@@ -137,6 +137,36 @@ def reprojection_jacobian(saved, free_cams, with_focal):
                          shape=(2 * O, ncols))
 
 
+def pose_prior_fwd(cams, prior_cams, sigma_t, sigma_r):
+    """Residuals of a prior that holds cameras near given poses, and their Jacobian blocks.
+
+    Per camera 6 rows: ``(c - c_g) / sigma_t`` on the camera centre c = -R^T t (world units) and
+    ``log(R R_g^T) / sigma_r`` on the rotation (radians). Returns (r (C, 6), J (C, 6, 6)) with J the
+    derivative of each camera's rows with respect to its (phi, t): with a perturbation
+    exp(phi + d) = exp(J_l(phi) d) exp(phi), d log(R R_g^T) / d phi = J_l(log(R R_g^T))^-1 J_l(phi),
+    dc / d phi = -R^T hat(t) J_l(phi), dc / dt = -R^T.
+    """
+    cams = np.asarray(cams, dtype=np.float64)
+    prior = np.asarray(prior_cams, dtype=np.float64)
+    if cams.ndim != 2 or cams.shape[1] != 6 or prior.shape != cams.shape:
+        raise ValueError(f"cams and prior_cams must both have shape (C, 6); got {cams.shape}, {prior.shape}")
+    if not (np.isfinite(sigma_t) and sigma_t > 0 and np.isfinite(sigma_r) and sigma_r > 0):
+        raise ValueError(f"pose prior sigmas must be finite and > 0; got sigma_t={sigma_t}, sigma_r={sigma_r}")
+    phi, t = cams[:, :3], cams[:, 3:]
+    R, Rg = so3_exp(phi), so3_exp(prior[:, :3])
+    Rt = np.transpose(R, (0, 2, 1))
+    c = -np.einsum("cij,cj->ci", Rt, t)
+    cg = -np.einsum("cji,cj->ci", Rg, prior[:, 3:])
+    e = so3_log(R @ np.transpose(Rg, (0, 2, 1)))
+    Jl = left_jacobian(phi)
+    r = np.concatenate([(c - cg) / sigma_t, e / sigma_r], axis=1)
+    J = np.zeros((cams.shape[0], 6, 6))
+    J[:, :3, :3] = -(Rt @ hat(t) @ Jl) / sigma_t
+    J[:, :3, 3:] = -Rt / sigma_t
+    J[:, 3:, :3] = (left_jacobian_inv(e) @ Jl) / sigma_r
+    return r, J
+
+
 @dataclass
 class BundleProblem:
     """Observations and the starting point of a bundle adjustment."""
@@ -152,12 +182,16 @@ class BundleProblem:
 
 
 def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, loss="soft_l1", f_scale=1.0,
-                  max_nfev=50, tol=1e-8):
+                  max_nfev=50, tol=1e-8, prior=None):
     """Robust least squares over free cameras, all points and (optionally) the shared focal length.
 
     fixed_cams: cameras held at their start (the gauge: fix one camera; the overall scale stays
     free and is set by the start). loss, f_scale: SciPy robust loss and its scale in pixels.
-    Returns (cams (C, 6), points (P, 3), focal, info dict with cost, nfev, rms / median residual).
+    prior: optional (prior_cams (C, 6), sigma_t, sigma_r): ``pose_prior_fwd`` rows for every free
+    camera (in units of sigma, under the same robust loss); with it no camera need be fixed (the
+    prior holds the gauge, the scale included).
+    Returns (cams (C, 6), points (P, 3), focal, info dict with cost, nfev, rms / median residual
+    of the observations).
     """
     cams0 = np.asarray(problem.cams, dtype=np.float64).copy()
     pts0 = np.asarray(problem.points, dtype=np.float64)
@@ -175,25 +209,44 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
 
     cache = {}
 
+    if prior is not None:
+        prior_cams, sigma_t, sigma_r = prior
+        prior_cams = np.asarray(prior_cams, dtype=np.float64)
+        if prior_cams.shape != cams0.shape:
+            raise ValueError(f"prior cams must have the shape of the problem's cams {cams0.shape}; got "
+                             f"{prior_cams.shape}")
+        pose_prior_fwd(cams0[free], prior_cams[free], sigma_t, sigma_r)  # checks the sigmas
+    O2 = 2 * len(problem.cam_idx)
+
     def fun(x):
         cams, pts, f = unpack(x)
         r, saved = reprojection_fwd(cams, pts, f, problem.cx, problem.cy, problem.cam_idx, problem.pt_idx, problem.uv)
         cache["key"], cache["saved"] = x.tobytes(), saved
-        return r.ravel()
+        if prior is None:
+            return r.ravel()
+        rp, cache["prior_J"] = pose_prior_fwd(cams[free], prior_cams[free], sigma_t, sigma_r)
+        return np.concatenate([r.ravel(), rp.ravel()])
 
     def jac(x):
         if cache.get("key") != x.tobytes():
             fun(x)
-        return reprojection_jacobian(cache["saved"], free, refine_focal)
+        J = reprojection_jacobian(cache["saved"], free, refine_focal)
+        if prior is None:
+            return J
+        F = len(free)
+        rows = np.repeat(np.arange(6 * F).reshape(F, 6, 1), 6, axis=2)
+        cols = (6 * np.arange(F))[:, None, None] + np.arange(6)[None, None, :] + np.zeros((1, 6, 1), dtype=np.int64)
+        Jp = sp.csr_matrix((cache["prior_J"].ravel(), (rows.ravel(), cols.ravel())), shape=(6 * F, J.shape[1]))
+        return sp.vstack([J, Jp], format="csr")
 
     x0 = np.concatenate([cams0[free].ravel(), pts0.ravel()] + ([np.array([problem.focal])] if refine_focal else []))
     r0 = fun(x0)
     res = least_squares(fun, x0, jac=jac, loss=loss, f_scale=f_scale, method="trf", x_scale="jac",
                         max_nfev=max_nfev, ftol=tol, xtol=tol, gtol=tol, tr_solver="lsmr")
     cams, pts, f = unpack(res.x)
-    r = res.fun.reshape(-1, 2)
+    r = res.fun[:O2].reshape(-1, 2)
     err = np.linalg.norm(r, axis=1)
     info = {"cost": float(res.cost), "nfev": int(res.nfev), "status": int(res.status),
-            "rms_px_start": float(np.sqrt(np.mean(r0 ** 2))), "median_px": float(np.median(err)) if err.size else 0.0,
+            "rms_px_start": float(np.sqrt(np.mean(r0[:O2] ** 2))) if O2 else 0.0, "median_px": float(np.median(err)) if err.size else 0.0,
             "rms_px": float(np.sqrt(np.mean(err ** 2))) if err.size else 0.0, "residual_px": err}
     return cams, pts, float(f), info
