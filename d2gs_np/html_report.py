@@ -110,7 +110,7 @@ def _gather(run_dir, num_frames):
         from d2gs_np.evaluate import align_with_orientations
 
         gt = np.stack([f.gt_cam_T_world for f in scene.frames])
-        s, R, t = metrics.sim3_inverse(*align_with_orientations(mids, gt))
+        s, R, t = metrics.sim3_inverse(*align_with_orientations(mids, gt, scene.scene_scale))
         for f in scene.test_frames[:2]:
             pose = metrics.sim3_apply_to_poses(s, R, t, f.cam_T_world)
             novel.append({"render": model.render(pose, f.time, f.K, f.width, f.height), "truth": f.image})
