@@ -40,7 +40,7 @@ from d2gs_np.geometry.so3 import so3_log
 from d2gs_np.video.bundle import BundleProblem, bundle_adjust, params_to_poses, poses_to_params
 from d2gs_np.video.tracks import TrackConfig, klt_tracks
 
-__all__ = ["PoseInitConfig", "triangulate_tracks", "adjust_given_poses", "initial_poses"]
+__all__ = ["PoseInitConfig", "triangulate_tracks", "adjust_given_poses", "initial_poses", "track_reprojection_rms"]
 
 _MODES = ("auto", "on", "off")
 
@@ -259,3 +259,24 @@ def initial_poses(scene, config, note=None):
         f"{info['change_rel_mean']:.4f} x depth on average (max {info['change_deg_max']:.3f} deg / "
         f"{info['change_rel_max']:.4f}); {counts}")
     return poses
+
+
+def track_reprojection_rms(cam_T_world, K, tracks, min_views=3, min_parallax_deg=1.0, clip_px=3.0):
+    """How well poses explain point tracks on their own: every track triangulated with the poses
+    (``triangulate_tracks``) and reprojected; the RMS of the pixel errors, each clipped at
+    ``clip_px`` (a mismatch counts as a bad observation, not as an unbounded one).
+
+    tracks: (obs_frame, obs_track, obs_uv, num_tracks) as ``video.tracks.klt_tracks`` returns.
+    Depends on no rendered depth: the pose solver's independent check (``PoseSolverConfig.
+    track_check``). Returns (rms_px, observations used); (nan, 0) when no track qualifies.
+    """
+    T = np.asarray(cam_T_world, dtype=np.float64)
+    of, ot, uv, nt = tracks[0], tracks[1], np.asarray(tracks[2], dtype=np.float64), int(tracks[3])
+    X, ok = triangulate_tracks(T, K, of, ot, uv, nt, min_views, min_parallax_deg)
+    sel = ok[ot]
+    if not sel.any():
+        return float("nan"), 0
+    x = np.einsum("oij,oj->oi", T[of[sel], :3, :3], X[ot[sel]]) + T[of[sel], :3, 3]
+    proj = (x[:, :2] / x[:, 2:]) @ np.asarray(K)[:2, :2].T + np.asarray(K)[:2, 2]
+    err = np.minimum(np.linalg.norm(proj - uv[sel], axis=1), clip_px)
+    return float(np.sqrt(np.mean(err ** 2))), int(sel.sum())

@@ -200,3 +200,21 @@ def test_initial_poses_decides_and_says_why(noisy_room):
 def test_config_rejects_bad_values(bad):
     with pytest.raises((ValueError, TypeError), match="PoseInitConfig"):
         PoseInitConfig(**bad)
+
+
+def test_track_reprojection_rms_prefers_the_true_poses(noisy_room):
+    # Measured (240 x 135 photo_room): 0.28 px at the true poses, 2.35 px at the suite's noisy
+    # ones. Here: the true poses explain the tracks at least twice as well as the noisy ones.
+    from d2gs_np.pose_init import track_reprojection_rms
+    from d2gs_np.video.tracks import klt_tracks
+    scene = noisy_room
+    of, ot, uv, nt, _ = klt_tracks([f.image for f in scene.frames])
+    G = np.stack([f.cam_T_world for f in scene.frames])
+    gt = np.stack([f.gt_cam_T_world for f in scene.frames])
+    r_gt, n_gt = track_reprojection_rms(gt, scene.frames[0].K, (of, ot, uv, nt))
+    r_g, n_g = track_reprojection_rms(G, scene.frames[0].K, (of, ot, uv, nt))
+    assert n_gt > 100 and n_g > 100
+    assert r_gt < 0.5 * r_g
+    # no track qualifies: nan, 0
+    r, n = track_reprojection_rms(gt, scene.frames[0].K, (of[:0], ot[:0], uv[:0], 0))
+    assert np.isnan(r) and n == 0

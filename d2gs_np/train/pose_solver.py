@@ -45,6 +45,7 @@ from d2gs_np.correspond import correspondences
 from d2gs_np.geometry.camera import camera_center, scale_intrinsics
 from d2gs_np.geometry.se3 import se3_exp, se3_interpolate, se3_inverse
 from d2gs_np.optim import gauss_newton as gn
+from d2gs_np.pose_init import track_reprojection_rms
 from d2gs_np.render.api import _render_fwd
 from d2gs_np.scene.gaussians import STATIC
 from d2gs_np.scene.model import _evaluate_fwd
@@ -52,6 +53,7 @@ from d2gs_np.train.checkpoint import atomic_write_text
 from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.plugins import Plugin
 from d2gs_np.train.state import TrainState, entered_period
+from d2gs_np.video.tracks import klt_tracks
 
 __all__ = ["PoseSolver", "use_pose_solver", "static_depth", "write_mid_poses", "hold_trajectory_scale",
            "HISTORY_FILE"]
@@ -109,6 +111,8 @@ class PoseSolver(Plugin):
         self.note = note if note is not None else (lambda m: None)
         self.history = []  # one dict per call
         self._corr = None
+        self._tracks = None
+        self.seed = config.train.seed
 
     # ------------------------------------------------------------------ state
     def state_dict(self):
@@ -128,6 +132,19 @@ class PoseSolver(Plugin):
                 for line in self._corr.report():
                     self.note(f"  {line}")
         return self._corr
+
+    def tracks(self):
+        """KLT tracks through the frames (none in the masks), once per run: the independent check
+        of a solve (``PoseSolverConfig.track_check``)."""
+        if self._tracks is None:
+            masks = self.masks if all(m is not None for m in self.masks) else None
+            of, ot, uv, nt, _ = klt_tracks(self.images, masks=masks, seed=self.seed)
+            self._tracks = (of, ot, uv, nt)
+        return self._tracks
+
+    def on_init(self, model):
+        if self.pc.track_check:
+            self.tracks()
 
     def on_step(self, state: TrainState) -> TrainState:
         if not entered_period(state, self.pc.every):
@@ -168,6 +185,16 @@ class PoseSolver(Plugin):
             self.note(f"step {state.step}: pose solver result not written ({res.status}, rank {res.rank}/"
                       f"{res.num_params}): only converged, fully observed solves move the poses "
                       "(pose_solver.accept = converged)")
+        if res.accepted and trusted and self.pc.track_check:
+            K = model.Ks[0]
+            rms0, _ = track_reprojection_rms(mids, K, self.tracks())
+            rms1, _ = track_reprojection_rms(res.mids, K, self.tracks())
+            entry["track_rms_before"], entry["track_rms_after"] = rms0, rms1
+            if np.isfinite(rms0) and not rms1 <= rms0 * (1.0 + self.pc.track_tolerance):
+                trusted = entry["written"] = False
+                self.note(f"step {state.step}: pose solver result not written: it raises the point tracks' "
+                          f"reprojection rms {rms0:.3f} -> {rms1:.3f} px (pose_solver.track_check, tolerance "
+                          f"{self.pc.track_tolerance:.0%})")
         if res.accepted and trusted:
             changed = [int(k) for k in problem.free if np.any(res.x[k] != 0)]
             state = write_mid_poses(state, res.mids, changed, C)

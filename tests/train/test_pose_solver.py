@@ -27,12 +27,13 @@ def noisy_scene():
     return make_scene("dynamic", 0, rot_noise_deg=0.5, **SMALL)
 
 
-def _config(iters=8, every=3, mode="on", accept="always", gn=None, **train):
-    # accept="always": these tests check what a solve writes, on tiny scenes whose few-step fits
-    # rarely let the solver converge; the acceptance rule has its own test below
+def _config(iters=8, every=3, mode="on", accept="always", gn=None, track_check=False, **train):
+    # accept="always", track_check=False: these tests check what a solve writes, on tiny scenes
+    # whose few-step fits rarely let the solver converge or better the tracks; the acceptance
+    # rule and the track check have their own tests below
     base = dict(iters=iters, quiet=True, eval_every=0, log_every=1, checkpoint_every=0, prune_every=0)
     base.update(train)
-    ps = PoseSolverConfig(mode=mode, every=every, accept=accept, min_steps=0)
+    ps = PoseSolverConfig(mode=mode, every=every, accept=accept, min_steps=0, track_check=track_check)
     if gn is not None:
         ps = dataclasses.replace(ps, gauss_newton=dataclasses.replace(ps.gauss_newton, **gn))
     return ExperimentConfig(train=TrainConfig(**base), pose_solver=ps)
@@ -90,6 +91,28 @@ def test_a_solver_call_lowers_the_cost_and_is_logged(noisy_scene, tmp_path):
     assert any("pose solver" in n and "cost" in n and "ATE" in n for n in notes)
     assert any(p.name.startswith("correspondences_") for p in (tmp_path / "run").iterdir())
     assert not np.array_equal(tr.model.poses_ref, tr.model.poses_est)
+
+
+def test_the_track_check_writes_a_solve_only_if_it_keeps_the_tracks(noisy_scene, tmp_path):
+    # The decision follows the rule (pose_solver.track_check): written iff the proposed poses'
+    # track rms is within track_tolerance of the current one; a rejection is logged and leaves
+    # the poses where they were. Tolerance 0.1 and then 10 (a rise of 1000 %: written).
+    for tol in (0.1, 10.0):
+        cfg = _config(iters=4, every=3, track_check=True)
+        cfg = dataclasses.replace(cfg, pose_solver=dataclasses.replace(cfg.pose_solver, track_tolerance=tol))
+        tr = Trainer(noisy_scene, cfg, tmp_path / f"run{tol}")
+        before = tr.model.poses_ref.copy()
+        tr.run()
+        h = json.loads((tmp_path / f"run{tol}" / "pose_solver.json").read_text())[0]
+        r0, r1 = h["track_rms_before"], h["track_rms_after"]
+        assert np.isfinite(r0) and np.isfinite(r1)
+        assert h["written"] == (r1 <= r0 * (1 + tol))
+        notes = json.loads((tmp_path / f"run{tol}" / "log.json").read_text())["notes"]
+        if not h["written"]:
+            assert any("point tracks' reprojection rms" in n for n in notes)
+            np.testing.assert_array_equal(tr.model.poses_ref, before)
+        else:
+            assert not np.array_equal(tr.model.poses_ref, before)
 
 
 def test_resume_is_exact_with_the_pose_solver(noisy_scene, tmp_path):
