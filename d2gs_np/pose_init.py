@@ -1,4 +1,4 @@
-"""Bundle adjustment of the given poses before training (docs/method.md §5, "Initial poses").
+"""Bundle adjustment of the given poses before training (docs/method.md §5: the initial poses).
 
 The pose solver of ``train/pose_solver.py`` refines the poses against depths rendered from the
 scene being trained, which is fitted to the same poses it tests: it fixes the error between
