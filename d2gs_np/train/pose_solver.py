@@ -10,7 +10,11 @@ least ``pose_solver.min_steps`` real steps passed since the previous call (or th
    pixels the static set covers with alpha below POSE_DEPTH_ALPHA_MIN give no depth (their
    matches are dropped and counted);
 3. the solver (``optim/gauss_newton.py``) over the exposure endpoints of every frame, frame 0
-   fixed;
+   fixed, with a prior on the poses training started from (``Model.start_poses``: the given
+   poses or their bundle adjustment, ``pose_init.py``);
+   a converged solve is then checked against KLT point tracks (computed once per run, no
+   rendered depth): if its poses raise the tracks' reprojection RMS by more than
+   ``track_tolerance`` it is not written (``track_check``);
 4. the update. The refined mid pose M'_k is written into the reference pose ``poses_ref`` and
    the endpoint perturbations stay relative to it: with the blur model the endpoints are
    ``exp(xi_s) T̂``, ``exp(xi_e) T̂`` and their geodesic midpoint is ``C_k T̂`` with
