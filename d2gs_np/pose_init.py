@@ -91,7 +91,8 @@ def triangulate_tracks(cam_T_world, K, obs_frame, obs_track, obs_uv, num_tracks,
                        min_parallax_deg=1.0):
     """Linear (DLT) triangulation of every track from all its views with known poses.
 
-    cam_T_world (N, 4, 4), K (3, 3) shared intrinsics, observations in our pixel convention.
+    cam_T_world (N, 4, 4), K (3, 3) shared or (N, 3, 3) per frame, observations in our pixel
+    convention.
     Returns (points (num_tracks, 3), ok (num_tracks,) bool): a track is ok if it has at least
     ``min_views`` views, its point lies in front of every camera that sees it, and its rays
     open to ``min_parallax_deg`` (the largest angle of a ray to the track's first ray).
@@ -101,8 +102,8 @@ def triangulate_tracks(cam_T_world, K, obs_frame, obs_track, obs_uv, num_tracks,
     obs_frame = np.asarray(obs_frame, dtype=np.int64)
     obs_track = np.asarray(obs_track, dtype=np.int64)
     uv = np.asarray(obs_uv, dtype=np.float64)
-    if T.ndim != 3 or T.shape[1:] != (4, 4) or K.shape != (3, 3):
-        raise ValueError(f"cam_T_world must be (N, 4, 4) and K (3, 3); got {T.shape}, {K.shape}")
+    if T.ndim != 3 or T.shape[1:] != (4, 4) or K.shape not in ((3, 3), (T.shape[0], 3, 3)):
+        raise ValueError(f"cam_T_world must be (N, 4, 4) and K (3, 3) or (N, 3, 3); got {T.shape}, {K.shape}")
     if obs_track.shape != obs_frame.shape or uv.shape != (obs_frame.shape[0], 2):
         raise ValueError("obs_frame (O,), obs_track (O,) and obs_uv (O, 2) must agree")
     if obs_frame.size == 0:
@@ -131,10 +132,9 @@ def triangulate_tracks(cam_T_world, K, obs_frame, obs_track, obs_uv, num_tracks,
     C = camera_center(T)
     ray = X[obs_track] - C[obs_frame]
     ray /= np.maximum(np.linalg.norm(ray, axis=1, keepdims=True), 1e-300)
-    first = np.full(num_tracks, -1, dtype=np.int64)
-    order = np.argsort(obs_track, kind="stable")
-    starts = np.r_[0, np.flatnonzero(np.diff(obs_track[order])) + 1]
-    first[obs_track[order[starts]]] = order[starts]
+    first = np.zeros(num_tracks, dtype=np.int64)
+    seen, first_obs = np.unique(obs_track, return_index=True)
+    first[seen] = first_obs
     cosang = np.einsum("oj,oj->o", ray, ray[first[obs_track]])
     mincos = np.ones(num_tracks)
     np.minimum.at(mincos, obs_track, np.nan_to_num(cosang, nan=1.0))
@@ -263,6 +263,7 @@ def initial_poses(scene, config, note=None):
 
 def track_reprojection_rms(cam_T_world, K, tracks, min_views=3, min_parallax_deg=1.0, clip_px=3.0):
     """How well poses explain point tracks on their own: every track triangulated with the poses
+    and intrinsics (K (3, 3) or (N, 3, 3))
     (``triangulate_tracks``) and reprojected; the RMS of the pixel errors, each clipped at
     ``clip_px`` (a mismatch counts as a bad observation, not as an unbounded one).
 
@@ -277,6 +278,7 @@ def track_reprojection_rms(cam_T_world, K, tracks, min_views=3, min_parallax_deg
     if not sel.any():
         return float("nan"), 0
     x = np.einsum("oij,oj->oi", T[of[sel], :3, :3], X[ot[sel]]) + T[of[sel], :3, 3]
-    proj = (x[:, :2] / x[:, 2:]) @ np.asarray(K)[:2, :2].T + np.asarray(K)[:2, 2]
+    Ko = np.broadcast_to(np.asarray(K, dtype=np.float64), (T.shape[0], 3, 3))[of[sel]]
+    proj = np.einsum("oij,oj->oi", Ko[:, :2, :2], x[:, :2] / x[:, 2:]) + Ko[:, :2, 2]
     err = np.minimum(np.linalg.norm(proj - uv[sel], axis=1), clip_px)
     return float(np.sqrt(np.mean(err ** 2))), int(sel.sum())

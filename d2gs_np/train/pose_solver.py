@@ -116,7 +116,7 @@ class PoseSolver(Plugin):
         self.history = []  # one dict per call
         self._corr = None
         self._tracks = None
-        self.seed = config.train.seed
+        self.seed, self.track_config = config.train.seed, config.pose_init.tracks
 
     # ------------------------------------------------------------------ state
     def state_dict(self):
@@ -142,7 +142,8 @@ class PoseSolver(Plugin):
         of a solve (``PoseSolverConfig.track_check``)."""
         if self._tracks is None:
             masks = self.masks if all(m is not None for m in self.masks) else None
-            of, ot, uv, nt, _ = klt_tracks(self.images, masks=masks, seed=self.seed)
+            # the same tracks as the bundle adjustment before training (pose_init.tracks)
+            of, ot, uv, nt, _ = klt_tracks(self.images, self.track_config, masks=masks, seed=self.seed)
             self._tracks = (of, ot, uv, nt)
         return self._tracks
 
@@ -190,9 +191,8 @@ class PoseSolver(Plugin):
                       f"{res.num_params}): only converged, fully observed solves move the poses "
                       "(pose_solver.accept = converged)")
         if res.accepted and trusted and self.pc.track_check:
-            K = model.Ks[0]
-            rms0, _ = track_reprojection_rms(mids, K, self.tracks())
-            rms1, _ = track_reprojection_rms(res.mids, K, self.tracks())
+            rms0, _ = track_reprojection_rms(mids, model.Ks, self.tracks())
+            rms1, _ = track_reprojection_rms(res.mids, model.Ks, self.tracks())
             entry["track_rms_before"], entry["track_rms_after"] = rms0, rms1
             if np.isfinite(rms0) and not rms1 <= rms0 * (1.0 + self.pc.track_tolerance):
                 trusted = entry["written"] = False

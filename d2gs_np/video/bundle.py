@@ -137,6 +137,11 @@ def reprojection_jacobian(saved, free_cams, with_focal):
                          shape=(2 * O, ncols))
 
 
+def _check_prior_sigmas(sigma_t, sigma_r):
+    if not (np.isfinite(sigma_t) and sigma_t > 0 and np.isfinite(sigma_r) and sigma_r > 0):
+        raise ValueError(f"pose prior sigmas must be finite and > 0; got sigma_t={sigma_t}, sigma_r={sigma_r}")
+
+
 def pose_prior_fwd(cams, prior_cams, sigma_t, sigma_r):
     """Residuals of a prior that holds cameras near given poses, and their Jacobian blocks.
 
@@ -150,8 +155,7 @@ def pose_prior_fwd(cams, prior_cams, sigma_t, sigma_r):
     prior = np.asarray(prior_cams, dtype=np.float64)
     if cams.ndim != 2 or cams.shape[1] != 6 or prior.shape != cams.shape:
         raise ValueError(f"cams and prior_cams must both have shape (C, 6); got {cams.shape}, {prior.shape}")
-    if not (np.isfinite(sigma_t) and sigma_t > 0 and np.isfinite(sigma_r) and sigma_r > 0):
-        raise ValueError(f"pose prior sigmas must be finite and > 0; got sigma_t={sigma_t}, sigma_r={sigma_r}")
+    _check_prior_sigmas(sigma_t, sigma_r)
     phi, t = cams[:, :3], cams[:, 3:]
     R, Rg = so3_exp(phi), so3_exp(prior[:, :3])
     Rt = np.transpose(R, (0, 2, 1))
@@ -215,7 +219,7 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
         if prior_cams.shape != cams0.shape:
             raise ValueError(f"prior cams must have the shape of the problem's cams {cams0.shape}; got "
                              f"{prior_cams.shape}")
-        pose_prior_fwd(cams0[free], prior_cams[free], sigma_t, sigma_r)  # checks the sigmas
+        _check_prior_sigmas(sigma_t, sigma_r)
     O2 = 2 * len(problem.cam_idx)
 
     def fun(x):
@@ -233,10 +237,9 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
         J = reprojection_jacobian(cache["saved"], free, refine_focal)
         if prior is None:
             return J
-        F = len(free)
-        rows = np.repeat(np.arange(6 * F).reshape(F, 6, 1), 6, axis=2)
-        cols = (6 * np.arange(F))[:, None, None] + np.arange(6)[None, None, :] + np.zeros((1, 6, 1), dtype=np.int64)
-        Jp = sp.csr_matrix((cache["prior_J"].ravel(), (rows.ravel(), cols.ravel())), shape=(6 * F, J.shape[1]))
+        # the prior's rows: one 6 x 6 block per free camera, on its own columns (the first 6F)
+        Jp = sp.block_diag(list(cache["prior_J"]), format="csr")
+        Jp = sp.hstack([Jp, sp.csr_matrix((Jp.shape[0], J.shape[1] - Jp.shape[1]))], format="csr")
         return sp.vstack([J, Jp], format="csr")
 
     x0 = np.concatenate([cams0[free].ravel(), pts0.ravel()] + ([np.array([problem.focal])] if refine_focal else []))
