@@ -97,7 +97,8 @@ EXPERIMENTS = {
         Variant("+gs", config={"loss": {**_NO_REG, "lambda_gs": _REG["lambda_gs"]}, "pose_solver": {"mode": "off"}}),
         Variant("+freq", config={"loss": {**_NO_REG, "lambda_freq": _REG["lambda_freq"]},
                                  "pose_solver": {"mode": "off"}}),
-        Variant("+reproj", config={"loss": _NO_REG, "pose_solver": {"mode": "on"}}),
+        Variant("+reproj", config={"loss": {**_NO_REG, "lambda_reproj": _REG["lambda_reproj"]},
+                                   "pose_solver": {"mode": "on"}}),
         Variant("all", config={"loss": dict(_REG), "pose_solver": {"mode": "on"}}),
     ),
     "suite": (

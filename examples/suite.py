@@ -40,13 +40,15 @@ from pathlib import Path
 
 VARIANTS = ("sharp", "blur", "noblur", "noisy")
 # Regulariser ablation: variant -> the LossConfig weights it turns on (the method's values); the
-# rest are set to 0. "+reproj" (L_reproj with the pose solver) is to be added here when it exists.
+# rest are set to 0. "+reproj": L_reproj on the rendered depth (the suite's scenes here have true
+# poses, so the pose solver stays out).
 ABLATION = {
     "render_only": (),
     "+ts": ("lambda_ts",),
     "+gs": ("lambda_gs",),
     "+freq": ("lambda_freq",),
-    "all": ("lambda_ts", "lambda_gs", "lambda_freq"),
+    "+reproj": ("lambda_reproj",),
+    "all": ("lambda_ts", "lambda_gs", "lambda_freq", "lambda_reproj"),
 }
 ALL_VARIANTS = VARIANTS + tuple(ABLATION)
 

@@ -23,7 +23,7 @@ __all__ = ["Components", "decide_components", "OPTIONAL_TERMS", "OPTIONAL_PLUGIN
 OPTIONAL_TERMS = {"ts": "L_ts", "gs": "L_gs", "reproj": "L_reproj", "freq": "L_freq"}
 # Regularisers this version implements (a LossConfig weight > 0 turns each on); the others are
 # not part of this version yet.
-IMPLEMENTED_TERMS = ("ts", "gs", "freq")
+IMPLEMENTED_TERMS = ("ts", "gs", "reproj", "freq")
 # Optional step plugins, by plugin name -> the component they are (docs/method.md §5).
 OPTIONAL_PLUGINS = {"pose_solver": "pose_refinement"}
 

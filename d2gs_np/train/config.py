@@ -51,11 +51,14 @@ class LossConfig:
     lambda_gs: float = 0.0  # opacity entropy L_gs
     lambda_freq: float = 0.0  # high-frequency loss L_freq
     freq_cutoff: float = 0.1  # normalised radial frequency (1 = Nyquist) the L_freq high-pass keeps above
+    # L_reproj on the rendered depth (train.terms.Reprojection): the pose solver's cycle residuals of
+    # matched pixels (its matching settings, beta and robust scale: PoseSolverConfig) with the poses held
+    lambda_reproj: float = 0.0
 
     def __post_init__(self):
         if not 0.0 <= self.lambda_ssim <= 1.0:
             raise ValueError(f"LossConfig.lambda_ssim must be in [0, 1]; got {self.lambda_ssim}")
-        for name in ("lambda_ts", "ts_time_weight", "ts_spatial_weight", "lambda_gs", "lambda_freq"):
+        for name in ("lambda_ts", "ts_time_weight", "ts_spatial_weight", "lambda_gs", "lambda_freq", "lambda_reproj"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0.0 <= v < float("inf")):
                 raise ValueError(f"LossConfig.{name} must be a finite number >= 0 (0 = term off); got {v!r}")
@@ -75,7 +78,7 @@ class LossConfig:
 
 # The method's regulariser weights (docs/method.md §6, Eq. 18), for turning the terms on
 # (``LossConfig(**METHOD_REGULARISER_WEIGHTS)``; examples/suite.py's ablation variants use them).
-METHOD_REGULARISER_WEIGHTS = {"lambda_ts": 1.0, "lambda_gs": 0.01, "lambda_freq": 0.002}
+METHOD_REGULARISER_WEIGHTS = {"lambda_ts": 1.0, "lambda_gs": 0.01, "lambda_freq": 0.002, "lambda_reproj": 0.001}
 
 
 @dataclass(frozen=True)

@@ -29,6 +29,7 @@ from typing import Optional
 
 import numpy as np
 
+from d2gs_np.correspond import correspondences
 from d2gs_np.losses.smoothness import knn
 from d2gs_np.scene import gaussians
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
@@ -40,7 +41,8 @@ from d2gs_np.train.optimise import size_extent
 from d2gs_np.train.rows import SETS, num_rows
 from d2gs_np.train.state import TrainState, entered_period
 
-__all__ = ["Plugin", "Evaluate", "GradientStatistics", "Prune", "Densify", "NeighbourRefresh", "default_plugins"]
+__all__ = ["Plugin", "Evaluate", "GradientStatistics", "Prune", "Densify", "NeighbourRefresh", "DepthMemory",
+           "default_plugins"]
 
 
 class Plugin:
@@ -231,6 +233,73 @@ class NeighbourRefresh(Plugin):
     def load_state_dict(self, state):
         if "lists" in state:
             self.lists = np.asarray(state["lists"], dtype=np.int64)
+
+
+class DepthMemory(Plugin):
+    """What L_reproj (``train.terms.Reprojection``) reads besides the step's render; name
+    "reproj_depths".
+
+    - The matches of the video (``correspond.correspondences`` with the pose solver's settings,
+      cached in the run folder, so the solver and the term compute them once), by frame:
+      ``partners(f)`` lists (g, pts_f, pts_g) for every used pair of f.
+      ``matches``, a list of (k, j, pts_k, pts_j), replaces them (matches of your own, tests).
+    - Each frame's rendered depth from its own last step (``store``; NaN where alpha is below
+      POSE_DEPTH_ALPHA_MIN) with the render's scale (sx, sy) to full-resolution pixels, read by
+      the term as the partner's constant depth (``depth``). Checkpointed (``state_dict``), so a
+      resumed run reads the same depths.
+    """
+
+    name = "reproj_depths"
+
+    def __init__(self, images, masks, correspond_config, run_dir=None, note=None, matches=None):
+        self.images, self.masks, self.correspond_config = images, masks, correspond_config
+        self.run_dir, self.note = run_dir, (note if note is not None else (lambda m: None))
+        self._by_frame = None if matches is None else self._index(matches)
+        self.maps = {}  # frame -> ((h, w) depth, (2,) scale)
+
+    @staticmethod
+    def _index(matches):
+        by_frame = {}
+        for k, j, pts_k, pts_j in matches:
+            pts_k, pts_j = np.asarray(pts_k, dtype=np.float64), np.asarray(pts_j, dtype=np.float64)
+            by_frame.setdefault(int(k), []).append((int(j), pts_k, pts_j))
+            by_frame.setdefault(int(j), []).append((int(k), pts_j, pts_k))
+        return by_frame
+
+    def _pairs(self):
+        if self._by_frame is None:
+            masks = self.masks if all(m is not None for m in self.masks) else None
+            corr = correspondences(self.images, masks, self.correspond_config, self.run_dir)
+            self._by_frame = self._index([(p.k, p.j, p.pts_k, p.pts_j) for p in corr.used])
+            self.note(f"L_reproj: {sum(p.num_matches for p in corr.used)} matches in {len(corr.used)} frame pairs")
+        return self._by_frame
+
+    def on_init(self, model):
+        self._pairs()
+
+    def partners(self, f):
+        """[(g, pts_f (M, 2), pts_g (M, 2)), ...]: the matches of frame f with each partner g."""
+        return self._pairs().get(int(f), [])
+
+    def depth(self, g):
+        """(depth map, (sx, sy)) of frame g's last step, or None before its first."""
+        return self.maps.get(int(g))
+
+    def store(self, f, depth, scale):
+        self.maps[int(f)] = (np.array(depth, dtype=np.float64), np.asarray(scale, dtype=np.float64).copy())
+
+    def state_dict(self):
+        out = {}
+        for f, (d, s) in self.maps.items():
+            out[f"depth_{f}"], out[f"scale_{f}"] = d, s
+        return out
+
+    def load_state_dict(self, state):
+        self.maps = {}
+        for key, value in state.items():
+            if key.startswith("depth_"):
+                f = int(key[len("depth_"):])
+                self.maps[f] = (np.asarray(value, dtype=np.float64), np.asarray(state[f"scale_{f}"], dtype=np.float64))
 
 
 def default_plugins(scene, config: ExperimentConfig, extent: float, note=None, run_dir=None) -> list:

@@ -29,14 +29,16 @@ import numpy as np
 from d2gs_np.losses.entropy import _entropy_fwd, entropy_bwd
 from d2gs_np.losses.frequency import _frequency_fwd, frequency_bwd
 from d2gs_np.losses.photometric import photometric_bwd, photometric_fwd
+from d2gs_np.losses.reprojection import bilinear_bwd, bilinear_fwd, cycle_bwd, cycle_fwd
 from d2gs_np.losses.smoothness import _spatial_fwd, _time_fwd, spatial_bwd, time_bwd
 from d2gs_np.losses.ssim import SSIM_WINDOW
+from d2gs_np.constants import POSE_DEPTH_ALPHA_MIN
 from d2gs_np.scene.gaussians import DEFORM_FIELDS, DYNAMIC, STATIC
 from d2gs_np.train.config import LossConfig
-from d2gs_np.train.plugins import NeighbourRefresh
+from d2gs_np.train.plugins import DepthMemory, NeighbourRefresh
 
-__all__ = ["TermInputs", "TermGrads", "Photometric", "Smoothness", "OpacityEntropy", "Frequency", "loss_terms",
-           "terms_fwd_bwd"]
+__all__ = ["TermInputs", "TermGrads", "Photometric", "Smoothness", "OpacityEntropy", "Frequency", "Reprojection",
+           "loss_terms", "terms_fwd_bwd"]
 
 
 class TermInputs(NamedTuple):
@@ -147,10 +149,70 @@ class Frequency:
         return TermGrads(render={"image": frequency_bwd(saved, self.weight)}, params={})
 
 
-def loss_terms(config: LossConfig, components=None, note=None) -> list:
+class Reprojection:
+    """L_reproj on the rendered depth (docs/method.md §6; ``losses/reprojection.py``): the robust
+    cycle residuals of the solver's matched pixels (docs/method.md §5), with the poses held, as a
+    loss on the expected depth the step renders for its frame f. Every pair (f, g) of the
+    correspondences contributes both directions, lift from f into g and from g into f, so the
+    gradient on D_f is that of the pair's whole cost; the partner's depth D_g is the one frame
+    g's own last step rendered (``DepthMemory``, checkpointed), a constant here: a pair whose
+    partner has not been rendered yet contributes nothing. Pixels whose alpha is below
+    POSE_DEPTH_ALPHA_MIN give no depth (as for the solver). The value is the mean robust cost per
+    valid match and direction; the gradient goes to the Gaussians through the render's
+    ``expected_depth`` (the mean over the virtual views with the blur model); the poses are the
+    solver's to refine (their gradient here is not taken)."""
+
+    name = "reproj"
+
+    def __init__(self, weight, memory: DepthMemory, beta: float, robust_scale: float):
+        self.weight, self.memory = weight, memory
+        self.beta, self.robust_scale = float(beta), float(robust_scale)
+        self.plugins = [memory]
+
+    def fwd(self, x: TermInputs):
+        f, model = x.frame, x.model
+        depth = x.out["expected_depth"]
+        h, w = depth.shape
+        s_f = np.array([w / model.widths[f], h / model.heights[f]])
+        own = np.where(x.out["alpha"] >= POSE_DEPTH_ALPHA_MIN, depth, np.nan)
+        M_f, K_f = model.mid_pose(f), model.Ks[f]
+        total, count, parts = 0.0, 0, []
+        for g, pts_f, pts_g in self.memory.partners(f):
+            stored = self.memory.depth(g)
+            if stored is None:
+                continue
+            d_f, bsaved = bilinear_fwd(own, pts_f * s_f)
+            d_g, _ = bilinear_fwd(stored[0], pts_g * stored[1])
+            M_g, K_g = model.mid_pose(g), model.Ks[g]
+            c1, s1 = cycle_fwd(d_f, pts_f, K_f, M_f, d_g, pts_g, K_g, M_g, self.beta, self.robust_scale)
+            c2, s2 = cycle_fwd(d_g, pts_g, K_g, M_g, d_f, pts_f, K_f, M_f, self.beta, self.robust_scale)
+            total += c1 + c2
+            count += int(s1["valid"].sum() + s2["valid"].sum())
+            parts.append((bsaved, s1, s2))
+        self.memory.store(f, own, s_f)
+        if count == 0:
+            return 0.0, None
+        return total / count, (parts, count, depth.shape, depth.dtype)
+
+    def bwd(self, saved) -> TermGrads:
+        if saved is None:
+            return TermGrads(render={}, params={})
+        parts, count, shape, dtype = saved
+        v = np.zeros(shape, dtype=np.float64)
+        scale = self.weight / count
+        for bsaved, s1, s2 in parts:
+            v_df = cycle_bwd(s1, scale)[0] + cycle_bwd(s2, scale)[1]
+            v += bilinear_bwd(bsaved, v_df)
+        return TermGrads(render={"expected_depth": v.astype(dtype, copy=False)}, params={})
+
+
+def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_dir=None, pose_solver=None) -> list:
     """The loss terms of a run, photometric first (module docstring). ``components``
     (``train/components.py``): what the run models; L_ts is left out without a dynamic set (and
-    ``note`` says so)."""
+    ``note`` says so). L_reproj needs the ``scene`` (its frames and masks, for the matches), the
+    run folder (the matches' cache) and the ``PoseSolverConfig`` (matching settings, beta and the
+    robust scale of the solver's residuals); without a scene of two frames or more it is left
+    out and ``note`` says so."""
     say = note if note is not None else (lambda m: None)
     terms = [Photometric(config.lambda_ssim)]
     if config.lambda_ts > 0:
@@ -163,6 +225,15 @@ def loss_terms(config: LossConfig, components=None, note=None) -> list:
         terms.append(OpacityEntropy(config.lambda_gs))
     if config.lambda_freq > 0:
         terms.append(Frequency(config.lambda_freq, config.freq_cutoff))
+    if config.lambda_reproj > 0:
+        if scene is None or pose_solver is None or scene.num_frames < 2:
+            say("L_reproj: left out (it needs a scene of two frames or more and the pose solver's matching "
+                "settings), although loss.lambda_reproj > 0")
+        else:
+            gc = pose_solver.gauss_newton
+            memory = DepthMemory([f.image for f in scene.frames], [f.mask for f in scene.frames],
+                                 pose_solver.correspond, run_dir, note)
+            terms.append(Reprojection(config.lambda_reproj, memory, gc.beta, gc.robust_scale))
     return terms
 
 

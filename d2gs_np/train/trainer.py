@@ -97,7 +97,8 @@ class Trainer:
             components = Components(**saved[1]["components"])
         else:
             components = decide_components(scene, config, pending.append)
-        self.terms = loss_terms(config.loss, components, pending.append)
+        self.terms = loss_terms(config.loss, components, pending.append, scene=scene, run_dir=self.run_dir,
+                                pose_solver=config.pose_solver)
         if not resume:
             for stale in (CHECKPOINT_NAME, FINAL_NAME, "metrics.json"):  # a fresh run never mixes with an old one
                 (self.run_dir / stale).unlink(missing_ok=True)

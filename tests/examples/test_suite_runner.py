@@ -49,7 +49,8 @@ def test_ablation_variants_turn_on_one_regulariser_each(suite_runner, tmp_path):
 
     assert suite_runner.loss_overrides("blur") == {}
     assert suite_runner.loss_overrides("render_only") == {k: 0.0 for k in METHOD_REGULARISER_WEIGHTS}
-    assert suite_runner.loss_overrides("+gs") == {"lambda_ts": 0.0, "lambda_gs": 0.01, "lambda_freq": 0.0}
+    assert suite_runner.loss_overrides("+gs") == {"lambda_ts": 0.0, "lambda_gs": 0.01, "lambda_freq": 0.0,
+                                                   "lambda_reproj": 0.0}
     assert suite_runner.loss_overrides("all") == METHOD_REGULARISER_WEIGHTS
     # every ablation variant trains on the blur variant's scene (blurry input, true poses)
     assert {suite_runner.scene_folder(tmp_path, "wall_disk", v, 0) for v in suite_runner.ABLATION} == \

@@ -52,7 +52,7 @@ def test_terms_enter_by_their_weights():
 
 def test_l_ts_is_left_out_without_a_dynamic_set(static_scene, tmp_path):
     tr = Trainer(static_scene, _config(iters=2, loss=ALL_ON), tmp_path / "run")
-    assert [t.name for t in tr.terms] == ["photometric", "gs", "freq"]
+    assert [t.name for t in tr.terms] == ["photometric", "gs", "freq", "reproj"]
     assert "knn" not in [p.name for p in tr.plugins]
     assert any("L_ts: left out (no dynamic set" in n for n in tr.log.notes)
     assert "loss_ts" in tr.left_out() and "loss_gs" not in tr.left_out()
@@ -121,26 +121,27 @@ def test_l_ts_uses_the_frames_time_and_is_off_in_warmup(dynamic_scene, tmp_path)
 
 def test_training_with_every_regulariser_logs_each_term(dynamic_scene, tmp_path):
     tr = Trainer(dynamic_scene, _config(iters=10, loss=ALL_ON), tmp_path / "run")
-    assert [p.name for p in tr.plugins][-1] == "knn"
+    assert [p.name for p in tr.plugins][-2:] == ["knn", "reproj_depths"]
     tr.run()
     rows = tr.log.rows
-    for name in ("loss_ts", "loss_gs", "loss_freq"):
+    for name in ("loss_ts", "loss_gs", "loss_freq", "loss_reproj"):
         assert all(np.isfinite(r[name]) for r in rows), name
     joint = [r for r in rows if r["stage"] == "joint"]
     assert all(r["loss_ts"] > 0 and r["loss_gs"] > 0 and r["loss_freq"] > 0 for r in joint)
     # the step's loss is the weighted sum of the terms
     r = joint[-1]
-    total = r["loss_photometric"] + 1.0 * r["loss_ts"] + 0.01 * r["loss_gs"] + 0.002 * r["loss_freq"]
+    total = (r["loss_photometric"] + 1.0 * r["loss_ts"] + 0.01 * r["loss_gs"] + 0.002 * r["loss_freq"]
+             + 0.001 * r["loss_reproj"])
     assert r["loss"] == pytest.approx(total, rel=1e-12)
-    assert "loss_ts" not in tr.left_out() and "loss_reproj" in tr.left_out()
+    assert "loss_ts" not in tr.left_out() and "loss_reproj" not in tr.left_out()
     header = (tmp_path / "run" / "log.csv").read_text().splitlines()[0]
-    assert header.endswith("loss_photometric,loss_ts,loss_gs,loss_freq")
+    assert header.endswith("loss_photometric,loss_ts,loss_gs,loss_freq,loss_reproj")
 
 
 def test_default_run_has_no_regularisers(dynamic_scene, tmp_path):
     tr = Trainer(dynamic_scene, _config(iters=2), tmp_path / "run")
     assert [t.name for t in tr.terms] == ["photometric"] and "knn" not in [p.name for p in tr.plugins]
-    assert any("L_ts, L_gs, L_freq: off" in n for n in tr.log.notes)
+    assert any("L_ts, L_gs, L_reproj, L_freq: off" in n for n in tr.log.notes)
 
 
 def test_neighbour_lists_follow_every_change_of_the_dynamic_rows(dynamic_scene, tmp_path):
