@@ -37,7 +37,7 @@ from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.log import RunLog, Stopwatch, psnr_from_mse
 from d2gs_np.train.model import Model, frame_render_bwd, frame_render_fwd
 from d2gs_np.train.optimise import learning_rates, optimiser_step, scene_extent
-from d2gs_np.train.plugins import default_plugins
+from d2gs_np.train.plugins import DepthMemory, default_plugins
 from d2gs_np.train.schedule import TargetCache, schedule_step, training_progress
 from d2gs_np.train.stages import Planner, make_stages
 from d2gs_np.train.state import TrainState
@@ -108,9 +108,14 @@ class Trainer:
             atomic_write_text(self.run_dir / "config.json", config.to_json())
             for line in pending:
                 self.log.note(line)
-        # plugins that loss terms read from (term.plugins) run after the default ones
+        # plugins that loss terms read from (term.plugins) run after the default ones; they were
+        # built before the log, so their later lines (L_reproj's match count) go to it from here
+        term_plugins = [p for t in self.terms for p in getattr(t, "plugins", ())]
+        for p in term_plugins:
+            if isinstance(p, DepthMemory):
+                p.note = self.log.note
         self.plugins = (default_plugins(scene, config, self.extent, self.log.note, run_dir=self.run_dir)
-                        + [p for t in self.terms for p in getattr(t, "plugins", ())] + list(plugins))
+                        + term_plugins + list(plugins))
         if resume:
             self._restore(ckpt, *saved)
         else:

@@ -132,6 +132,7 @@ def test_training_logs_the_term_and_resumes_exactly(static_scene, tmp_path):
     assert [t.name for t in full.terms] == ["photometric", "reproj"]
     assert "reproj_depths" in [p.name for p in full.plugins] and "loss_reproj" not in full.left_out()
     full.run()
+    assert any(n.startswith("L_reproj: ") and "matches in" in n for n in full.log.notes)
     rows = full.log.rows
     vals = [r["loss_reproj"] for r in rows]
     assert all(np.isfinite(vals)) and vals[0] == 0.0 and max(vals) > 0  # the first step has no partner
