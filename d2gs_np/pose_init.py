@@ -14,7 +14,8 @@ from the blurry frames alone to 0.1-0.9 % of the scene depth, where the given po
 1. tracks through the blurry frames (KLT, ``video/tracks.py``), none inside the motion masks;
 2. each track with ``min_views`` observations or more triangulated with the *given* poses (linear,
    all its views), kept if in front of every camera and seen under at least ``min_parallax_deg``;
-3. a robust bundle adjustment (``video/bundle.py``: SciPy trust region, soft-L1 loss) over every
+3. a robust bundle adjustment (``video/bundle.py``: Levenberg-Marquardt with the points eliminated,
+   or SciPy's trust region, ``solver``; soft-L1 loss) over every
    camera and every point, started at the given poses, with a prior that holds each camera near
    its given pose (``prior_rot_deg``, ``prior_trans_rel``: it fixes the world frame and scale of
    the given poses, and the slow drift that short tracks leave free); observations beyond

@@ -6,8 +6,11 @@ cost of each round, the inlier rms (px), the ATE of the adjusted poses against t
 solver seconds (both rounds), and each as a ratio to the first setting measured in the same run; plots
 the cost against seconds (round 1 and round 2) to --out.
 
-    python examples/bench_bundle.py /work/exp/s9/scenes/photo_room_s1_blurry_noisy \
-        --settings scipy:60 scipy:200 schur:60 --out runs/bench_bundle.png
+    python examples/bench_bundle.py SCENE [SCENE ...] --settings scipy:60 schur:60 schur:200 \
+        --out runs/bench_bundle.png
+
+SCENE: a scene folder with noisy given poses and the true ones (``gt_cam_T_world``), e.g. a suite
+scene written by ``d2gs make-scene`` with pose noise (docs/dataset_format.md).
 """
 from __future__ import annotations
 

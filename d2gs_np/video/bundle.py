@@ -14,7 +14,9 @@ dx/dt = I, dx/dX = R, d(uv)/dx = f [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]], d(uv)/d
 The same kind of least-squares problem as the endpoint refinement of the trajectory: a sum of
 squared image-space errors over poses, solved here by SciPy's trust-region ``least_squares``
 with the analytic sparse Jacobian and a robust loss (``soft_l1``), so that mismatches and
-points on moving objects lose their pull (docs/dataset_format.md §8).
+points on moving objects lose their pull (docs/dataset_format.md §8), or (``solver="schur"``)
+by Levenberg-Marquardt on the normal equations with the points eliminated (``_schur_lm``;
+docs/method.md §5 has its measurements).
 """
 from __future__ import annotations
 

@@ -62,6 +62,23 @@ def test_robust_loss_is_scipys(loss):
     np.testing.assert_allclose(robust_loss(zz, loss)[1], num, atol=1e-8)
 
 
+def test_cholesky_solve_matches_numpy_and_flags_indefinite_matrices():
+    # against np.linalg.solve on SPD matrices of the camera system's size (cond up to ~1e8: the relative
+    # error of a backward-stable solve is ~cond x 1e-16 = 1e-8, so 1e-7 relative)
+    rng = np.random.default_rng(30)
+    for n, cond in ((1, 1.0), (7, 10.0), (145, 1e8)):
+        Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
+        S = (Q * np.geomspace(1.0, 1.0 / cond, n)) @ Q.T
+        b = rng.standard_normal(n)
+        x, ok = B._cholesky_solve(S, b)
+        assert ok
+        ref = np.linalg.solve(S, b)
+        assert np.abs(x - ref).max() <= 1e-7 * np.abs(ref).max()
+    S = np.diag([1.0, -1e-3, 2.0])
+    assert not B._cholesky_solve(S, np.ones(3))[1]
+    assert not B._cholesky_solve(np.diag([1.0, np.nan]), np.ones(2))[1]
+
+
 def _noisy_problem(seed, C=6, P=150, outliers=0.2):
     rng = np.random.default_rng(seed)
     poses, pts, ci, pi, uv = _world(rng, C, P)
