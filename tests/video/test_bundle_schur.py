@@ -335,3 +335,16 @@ def test_bad_solver_arguments_are_named():
         bundle_adjust(prob, solver="schur", prior=(np.zeros((2, 6)), 1.0, 1.0))
     with pytest.raises(ValueError, match="PoseInitConfig.solver must be one of"):
         PoseInitConfig(solver="lm")
+
+
+def test_pose_init_solver_round_trips_through_the_experiment_config():
+    import json
+
+    from d2gs_np.train.config import ExperimentConfig
+    d = ExperimentConfig().to_dict()
+    assert d["pose_init"]["solver"] == "schur"
+    d["pose_init"]["solver"] = "scipy"
+    assert ExperimentConfig.from_dict(json.loads(json.dumps(d))).pose_init.solver == "scipy"
+    d["pose_init"]["solver"] = "gauss"
+    with pytest.raises(ValueError, match="PoseInitConfig.solver"):
+        ExperimentConfig.from_dict(d)
