@@ -446,12 +446,15 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
         w = robust_loss((r / f_scale) ** 2, loss)[1]  # (O, 2)
         WJy = w[:, :, None] * Jy
         WJp = w[:, :, None] * d_pt
-        A = np.bincount(flat_yy, np.einsum("oia,oib->oab", WJy, Jy).ravel(), minlength=ny * ny).reshape(ny, ny)
         V = np.bincount(flat_pp, np.einsum("oia,oib->oab", WJp, d_pt).ravel(), minlength=9 * P).reshape(P, 3, 3)
-        Eo = np.einsum("oia,oib->oab", WJy, d_pt)  # (O, k, 3)
-        gy = np.bincount(cols_y.ravel(), np.einsum("oia,oi->oa", WJy, r).ravel(), minlength=ny)
         gp = np.bincount(flat_p, np.einsum("oia,oi->oa", WJp, r).ravel(), minlength=3 * P)
-        E = sp.csr_matrix((Eo.ravel(), (E_rows, E_cols)), shape=(ny, 3 * P))
+        if ny == 0:  # every camera fixed, focal fixed: the points alone
+            A, gy, E = np.zeros((0, 0)), np.zeros(0), sp.csr_matrix((0, 3 * P))
+        else:
+            A = np.bincount(flat_yy, np.einsum("oia,oib->oab", WJy, Jy).ravel(), minlength=ny * ny).reshape(ny, ny)
+            Eo = np.einsum("oia,oib->oab", WJy, d_pt)  # (O, k, 3)
+            gy = np.bincount(cols_y.ravel(), np.einsum("oia,oi->oa", WJy, r).ravel(), minlength=ny)
+            E = sp.csr_matrix((Eo.ravel(), (E_rows, E_cols)), shape=(ny, 3 * P))
         if rp is not None:
             wp = robust_loss((rp / f_scale) ** 2, loss)[1]  # (F, 6)
             blk = np.einsum("fia,fi,fib->fab", Jpr, wp, Jpr)

@@ -314,6 +314,16 @@ def test_initial_rotation_error_near_pi_gives_finite_output_and_a_lower_cost():
     assert info["cost"] <= bundle_adjust(prob, solver="scipy", **kw)[3]["cost"]
 
 
+def test_every_camera_fixed_refines_the_points_alone():
+    rng = np.random.default_rng(23)
+    poses, pts, ci, pi, uv = _world(rng, C=4, P=40)
+    prob = BundleProblem(poses_to_params(poses), pts + 0.05 * rng.standard_normal(pts.shape), F, CX, CY, ci, pi, uv)
+    cams, P, _, info = bundle_adjust(prob, solver="schur", loss="linear", fixed_cams=(0, 1, 2, 3), max_nfev=50,
+                                     tol=1e-14)
+    np.testing.assert_array_equal(cams, poses_to_params(poses))
+    np.testing.assert_allclose(P, pts, atol=1e-8)
+
+
 # --- bad input -----------------------------------------------------------------------------------------
 
 
