@@ -112,6 +112,13 @@ DAMPING_DIAG_FLOOR = 1e-9
 # covariance pseudo-inverse and its rank: float64 rounding of J^T J is ~1e-16 x cond, and
 # directions observed only through points at 1e6 x the scene's depth fall below 1e-12.
 COVARIANCE_RCOND = 1e-12
+# The Schur-complement bundle adjustment (d2gs_np/video/bundle.py, docs/dataset_format.md §8) inverts
+# each point's damped 3x3 normal block from its eigendecomposition, with every eigenvalue raised to
+# at least this times the block's largest: a point seen once, or along one ray, has a rank-2 block
+# whose third eigenvalue is only the damping's. Cond <= 1e10 keeps the inverse's rounding (1e-16 x
+# cond = 1e-6 relative, in a direction the camera rows barely see) harmless, while a genuinely
+# observed depth direction (parallax 0.1 deg: eigenvalue ratio ~ (1.7e-3)^2 = 3e-6) is untouched.
+BA_POINT_EIG_FLOOR = 1e-10
 # The pose solver reads depths only where the static set's render has alpha >= this: the expected
 # depth D / alpha of a pixel the static Gaussians barely cover is a guess (at alpha -> 0 it is a
 # single faint Gaussian's depth), and such matches are dropped (and counted) instead.

@@ -14,7 +14,8 @@ from the blurry frames alone to 0.1-0.9 % of the scene depth, where the given po
 1. tracks through the blurry frames (KLT, ``video/tracks.py``), none inside the motion masks;
 2. each track with ``min_views`` observations or more triangulated with the *given* poses (linear,
    all its views), kept if in front of every camera and seen under at least ``min_parallax_deg``;
-3. a robust bundle adjustment (``video/bundle.py``: SciPy trust region, soft-L1 loss) over every
+3. a robust bundle adjustment (``video/bundle.py``: Levenberg-Marquardt with the points eliminated,
+   or SciPy's trust region, ``solver``; soft-L1 loss) over every
    camera and every point, started at the given poses, with a prior that holds each camera near
    its given pose (``prior_rot_deg``, ``prior_trans_rel``: it fixes the world frame and scale of
    the given poses, and the slow drift that short tracks leave free); observations beyond
@@ -43,6 +44,7 @@ from d2gs_np.video.tracks import TrackConfig, klt_tracks
 __all__ = ["PoseInitConfig", "triangulate_tracks", "adjust_given_poses", "initial_poses", "track_reprojection_rms"]
 
 _MODES = ("auto", "on", "off")
+_SOLVERS = ("schur", "scipy")  # video.bundle.SOLVERS
 
 
 @dataclass(frozen=True)
@@ -60,7 +62,10 @@ class PoseInitConfig:
     # points is held by the prior)
     outlier_px: float = 3.0  # observations further than this from their projection are dropped (round 2)
     robust_px: float = 1.0  # soft-L1 scale of the adjustment
-    max_nfev: int = 60  # trust-region evaluations per round
+    # "schur": Levenberg-Marquardt with the points eliminated (video.bundle._schur_lm); "scipy":
+    # SciPy's trust region (least_squares, LSMR). Same cost, same unknowns, same prior.
+    solver: str = "schur"
+    max_nfev: int = 60  # residual evaluations per round (either solver: one per trial step)
     # The prior on the given poses (``video.bundle.pose_prior_fwd``): it holds the gauge (the
     # world frame and scale of the given poses) and the slow drift the tracks do not determine
     # (a scene whose tracks are short). sigma_t = prior_trans_rel x the median depth of the points.
@@ -73,6 +78,8 @@ class PoseInitConfig:
     def __post_init__(self):
         if self.mode not in _MODES:
             raise ValueError(f"PoseInitConfig.mode must be one of {_MODES}; got {self.mode!r}")
+        if self.solver not in _SOLVERS:
+            raise ValueError(f"PoseInitConfig.solver must be one of {_SOLVERS}; got {self.solver!r}")
         if not isinstance(self.tracks, TrackConfig):
             raise TypeError(f"PoseInitConfig.tracks must be a TrackConfig; got {type(self.tracks).__name__}")
         for name in ("min_views", "max_nfev", "min_points"):
@@ -152,14 +159,16 @@ def _rotation_deg(A, B):
     return np.degrees(np.linalg.norm(so3_log(A[:, :3, :3] @ np.transpose(B[:, :3, :3], (0, 2, 1))), axis=-1))
 
 
-def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = None, seed=0):
+def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = None, seed=0, tracks=None):
     """Bundle adjustment of the given poses (module docstring).
 
     images: N (H, W, 3) frames in [0, 1]; masks: N (H, W) bool (True = moving) or None;
     cam_T_world (N, 4, 4) given poses; K (3, 3) intrinsics shared by every frame (fx may differ
     from fy). Returns (poses (N, 4, 4), info dict): ``info["kept"]`` says whether the adjusted
     poses were kept (else ``poses`` are the given ones and ``info["reason"]`` says why), with the
-    counts, residuals and change against the given poses.
+    counts, residuals and change against the given poses. tracks: optional (obs_frame, obs_track,
+    obs_uv, num_tracks) from ``klt_tracks(images, config.tracks, masks=masks, seed=seed)``, computed
+    here when None (a benchmark passes them to compare solvers on the same tracks).
     """
     cfg = PoseInitConfig() if config is None else config
     t0 = time.perf_counter()
@@ -172,7 +181,9 @@ def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = N
         return T0.copy(), info
     # the adjustment has one focal length: scale v so that fy becomes fx
     fx, fy, cx, cy = K[0, 0], K[1, 1], K[0, 2], K[1, 2]
-    of, ot, ouv, nt, _ = klt_tracks(images, cfg.tracks, masks=masks, seed=seed)
+    if tracks is None:
+        tracks = klt_tracks(images, cfg.tracks, masks=masks, seed=seed)
+    of, ot, ouv, nt = tracks[0], tracks[1], tracks[2], tracks[3]
     ouv = np.array(ouv, dtype=np.float64)
     ouv[:, 1] = cy + (ouv[:, 1] - cy) * (fx / fy)
     Kx = np.array([[fx, 0.0, cx], [0.0, fx, cy], [0.0, 0.0, 1.0]])
@@ -194,9 +205,12 @@ def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = N
     for r in range(2):
         prob = BundleProblem(cams, pts, fx, cx, cy, o_cam, o_pt, o_uv)
         cams_new, pts_new, _, binfo = bundle_adjust(prob, fixed_cams=(), loss="soft_l1", f_scale=cfg.robust_px,
-                                                    max_nfev=cfg.max_nfev, prior=prior)
+                                                    max_nfev=cfg.max_nfev, prior=prior, solver=cfg.solver)
         rounds.append({"rms_px_start": binfo["rms_px_start"], "rms_px": binfo["rms_px"],
-                       "median_px": binfo["median_px"], "observations": int(len(o_cam)), "nfev": binfo["nfev"]})
+                       "median_px": binfo["median_px"], "observations": int(len(o_cam)), "nfev": binfo["nfev"],
+                       "solver": cfg.solver, "cost": binfo["cost"], "iterations": binfo["iterations"],
+                       "status": binfo["status"], "cost_history": binfo["cost_history"],
+                       "seconds_history": binfo["seconds_history"]})
         cams, pts = cams_new, pts_new
         if r == 0:
             inl = binfo["residual_px"] <= cfg.outlier_px

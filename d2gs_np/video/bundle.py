@@ -14,20 +14,37 @@ dx/dt = I, dx/dX = R, d(uv)/dx = f [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]], d(uv)/d
 The same kind of least-squares problem as the endpoint refinement of the trajectory: a sum of
 squared image-space errors over poses, solved here by SciPy's trust-region ``least_squares``
 with the analytic sparse Jacobian and a robust loss (``soft_l1``), so that mismatches and
-points on moving objects lose their pull (docs/dataset_format.md §8).
+points on moving objects lose their pull (docs/dataset_format.md §8), or (``solver="schur"``)
+by Levenberg-Marquardt on the normal equations with the points eliminated (``_schur_lm``;
+docs/method.md §5 has its measurements).
 """
 from __future__ import annotations
 
 from dataclasses import dataclass
 
+import time
+
 import numpy as np
 import scipy.sparse as sp
+from numba import njit
 from scipy.optimize import least_squares
 
+from d2gs_np.constants import BA_POINT_EIG_FLOOR, DAMPING_DIAG_FLOOR, LM_DAMPING_MAX, LM_DAMPING_MIN
 from d2gs_np.geometry.so3 import hat, left_jacobian, left_jacobian_inv, so3_exp, so3_log
 
 __all__ = ["reprojection_fwd", "reprojection_bwd", "reprojection_jacobian", "pose_prior_fwd", "BundleProblem",
-           "bundle_adjust", "poses_to_params", "params_to_poses"]
+           "bundle_adjust", "poses_to_params", "params_to_poses", "robust_loss", "SOLVERS", "LOSSES"]
+
+SOLVERS = ("scipy", "schur")  # bundle_adjust(solver=...)
+LOSSES = ("linear", "soft_l1", "huber", "cauchy", "arctan")  # SciPy's robust losses
+# The Schur solver's first Levenberg-Marquardt lambda (relative to diag(H)). The robust problems of
+# pose_init have several local minima, and the first steps choose among them. Measured (first-round
+# cost, examples/bench_bundle.py and tests/test_pose_init.py's 160 x 90 photo_room): 1e-3 reached the
+# lowest of {1e-4, 1e-3, 1e-2} on wall_disk (98.9; 170.5 at 1e-4), big_mover (437.1; 505.5 at 1e-4),
+# cube_sign seed 0 (124.3; 135.0 at 1e-2), the small photo_room (52.37; 57.74 at 1e-2) and tied on
+# photo_room seeds 0 / 1 and cube_sign seed 1; only crossing ended higher (104.6 against 102.9).
+# 1 lost photo_room seed 1's convergence (ATE 0.0209 against 0.0093).
+SCHUR_DAMPING_INIT = 1e-3
 
 
 def poses_to_params(cam_T_world):
@@ -185,8 +202,82 @@ class BundleProblem:
     uv: np.ndarray  # (O, 2) observed pixels, our convention
 
 
+def robust_loss(z, loss):
+    """SciPy's robust losses (``scipy.optimize.least_squares``): rho(z) and rho'(z) of z = (r / f_scale)^2,
+    element-wise; the cost is 0.5 f_scale^2 sum rho(z) over residual elements.
+
+    linear z; soft_l1 2 (sqrt(1 + z) - 1); huber z (z <= 1), 2 sqrt(z) - 1; cauchy ln(1 + z);
+    arctan arctan(z).
+    """
+    z = np.asarray(z, dtype=np.float64)
+    if loss == "linear":
+        return z, np.ones_like(z)
+    if loss == "soft_l1":
+        t = np.sqrt(1.0 + z)
+        return 2.0 * (t - 1.0), 1.0 / t
+    if loss == "huber":
+        small = z <= 1.0
+        zs = np.sqrt(np.maximum(z, 1.0))
+        return np.where(small, z, 2.0 * zs - 1.0), np.where(small, 1.0, 1.0 / zs)
+    if loss == "cauchy":
+        return np.log1p(z), 1.0 / (1.0 + z)
+    if loss == "arctan":
+        return np.arctan(z), 1.0 / (1.0 + z * z)
+    raise ValueError(f"loss must be one of {LOSSES}; got {loss!r}")
+
+
+@njit(cache=True)
+def _cholesky_solve(S, b):
+    """x with S x = b for a symmetric positive definite S (n, n), by a plain Cholesky factorisation;
+    returns (x, True), or (zeros, False) as soon as a pivot is not positive and finite (S not positive
+    definite). Single-threaded on purpose: the camera system is small (6 x cameras + 1), and a threaded
+    LAPACK call on it was measured 100-800x slower than this on a busy 2-core machine."""
+    n = S.shape[0]
+    L = np.zeros((n, n))
+    for j in range(n):
+        d = S[j, j]
+        for k in range(j):
+            d -= L[j, k] * L[j, k]
+        if not (d > 0.0) or not np.isfinite(d):
+            return np.zeros(n), False
+        L[j, j] = np.sqrt(d)
+        for i in range(j + 1, n):
+            v = S[i, j]
+            for k in range(j):
+                v -= L[i, k] * L[j, k]
+            L[i, j] = v / L[j, j]
+    y = np.zeros(n)
+    for i in range(n):
+        v = b[i]
+        for k in range(i):
+            v -= L[i, k] * y[k]
+        y[i] = v / L[i, i]
+    x = np.zeros(n)
+    for i in range(n - 1, -1, -1):
+        v = y[i]
+        for k in range(i + 1, n):
+            v -= L[k, i] * x[k]
+        x[i] = v / L[i, i]
+    return x, True
+
+
+def _check_solver_args(solver, loss, f_scale, max_nfev, tol):
+    if not isinstance(solver, str) or solver not in SOLVERS:
+        raise ValueError(f"bundle_adjust: solver must be one of {SOLVERS}; got {solver!r}")
+    if not isinstance(loss, str) or loss not in LOSSES:
+        raise ValueError(f"bundle_adjust: loss must be one of {LOSSES}; got {loss!r}")
+    if isinstance(f_scale, bool) or not isinstance(f_scale, (int, float, np.floating, np.integer)):
+        raise TypeError(f"bundle_adjust: f_scale must be a number (pixels); got {type(f_scale).__name__}")
+    if not (np.isfinite(f_scale) and f_scale > 0):
+        raise ValueError(f"bundle_adjust: f_scale must be finite and > 0 (pixels); got {f_scale}")
+    if isinstance(max_nfev, bool) or not isinstance(max_nfev, (int, np.integer)) or max_nfev < 1:
+        raise ValueError(f"bundle_adjust: max_nfev must be an int >= 1; got {max_nfev!r}")
+    if not (np.isfinite(tol) and tol >= 0):
+        raise ValueError(f"bundle_adjust: tol must be finite and >= 0; got {tol}")
+
+
 def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, loss="soft_l1", f_scale=1.0,
-                  max_nfev=50, tol=1e-8, prior=None):
+                  max_nfev=50, tol=1e-8, prior=None, solver="scipy"):
     """Robust least squares over free cameras, all points and (optionally) the shared focal length.
 
     fixed_cams: cameras held at their start (the gauge: fix one camera; the overall scale stays
@@ -194,9 +285,16 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
     prior: optional (prior_cams (C, 6), sigma_t, sigma_r): ``pose_prior_fwd`` rows for every free
     camera (in units of sigma, under the same robust loss); with it no camera need be fixed (the
     prior holds the gauge, the scale included).
-    Returns (cams (C, 6), points (P, 3), focal, info dict with cost, nfev, rms / median residual
-    of the observations).
+    solver: "scipy" (``least_squares``, trust region reflective with LSMR; ``max_nfev`` residual
+    evaluations) or "schur" (Levenberg-Marquardt on the normal equations with the points
+    eliminated, ``_schur_lm``; ``max_nfev`` residual evaluations too, one per trial step). Both
+    minimise the same cost 0.5 f_scale^2 sum rho((r_i / f_scale)^2) over every residual element.
+    Returns (cams (C, 6), points (P, 3), focal, info dict with cost, nfev, status, iterations, rms /
+    median residual of the observations, and cost_history / seconds_history: the lowest cost after
+    each residual evaluation and the seconds since the call began).
     """
+    _check_solver_args(solver, loss, f_scale, max_nfev, tol)
+    t_start = time.perf_counter()
     cams0 = np.asarray(problem.cams, dtype=np.float64).copy()
     pts0 = np.asarray(problem.points, dtype=np.float64)
     _check_obs(cams0, pts0, problem.cam_idx, problem.pt_idx, problem.uv)
@@ -221,15 +319,26 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
                              f"{prior_cams.shape}")
         _check_prior_sigmas(sigma_t, sigma_r)
     O2 = 2 * len(problem.cam_idx)
+    if solver == "schur":
+        return _schur_lm(problem, cams0, pts0, free, refine_focal, loss, float(f_scale), int(max_nfev), float(tol),
+                         None if prior is None else (prior_cams, float(sigma_t), float(sigma_r)), t_start)
+    history = {"cost": [], "seconds": []}
 
     def fun(x):
         cams, pts, f = unpack(x)
         r, saved = reprojection_fwd(cams, pts, f, problem.cx, problem.cy, problem.cam_idx, problem.pt_idx, problem.uv)
         cache["key"], cache["saved"] = x.tobytes(), saved
         if prior is None:
-            return r.ravel()
-        rp, cache["prior_J"] = pose_prior_fwd(cams[free], prior_cams[free], sigma_t, sigma_r)
-        return np.concatenate([r.ravel(), rp.ravel()])
+            out = r.ravel()
+        else:
+            rp, cache["prior_J"] = pose_prior_fwd(cams[free], prior_cams[free], sigma_t, sigma_r)
+            out = np.concatenate([r.ravel(), rp.ravel()])
+        # record the cost (read-only: the solver's path is unchanged)
+        c = 0.5 * f_scale ** 2 * float(np.sum(robust_loss((out / f_scale) ** 2, loss)[0]))
+        best = min(history["cost"][-1], c) if history["cost"] else c
+        history["cost"].append(best if np.isfinite(best) else c)
+        history["seconds"].append(time.perf_counter() - t_start)
+        return out
 
     def jac(x):
         if cache.get("key") != x.tobytes():
@@ -251,5 +360,209 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
     err = np.linalg.norm(r, axis=1)
     info = {"cost": float(res.cost), "nfev": int(res.nfev), "status": int(res.status),
             "rms_px_start": float(np.sqrt(np.mean(r0[:O2] ** 2))) if O2 else 0.0, "median_px": float(np.median(err)) if err.size else 0.0,
-            "rms_px": float(np.sqrt(np.mean(err ** 2))) if err.size else 0.0, "residual_px": err}
+            "rms_px": float(np.sqrt(np.mean(err ** 2))) if err.size else 0.0, "residual_px": err,
+            "solver": "scipy", "iterations": int(res.njev) if res.njev is not None else int(res.nfev),
+            "cost_history": history["cost"], "seconds_history": history["seconds"]}
+    return cams, pts, float(f), info
+
+
+def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev, tol, prior, t_start):
+    """Levenberg-Marquardt with the points eliminated (Schur complement onto the camera side).
+
+    Unknowns x = (y, p): y = the free cameras' (phi, t) [and the focal], p = the points. Each
+    iteration linearises the residuals at x and reweights them IRLS-style: element i gets the weight
+    w_i = rho'(z_i), z_i = (r_i / f_scale)^2, so that H = J^T W J and g = J^T W r, and g is the exact
+    gradient of the robust cost 0.5 f_scale^2 sum rho(z_i) (SciPy's scaling adds a second-order
+    correction to H; the minimiser is the same, only the path differs). The damped system
+        [A + lam D_y    E          ] [dy]     [g_y]
+        [E^T            V + lam D_p] [dp] = - [g_p]
+    with Marquardt's scaling D = diag(H) (floored at DAMPING_DIAG_FLOOR x its largest entry, so a
+    parameter no residual sees is still damped and stays where it is) is solved by eliminating the
+    points, whose blocks V_p (3 x 3 per point) are independent:
+        S = A + lam D_y - E (V + lam D_p)^-1 E^T,  S dy = -g_y + E (V + lam D_p)^-1 g_p,
+        dp = -(V + lam D_p)^-1 (g_p + E^T dy);
+    S is dense (6 x free cameras [+ 1]) and Cholesky-factored (``_cholesky_solve``); each damped point block is inverted from
+    its eigendecomposition with its eigenvalues floored at BA_POINT_EIG_FLOOR x the largest (a point
+    seen once, or along one ray, has a rank-2 block: the damping regularises it). A trial step is
+    accepted only if the true cost falls (a non-finite residual counts as an infinite cost; a failed
+    factorisation as a rejection). Nielsen's update of lam: after acceptance lam *= max(1/3, 1 - (2 rho
+    - 1)^3) with rho = actual / predicted decrease (the quadratic model of J^T W J), nu = 2; after a
+    rejection lam *= nu, nu *= 2. The rotation vectors are updated additively, as SciPy's are.
+    Stops when an accepted step lowers the cost by less than tol x cost (status 2), when a step is
+    below tol x (|x| + tol) (status 3), after max_nfev residual evaluations (status 0) or when lam
+    reaches LM_DAMPING_MAX (status -2, no step lowers the cost).
+    """
+    cx, cy = problem.cx, problem.cy
+    ci = np.asarray(problem.cam_idx).astype(np.int64)
+    pi = np.asarray(problem.pt_idx).astype(np.int64)
+    uv = np.asarray(problem.uv, dtype=np.float64)
+    C, P, O = cams0.shape[0], pts0.shape[0], ci.shape[0]
+    F = len(free)
+    nc = 6 * F
+    ny = nc + (1 if refine_focal else 0)
+    k = 7 if refine_focal else 6
+    slot = np.full(C, -1, dtype=np.int64)
+    slot[free] = np.arange(F)
+    s = slot[ci]
+    seen_free = s >= 0
+    cols_y = np.empty((O, k), dtype=np.int64)  # camera-side columns of each observation (fixed: 0..5, zero blocks)
+    cols_y[:, :6] = 6 * np.maximum(s, 0)[:, None] + np.arange(6)
+    if refine_focal:
+        cols_y[:, 6] = nc
+    flat_yy = (cols_y[:, :, None] * ny + cols_y[:, None, :]).ravel()
+    flat_p = (3 * pi[:, None] + np.arange(3)).ravel()
+    flat_pp = (9 * pi[:, None] + np.arange(9)).ravel()
+    E_rows = np.repeat(cols_y[:, :, None], 3, axis=2).ravel()
+    E_cols = np.repeat((3 * pi[:, None] + np.arange(3))[:, None, :], k, axis=1).ravel()
+    fs2 = f_scale * f_scale
+
+    def split(cams, pts, f):
+        return np.concatenate([cams[free].ravel()] + ([np.array([f])] if refine_focal else [])), pts
+
+    def unpack(y, pts):
+        cams = cams0.copy()
+        cams[free] = y[:nc].reshape(-1, 6)
+        return cams, pts, (y[nc] if refine_focal else problem.focal)
+
+    def evaluate(y, pts):
+        cams, pts, f = unpack(y, pts)
+        with np.errstate(all="ignore"):
+            r, saved = reprojection_fwd(cams, pts, f, cx, cy, ci, pi, uv)
+            rp = Jpr = None
+            if prior is not None:
+                rp, Jpr = pose_prior_fwd(cams[free], prior[0][free], prior[1], prior[2])
+            rho = robust_loss((r / f_scale) ** 2, loss)[0]
+            cost = 0.5 * fs2 * float(np.sum(rho))
+            if rp is not None:
+                cost += 0.5 * fs2 * float(np.sum(robust_loss((rp / f_scale) ** 2, loss)[0]))
+        if not np.isfinite(cost):
+            cost = np.inf
+        return cost, r, saved, rp, Jpr
+
+    def normal_equations(r, saved, rp, Jpr):
+        d_cam, d_pt, n = _blocks(saved)
+        d_cam[~seen_free] = 0.0
+        Jy = np.concatenate([d_cam, n[:, :, None]], axis=2) if refine_focal else d_cam  # (O, 2, k)
+        w = robust_loss((r / f_scale) ** 2, loss)[1]  # (O, 2)
+        WJy = w[:, :, None] * Jy
+        WJp = w[:, :, None] * d_pt
+        V = np.bincount(flat_pp, np.einsum("oia,oib->oab", WJp, d_pt).ravel(), minlength=9 * P).reshape(P, 3, 3)
+        gp = np.bincount(flat_p, np.einsum("oia,oi->oa", WJp, r).ravel(), minlength=3 * P)
+        if ny == 0:  # every camera fixed, focal fixed: the points alone
+            A, gy, E = np.zeros((0, 0)), np.zeros(0), sp.csr_matrix((0, 3 * P))
+        else:
+            A = np.bincount(flat_yy, np.einsum("oia,oib->oab", WJy, Jy).ravel(), minlength=ny * ny).reshape(ny, ny)
+            Eo = np.einsum("oia,oib->oab", WJy, d_pt)  # (O, k, 3)
+            gy = np.bincount(cols_y.ravel(), np.einsum("oia,oi->oa", WJy, r).ravel(), minlength=ny)
+            E = sp.csr_matrix((Eo.ravel(), (E_rows, E_cols)), shape=(ny, 3 * P))
+        if rp is not None:
+            wp = robust_loss((rp / f_scale) ** 2, loss)[1]  # (F, 6)
+            blk = np.einsum("fia,fi,fib->fab", Jpr, wp, Jpr)
+            idx = 6 * np.arange(F)[:, None] + np.arange(6)
+            A[idx[:, :, None], idx[:, None, :]] += blk
+            gy[:nc] += np.einsum("fia,fi->fa", Jpr, wp * rp).ravel()
+        return dict(Jy=Jy, Jp=d_pt, w=w, A=A, V=V, E=E, gy=gy, gp=gp, Jpr=Jpr, rp=rp)
+
+    def damped_step(ne, lam):
+        """(dy, dp) of the damped system, or None when S is not positive definite."""
+        A, V, E, gy, gp = ne["A"], ne["V"], ne["E"], ne["gy"], ne["gp"]
+        dA = np.diag(A).copy()
+        dV = np.diagonal(V, axis1=1, axis2=2).copy()  # (P, 3)
+        top = max(dA.max() if dA.size else 0.0, dV.max() if dV.size else 0.0, 1e-300)
+        floor = DAMPING_DIAG_FLOOR * top
+        Vd = V + lam * np.maximum(dV, floor)[:, :, None] * np.eye(3)
+        ev, Q = np.linalg.eigh(Vd)
+        ev = np.maximum(ev, BA_POINT_EIG_FLOOR * np.maximum(ev[:, -1:], floor))
+        Vinv = np.einsum("pij,pj,pkj->pik", Q, 1.0 / ev, Q)
+        Vinv_sp = sp.bsr_matrix((Vinv, np.arange(P), np.arange(P + 1)), shape=(3 * P, 3 * P)).tocsr()
+        dp_rhs = Vinv_sp @ gp
+        if ny:
+            EV = E @ Vinv_sp
+            S = A + np.diag(lam * np.maximum(dA, floor)) - (EV @ E.T).toarray()
+            S = 0.5 * (S + S.T)
+            rhs = -gy + E @ dp_rhs
+            if not (np.all(np.isfinite(S)) and np.all(np.isfinite(rhs))):
+                return None
+            dy, ok = _cholesky_solve(np.ascontiguousarray(S), np.ascontiguousarray(rhs))
+            if not ok:
+                return None
+            dp = -dp_rhs - Vinv_sp @ (E.T @ dy)
+        else:
+            dy = np.zeros(0)
+            dp = -dp_rhs
+        if not (np.all(np.isfinite(dy)) and np.all(np.isfinite(dp))):
+            return None
+        return dy, dp
+
+    def predicted_decrease(ne, dy, dp):
+        """-(g . dx + 0.5 dx^T J^T W J dx): the decrease the reweighted quadratic model promises."""
+        Jdx = np.einsum("oia,oa->oi", ne["Jy"], dy[cols_y] if ny else np.zeros((O, k))) + \
+            np.einsum("oia,oa->oi", ne["Jp"], dp.reshape(P, 3)[pi])
+        quad = float(np.sum(ne["w"] * Jdx ** 2))
+        if ne["rp"] is not None:
+            Jpdx = np.einsum("fia,fa->fi", ne["Jpr"], dy[:nc].reshape(F, 6))
+            quad += float(np.sum(robust_loss((ne["rp"] / f_scale) ** 2, loss)[1] * Jpdx ** 2))
+        return -(float(ne["gy"] @ dy) + float(ne["gp"] @ dp) + 0.5 * quad)
+
+    y, pts = split(cams0, pts0, problem.focal)
+    pts = pts.copy()
+    cost, r, saved, rp, Jpr = evaluate(y, pts)
+    if not np.isfinite(cost):
+        bad = np.flatnonzero(~np.all(np.isfinite(r), axis=1))
+        raise ValueError(f"bundle_adjust: the residuals are not finite at the start ({bad.size} observations, e.g. "
+                         f"{bad[:5].tolist()}: a point on a camera's plane z = 0, or a non-finite camera / point); "
+                         f"drop those observations or start the points elsewhere")
+    r0 = r
+    nfev, iterations, status = 1, 0, 0
+    cost_hist, sec_hist = [cost], [time.perf_counter() - t_start]
+    lam, nu = SCHUR_DAMPING_INIT, 2.0
+    ne = normal_equations(r, saved, rp, Jpr)
+    while nfev < max_nfev:
+        step = damped_step(ne, lam)
+        if step is None:  # S not positive definite at this damping: more damping
+            if lam >= LM_DAMPING_MAX:
+                status = -2
+                break
+            lam, nu = min(lam * nu, LM_DAMPING_MAX), 2.0 * nu
+            continue
+        dy, dp = step
+        pred = predicted_decrease(ne, dy, dp)
+        y_new, pts_new = y + dy, pts + dp.reshape(P, 3)
+        new = evaluate(y_new, pts_new)
+        nfev += 1
+        small_step = np.sqrt(dy @ dy + dp @ dp) <= tol * (np.sqrt(y @ y + np.sum(pts * pts)) + tol)
+        if new[0] < cost:
+            decrease = cost - new[0]
+            rho_gain = decrease / pred if pred > 0 else 1.0
+            y, pts, (cost, r, saved, rp, Jpr) = y_new, pts_new, new
+            iterations += 1
+            lam = min(max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho_gain - 1.0) ** 3), LM_DAMPING_MIN), LM_DAMPING_MAX)
+            nu = 2.0
+            cost_hist.append(cost)
+            sec_hist.append(time.perf_counter() - t_start)
+            if decrease <= tol * cost:
+                status = 2
+                break
+            if small_step:
+                status = 3
+                break
+            ne = normal_equations(r, saved, rp, Jpr)
+        else:
+            cost_hist.append(cost)
+            sec_hist.append(time.perf_counter() - t_start)
+            if small_step:
+                status = 3
+                break
+            if lam >= LM_DAMPING_MAX:
+                status = -2
+                break
+            lam, nu = min(lam * nu, LM_DAMPING_MAX), 2.0 * nu
+    cams, pts, f = unpack(y, pts)
+    err = np.linalg.norm(r, axis=1)
+    info = {"cost": float(cost), "nfev": int(nfev), "status": int(status), "solver": "schur",
+            "iterations": int(iterations), "damping": float(lam),
+            "rms_px_start": float(np.sqrt(np.mean(r0 ** 2))) if O else 0.0,
+            "median_px": float(np.median(err)) if err.size else 0.0,
+            "rms_px": float(np.sqrt(np.mean(err ** 2))) if err.size else 0.0, "residual_px": err,
+            "cost_history": cost_hist, "seconds_history": sec_hist}
     return cams, pts, float(f), info
