@@ -29,13 +29,15 @@ def _true_depth_maps(scene, world):
 
 
 def pose_scale(frames):
-    """Scale of the poses used against the true ones: the RMS spread of the camera centres about
-    their mean, used over true (1 for true poses; the bundle adjustment may rescale the scene)."""
+    """Scale of the poses used against the true ones: the least-squares s in c - mean(c) ~ s (g - mean(g))
+    of the used and true camera centres (1 for true poses; the bundle adjustment fixes the scale only
+    up to its prior; pose noise independent of the path leaves s unbiased)."""
     from d2gs_np.geometry.camera import camera_center
 
     c = np.stack([camera_center(f.cam_T_world) for f in frames])
     g = np.stack([camera_center(f.gt_cam_T_world) for f in frames])
-    return float(np.sqrt(((c - c.mean(0)) ** 2).sum() / ((g - g.mean(0)) ** 2).sum()))
+    c, g = c - c.mean(0), g - g.mean(0)
+    return float((c * g).sum() / (g * g).sum())
 
 
 def _rel_errors(points, src, frames, true_maps, scale=1.0):
@@ -145,14 +147,14 @@ def main(argv=None):
     p.add_argument("--no-pose-init", action="store_true", help="start from the given poses (no bundle adjustment)")
     p.add_argument("--previous", action="store_true",
                    help="the initialisation before the robust depth range and the distinctness check in pixels "
-                        "(depth_range_mad 0, depth_range_min_points 0, stereo.distinct_px 0)")
+                        "(depth_range_mad 0, stereo.distinct_px 0)")
     args = p.parse_args(argv)
     from d2gs_np.train.config import ExperimentConfig
 
     config = ExperimentConfig()
     if args.previous:
         init = config.init
-        init = dataclasses.replace(init, depth_range_mad=0.0, depth_range_min_points=0,
+        init = dataclasses.replace(init, depth_range_mad=0.0,
                                    stereo=dataclasses.replace(init.stereo, distinct_px=0.0))
         config = dataclasses.replace(config, init=init)
     results = []

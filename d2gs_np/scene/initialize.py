@@ -65,13 +65,14 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from d2gs_np.constants import PIXEL_CENTER_OFFSET
+from d2gs_np.constants import MAD_TO_SIGMA, ONE_DEPTH_RANGE_FACTOR, PIXEL_CENTER_OFFSET
 from d2gs_np.features import FeatureConfig, detect_features, match_keypoints, static_detector_mask
 from d2gs_np.geometry.camera import camera_center, check_intrinsics, project_points, unproject_points
 from d2gs_np.geometry.se3 import check_rigid
 from d2gs_np.scene.stereo import StereoConfig, plane_sweep_depth
 
-__all__ = ["InitConfig", "initialize_points", "triangulate_matches", "sample_image_bilinear", "pixel_scale_cap"]
+__all__ = ["InitConfig", "initialize_points", "triangulate_matches", "sample_image_bilinear", "pixel_scale_cap",
+           "robust_depth_range"]
 
 # Homogeneous triangulation results with |w| below this (relative to the largest coordinate)
 # are points at infinity: dividing by w would give meaningless, huge positions.
@@ -113,15 +114,12 @@ class InitConfig:
     fill_depth_margin: float = 0.2  # near = (1 - m) p_lo, far = (1 + m) p_hi
     fallback_depth_range: tuple = (0.25, 2.0)  # x scene_scale, when nothing was triangulated
     # Robust depth range (module docstring, step 4): the percentiles are clipped to the median depth
-    # times exp(+-k sigma), sigma = 1.4826 MAD of the log depths (k = depth_range_mad; 0: no clip);
-    # with fewer than depth_range_min_points points the range is [median / f, median x f],
-    # f = few_points_depth_factor. Measured (cube_sign, 240x135, noisy poses after the bundle
-    # adjustment): 30 % of the 126 two-view points sat at 0.04-0.6 x the true depth (mismatches
-    # along the horizontal epipolar lines of a panning camera on brick and grass), so the 5th
-    # percentile put the sweep's near end at 0.13 and its 128 hypotheses left 2 for the true range.
+    # times exp(+-k sigma), sigma = 1.4826 MAD of the log depths (k = depth_range_mad; 0: no clip).
+    # Measured (cube_sign, 240x135, noisy poses after the bundle adjustment): 30 % of the 126
+    # two-view points sat at 0.04-0.6 x the true depth (mismatches along the horizontal epipolar
+    # lines of a panning camera on brick and grass); the 5th percentile put the sweep's near end
+    # at 0.13, and its 128 hypotheses left about 2 for the true range.
     depth_range_mad: float = 3.0
-    depth_range_min_points: int = 10
-    few_points_depth_factor: float = 2.5
     dynamic_depth_factor: float = 0.8  # dynamic depth = factor x frame's median static depth
     dynamic_depth_jitter: float = 0.05  # relative half-width of the uniform depth jitter
 
@@ -142,12 +140,7 @@ class InitConfig:
         if not (isinstance(self.depth_range_mad, numbers.Real) and 0.0 <= self.depth_range_mad < float("inf")):
             raise ValueError(f"InitConfig.depth_range_mad must be a finite number >= 0 (0 = no clip); got "
                              f"{self.depth_range_mad!r}")
-        if not (isinstance(self.few_points_depth_factor, numbers.Real) and 1.0 < self.few_points_depth_factor
-                < float("inf")):
-            raise ValueError(f"InitConfig.few_points_depth_factor must be a finite number > 1; got "
-                             f"{self.few_points_depth_factor!r}")
-        for name in ("max_static_points", "random_fill_points", "dynamic_points", "dense_frames",
-                     "depth_range_min_points"):
+        for name in ("max_static_points", "random_fill_points", "dynamic_points", "dense_frames"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 0:
                 raise ValueError(f"InitConfig.{name} must be an int >= 0; got {v!r}")
@@ -241,31 +234,26 @@ def triangulate_matches(pts0, pts1, cam_T_world0, cam_T_world1, K0, K1):
 
 
 def robust_depth_range(depths, config):
-    """(lo, hi, source note) of positive depths (M,), M >= 1: the ``fill_depth_percentiles`` clipped
-    to median x exp(+-k sigma) with sigma = 1.4826 MAD of log depth and k = ``depth_range_mad``
-    (outlying triangulations then cannot stretch the range); with fewer than
-    ``depth_range_min_points`` depths, [median / f, median x f], f = ``few_points_depth_factor``."""
+    """(lo, hi, source note) of the depths (M,) (non-finite and non-positive ones ignored; at least
+    one must remain): the ``fill_depth_percentiles``, clipped to median x exp(+-k sigma) with
+    sigma = 1.4826 MAD of log depth and k = ``depth_range_mad``, so that outlying triangulations
+    cannot stretch the range; all at one depth d: [d / f, f d], f = ONE_DEPTH_RANGE_FACTOR."""
     z = np.asarray(depths, dtype=np.float64)
     z = z[np.isfinite(z) & (z > 0)]
     if z.size == 0:
-        raise ValueError("robust_depth_range: depths must hold at least one finite positive depth")
+        raise ValueError("robust_depth_range: depths must hold at least one finite positive depth; got none")
     med = float(np.median(z))
-    if z.size < config.depth_range_min_points:
-        f = float(config.few_points_depth_factor)
-        return med / f, med * f, (f"triangulated ({z.size} points, fewer than {config.depth_range_min_points}: "
-                                  f"median / {f:g} .. median x {f:g})")
     lo, hi = (float(v) for v in np.percentile(z, config.fill_depth_percentiles))
     note = "triangulated (percentiles)"
     if config.depth_range_mad > 0:
-        logz = np.log(z)
-        sigma = 1.4826 * float(np.median(np.abs(logz - np.log(med))))
+        sigma = MAD_TO_SIGMA * float(np.median(np.abs(np.log(z) - np.log(med))))
         band_lo, band_hi = med * np.exp(-config.depth_range_mad * sigma), med * np.exp(config.depth_range_mad * sigma)
         if lo < band_lo or hi > band_hi:
             note = "triangulated (percentiles clipped to the median +- k MAD band)"
         lo, hi = max(lo, band_lo), min(hi, band_hi)
-        if not lo < hi:  # all at one depth (sigma = 0): a band around it
-            f = float(config.few_points_depth_factor)
-            lo, hi, note = med / f, med * f, f"triangulated (one depth: median / {f:g} .. median x {f:g})"
+    if not lo < hi:  # one depth (one point, or MAD 0): a band around it
+        lo, hi = med / ONE_DEPTH_RANGE_FACTOR, med * ONE_DEPTH_RANGE_FACTOR
+        note = f"triangulated (one depth: median / {ONE_DEPTH_RANGE_FACTOR:g} .. median x {ONE_DEPTH_RANGE_FACTOR:g})"
     return lo, hi, note
 
 

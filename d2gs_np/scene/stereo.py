@@ -55,7 +55,7 @@ class StereoConfig:
     min_texture: float = 0.02  # grey-level standard deviation over the window (images in [0, 1])
     max_cost_ratio: float = 0.8  # best cost / best cost away from the minimum
     depth_margin: float = 0.5  # the sweep covers [(1 - m) near, (1 + m) far] of the given range
-    distinct_px: float = 2.0  # the distinctness check compares with hypotheses this many source pixels away
+    distinct_px: float = 1.0  # the distinctness check compares with hypotheses this many source pixels away
 
     def __post_init__(self):
         for name in ("num_depths", "window", "min_sources"):
