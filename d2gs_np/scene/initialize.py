@@ -29,11 +29,26 @@ Static points
    (uniform in the pixel) of a random frame, at the depth interpolated (as in step 3) from the
    triangulated and dense points that frame sees (``fill_on_surface``), else at a depth
    uniform in [near, far], where
-   near / far = (1 -/+ ``fill_depth_margin``) times the ``fill_depth_percentiles`` of the
-   triangulated points' depths in their first view. Colour: the image colour at that pixel.
+   near / far = (1 -/+ ``fill_depth_margin``) times the robust range of the triangulated points'
+   depths in their first view (``robust_depth_range``: the ``fill_depth_percentiles``, clipped
+   to the median x exp(+-k sigma), sigma = 1.4826 x the MAD of log depth, k =
+   ``depth_range_mad``; a band of factor 1.2 around them when all depths are one). The same
+   range bounds the plane sweep of step 3. Colour: the image colour at that pixel.
    Untextured regions thereby get Gaussians; wrong ones fade or are pruned during training.
    If nothing could be triangulated, near / far fall back to ``fallback_depth_range`` times
    ``scene.scene_scale`` (an error if the scene has no scale).
+
+Why the stereo was nearly empty on the suite's cube_sign, and the fix (docs/method.md §8 has
+the figures; ``python examples/init_diagnostics.py SCENE...`` measures them, ``--previous`` with
+the earlier rules): (a) the sweep's distinctness check compared the best cost with hypotheses
+two steps away, 0.04-0.17 source pixels on cube_sign, inside the minimum's own basin on blurred
+frames: it rejected 68-89 % of the pixels and the stereo kept 1.3 % with true poses (0.01 % on
+the demo's 160 x 90 scene); it now looks 1 source pixel away (``StereoConfig.distinct_px``):
+13.9 %. (b) With noisy poses 30 % of cube_sign's two-view points sat at 0.04-0.6x the true depth,
+and the 5th percentile stretched the sweep to [0.13, 11.8]; the range is now clipped to the
+median x exp(+-3 sigma) of the log depths (``robust_depth_range``). Where the poses themselves
+are off (the demo keeps its noisy given poses: the bundle adjustment finds too few tracks), the
+seeds' depths stay wrong whatever the checks.
 
 Sparse points given with the scene (``Scene.points3d``, the optional ``ply_file_path`` of
 docs/dataset_format.md §4, written by ``d2gs import-video``) replace steps 1-2's triangulation:

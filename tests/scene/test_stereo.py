@@ -144,7 +144,7 @@ def test_distinctness_is_measured_in_source_pixels_on_blurred_small_parallax_fra
     assert np.median(err) < CUBE_MEDIAN_REL_TOL and np.percentile(err, 90) < CUBE_P90_REL_TOL
     # every check reports the share it rejects; together they explain what was not kept
     rej = info["rejected_share"]
-    assert set(rej) == {"texture", "seen", "sources", "distinct", "inside_range", "static"}
+    assert set(rej) == {"texture", "sources", "distinct", "inside_range", "static"}
     assert max(rej.values()) <= 1.0 - info["kept_share"] + 1e-12
 
 
