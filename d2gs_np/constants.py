@@ -158,3 +158,10 @@ FREQ_AMPLITUDE_ZERO = 1e-12
 # L_freq high-pass mask around its cutoff: wide enough that the mask has no hard edge (ringing
 # in the image domain), narrow against the cutoff 0.1.
 FREQ_MASK_EDGE = 0.05
+# Depth range of the initialisation (scene/initialize.py robust_depth_range) when every triangulated
+# depth is the same (one point, or points on one fronto-parallel plane): [d / 1.2, 1.2 d] before
+# the fill and sweep margins, so the plane sweep still gets near < far ([0.33, 2.2] x d in all).
+ONE_DEPTH_RANGE_FACTOR = 1.2
+# The robust depth range's spread: sigma = 1.4826 x the median absolute deviation of log depth
+# (1.4826 makes the MAD a consistent estimate of a normal distribution's standard deviation).
+MAD_TO_SIGMA = 1.4826

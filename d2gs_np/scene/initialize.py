@@ -29,11 +29,26 @@ Static points
    (uniform in the pixel) of a random frame, at the depth interpolated (as in step 3) from the
    triangulated and dense points that frame sees (``fill_on_surface``), else at a depth
    uniform in [near, far], where
-   near / far = (1 -/+ ``fill_depth_margin``) times the ``fill_depth_percentiles`` of the
-   triangulated points' depths in their first view. Colour: the image colour at that pixel.
+   near / far = (1 -/+ ``fill_depth_margin``) times the robust range of the triangulated points'
+   depths in their first view (``robust_depth_range``: the ``fill_depth_percentiles``, clipped
+   to the median x exp(+-k sigma), sigma = 1.4826 x the MAD of log depth, k =
+   ``depth_range_mad``; a band of factor 1.2 around them when all depths are one). The same
+   range bounds the plane sweep of step 3. Colour: the image colour at that pixel.
    Untextured regions thereby get Gaussians; wrong ones fade or are pruned during training.
    If nothing could be triangulated, near / far fall back to ``fallback_depth_range`` times
    ``scene.scene_scale`` (an error if the scene has no scale).
+
+Why the stereo was nearly empty on the suite's cube_sign, and the fix (docs/method.md §8 has
+the figures; ``python examples/init_diagnostics.py SCENE...`` measures them, ``--previous`` with
+the earlier rules): (a) the sweep's distinctness check compared the best cost with hypotheses
+two steps away, 0.04-0.17 source pixels on cube_sign, inside the minimum's own basin on blurred
+frames: it rejected 68-89 % of the pixels and the stereo kept 1.3 % with true poses (0.01 % on
+the demo's 160 x 90 scene); it now looks 1 source pixel away (``StereoConfig.distinct_px``):
+13.9 %. (b) With noisy poses 30 % of cube_sign's two-view points sat at 0.04-0.6x the true depth,
+and the 5th percentile stretched the sweep to [0.13, 11.8]; the range is now clipped to the
+median x exp(+-3 sigma) of the log depths (``robust_depth_range``). Where the poses themselves
+are off (the demo keeps its noisy given poses: the bundle adjustment finds too few tracks), the
+seeds' depths stay wrong whatever the checks.
 
 Sparse points given with the scene (``Scene.points3d``, the optional ``ply_file_path`` of
 docs/dataset_format.md §4, written by ``d2gs import-video``) replace steps 1-2's triangulation:
@@ -65,13 +80,14 @@ from dataclasses import dataclass, field
 import cv2
 import numpy as np
 
-from d2gs_np.constants import PIXEL_CENTER_OFFSET
+from d2gs_np.constants import MAD_TO_SIGMA, ONE_DEPTH_RANGE_FACTOR, PIXEL_CENTER_OFFSET
 from d2gs_np.features import FeatureConfig, detect_features, match_keypoints, static_detector_mask
 from d2gs_np.geometry.camera import camera_center, check_intrinsics, project_points, unproject_points
 from d2gs_np.geometry.se3 import check_rigid
 from d2gs_np.scene.stereo import StereoConfig, plane_sweep_depth
 
-__all__ = ["InitConfig", "initialize_points", "triangulate_matches", "sample_image_bilinear", "pixel_scale_cap"]
+__all__ = ["InitConfig", "initialize_points", "triangulate_matches", "sample_image_bilinear", "pixel_scale_cap",
+           "robust_depth_range"]
 
 # Homogeneous triangulation results with |w| below this (relative to the largest coordinate)
 # are points at infinity: dividing by w would give meaningless, huge positions.
@@ -112,6 +128,13 @@ class InitConfig:
     fill_depth_percentiles: tuple = (5.0, 95.0)  # of triangulated depths -> fill depth range
     fill_depth_margin: float = 0.2  # near = (1 - m) p_lo, far = (1 + m) p_hi
     fallback_depth_range: tuple = (0.25, 2.0)  # x scene_scale, when nothing was triangulated
+    # Robust depth range (module docstring, step 4): the percentiles are clipped to the median depth
+    # times exp(+-k sigma), sigma = 1.4826 MAD of the log depths (k = depth_range_mad; 0: no clip).
+    # Measured (cube_sign, 240x135, noisy poses after the bundle adjustment): 30 % of the 126
+    # two-view points sat at 0.04-0.6 x the true depth (mismatches along the horizontal epipolar
+    # lines of a panning camera on brick and grass); the 5th percentile put the sweep's near end
+    # at 0.13, and its 128 hypotheses left about 2 for the true range.
+    depth_range_mad: float = 3.0
     dynamic_depth_factor: float = 0.8  # dynamic depth = factor x frame's median static depth
     dynamic_depth_jitter: float = 0.05  # relative half-width of the uniform depth jitter
 
@@ -129,6 +152,9 @@ class InitConfig:
         if (not isinstance(skips, tuple) or len(skips) == 0
                 or not all(isinstance(s, numbers.Integral) and not isinstance(s, bool) and s >= 1 for s in skips)):
             raise ValueError(f"InitConfig.frame_skips must be a non-empty tuple of ints >= 1; got {skips!r}")
+        if not (isinstance(self.depth_range_mad, numbers.Real) and 0.0 <= self.depth_range_mad < float("inf")):
+            raise ValueError(f"InitConfig.depth_range_mad must be a finite number >= 0 (0 = no clip); got "
+                             f"{self.depth_range_mad!r}")
         for name in ("max_static_points", "random_fill_points", "dynamic_points", "dense_frames"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 0:
@@ -220,6 +246,30 @@ def triangulate_matches(pts0, pts1, cam_T_world0, cam_T_world1, K0, K1):
     for a in (z0, z1, err, parallax):
         a[~finite] = np.nan
     return X, z0, z1, err, parallax, finite
+
+
+def robust_depth_range(depths, config):
+    """(lo, hi, source note) of the depths (M,) (non-finite and non-positive ones ignored; at least
+    one must remain): the ``fill_depth_percentiles``, clipped to median x exp(+-k sigma) with
+    sigma = 1.4826 MAD of log depth and k = ``depth_range_mad``, so that outlying triangulations
+    cannot stretch the range; all at one depth d: [d / f, f d], f = ONE_DEPTH_RANGE_FACTOR."""
+    z = np.asarray(depths, dtype=np.float64)
+    z = z[np.isfinite(z) & (z > 0)]
+    if z.size == 0:
+        raise ValueError("robust_depth_range: depths must hold at least one finite positive depth; got none")
+    med = float(np.median(z))
+    lo, hi = (float(v) for v in np.percentile(z, config.fill_depth_percentiles))
+    note = "triangulated (percentiles)"
+    if config.depth_range_mad > 0:
+        sigma = MAD_TO_SIGMA * float(np.median(np.abs(np.log(z) - np.log(med))))
+        band_lo, band_hi = med * np.exp(-config.depth_range_mad * sigma), med * np.exp(config.depth_range_mad * sigma)
+        if lo < band_lo or hi > band_hi:
+            note = "triangulated (percentiles clipped to the median +- k MAD band)"
+        lo, hi = max(lo, band_lo), min(hi, band_hi)
+    if not lo < hi:  # one depth (one point, or MAD 0): a band around it
+        lo, hi = med / ONE_DEPTH_RANGE_FACTOR, med * ONE_DEPTH_RANGE_FACTOR
+        note = f"triangulated (one depth: median / {ONE_DEPTH_RANGE_FACTOR:g} .. median x {ONE_DEPTH_RANGE_FACTOR:g})"
+    return lo, hi, note
 
 
 def _check_scene(scene):
@@ -435,9 +485,8 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
 
     # ---- 2. depth range for the random fill
     if tri_depth.size > 0:
-        p_lo, p_hi = np.percentile(tri_depth, config.fill_depth_percentiles)
+        p_lo, p_hi, depth_source = robust_depth_range(tri_depth, config)
         near, far = (1.0 - config.fill_depth_margin) * p_lo, (1.0 + config.fill_depth_margin) * p_hi
-        depth_source = "triangulated"
     elif scene.scene_scale is not None:
         near, far = (v * float(scene.scene_scale) for v in config.fallback_depth_range)
         depth_source = "fallback (nothing triangulated)"

@@ -4,10 +4,12 @@ import dataclasses
 import numpy as np
 import pytest
 
+from d2gs_np.constants import ONE_DEPTH_RANGE_FACTOR
 from d2gs_np.data import synthetic as syn
 from d2gs_np.features import static_detector_mask
-from d2gs_np.geometry.camera import look_at, make_intrinsics, project_points
-from d2gs_np.scene.initialize import InitConfig, initialize_points, sample_image_bilinear, triangulate_matches
+from d2gs_np.geometry.camera import look_at, make_intrinsics, project_points, unproject_points
+from d2gs_np.scene.initialize import (InitConfig, initialize_points, robust_depth_range, sample_image_bilinear,
+                                      triangulate_matches)
 
 # Small synthetic scene with TRUE poses (the "sharp" preset): 120x68, 8 frames; SIFT still
 # finds ~50 verified matches per pair at this size.
@@ -364,3 +366,56 @@ def test_initial_scales_are_capped_in_pixels_of_the_source_frame(scene):
 def test_dense_seeding_is_off_with_zero_frames(scene):
     *_, info = initialize_points(scene, InitConfig(dense_frames=0), np.random.default_rng(0))
     assert info["num_static_dense"] == 0
+
+
+# ------------------------------------------------------------------- depth range of the sweep and fill
+def test_depth_range_ignores_outlying_triangulations():
+    # The diagnosed failure (docs/method.md §8): on cube_sign with noisy poses 30 % of the two-view
+    # points sat at 0.04-0.6x the true depth, and the 5th percentile made the sweep's near end 0.13.
+    # Here 70 inliers in [3.5, 6] and 30 mismatches in [0.05, 0.6]: the range must hold the inliers
+    # and stay clear of the outliers; the plain percentiles (the earlier rule, depth_range_mad = 0)
+    # reach down into them.
+    rng = np.random.default_rng(0)
+    z = np.concatenate([rng.uniform(3.5, 6.0, 70), rng.uniform(0.05, 0.6, 30)])
+    lo, hi, note = robust_depth_range(z, InitConfig())
+    # (the upper percentile of all 100 lies a little below the inliers' own 95th)
+    assert lo <= np.percentile(z[:70], 5) and hi >= np.percentile(z[:70], 90)
+    assert lo > 0.6 and hi < 2 * 6.0 and "clipped" in note
+    lo_old, _, _ = robust_depth_range(z, InitConfig(depth_range_mad=0.0))
+    assert lo_old < 0.6
+    # without outliers the percentiles stand unchanged
+    lo, hi, note = robust_depth_range(z[:70], InitConfig())
+    assert (lo, hi) == pytest.approx(tuple(np.percentile(z[:70], (5.0, 95.0)))) and "clipped" not in note
+
+
+def test_depth_range_with_one_point_one_depth_or_none():
+    cfg = InitConfig()
+    f = ONE_DEPTH_RANGE_FACTOR
+    # one point: a band around it, not an empty range
+    lo, hi, note = robust_depth_range(np.array([4.0]), cfg)
+    assert (lo, hi) == pytest.approx((4.0 / f, 4.0 * f)) and "one depth" in note
+    # two points (the demo scene triangulated 2): their percentiles; non-finite, negative: ignored
+    lo, hi, _ = robust_depth_range(np.array([3.0, 5.0, np.nan, -1.0]), cfg)
+    assert (lo, hi) == pytest.approx(tuple(np.percentile([3.0, 5.0], (5.0, 95.0))))
+    # many points at one depth (MAD 0) and one outlier: the band around that depth
+    lo, hi, note = robust_depth_range(np.append(np.full(50, 2.0), 0.1), cfg)
+    assert (lo, hi) == pytest.approx((2.0 / f, 2.0 * f)) and "one depth" in note
+    with pytest.raises(ValueError, match="at least one finite positive depth"):
+        robust_depth_range(np.array([np.nan, 0.0]), cfg)
+    with pytest.raises(ValueError, match="depth_range_mad"):
+        InitConfig(depth_range_mad=-1.0)
+
+
+def test_one_triangulated_point_gives_a_band_around_its_depth(scene):
+    # only one triangulated point: the sweep and fill range is the band around its depth
+    f0 = scene.frames[0]
+    z0 = 4.0  # a point on frame 0's central ray at depth 4
+    X = unproject_points(np.array([[f0.width / 2, f0.height / 2]]), np.array([z0]), f0.cam_T_world, f0.K)
+    one = dataclasses.replace(scene, points3d=X, points3d_colors=None)
+    cfg = InitConfig(random_fill_points=20, dynamic_points=0, dense_frames=1)
+    s, _, _, _, info = initialize_points(one, cfg, np.random.default_rng(0))
+    f, m = ONE_DEPTH_RANGE_FACTOR, cfg.fill_depth_margin
+    assert info["num_static_triangulated"] == 1 and "one depth" in info["fill_depth_source"]
+    assert info["fill_depth_near"] == pytest.approx((1 - m) * z0 / f)
+    assert info["fill_depth_far"] == pytest.approx((1 + m) * z0 * f)
+    assert len(s) > 21 and np.all(np.isfinite(s))  # the point, stereo seeds of the keyframe, the fill
