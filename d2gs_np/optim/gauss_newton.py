@@ -79,6 +79,7 @@ from d2gs_np.constants import (  # noqa: F401 (LM_DAMPING_MAX is re-exported for
 )
 from d2gs_np.geometry.se3 import check_rigid
 from d2gs_np.geometry.so3 import _A_COEFFS, _B_COEFFS, _C_COEFFS, _D_COEFFS
+from d2gs_np.optim.linalg import cholesky_solve
 
 __all__ = [
     "ROBUST_LOSSES",
@@ -572,39 +573,6 @@ def _normal_equations(J, w, r):
     return _normal_equations_kernel(np.ascontiguousarray(J), np.ascontiguousarray(w), np.ascontiguousarray(r))
 
 
-@njit(cache=True)
-def _cholesky_solve(A, b):
-    """x with A x = b for symmetric positive definite A, and True; (zeros, False) when the
-    factorisation meets a non-positive pivot."""
-    n = A.shape[0]
-    L = np.zeros((n, n))
-    for j in range(n):
-        s = A[j, j]
-        for k in range(j):
-            s -= L[j, k] * L[j, k]
-        if not s > 0.0:
-            return np.zeros(n), False
-        L[j, j] = np.sqrt(s)
-        for i in range(j + 1, n):
-            t = A[i, j]
-            for k in range(j):
-                t -= L[i, k] * L[j, k]
-            L[i, j] = t / L[j, j]
-    y = np.zeros(n)
-    for i in range(n):
-        t = b[i]
-        for k in range(i):
-            t -= L[i, k] * y[k]
-        y[i] = t / L[i, i]
-    x = np.zeros(n)
-    for i in range(n - 1, -1, -1):
-        t = y[i]
-        for k in range(i + 1, n):
-            t -= L[k, i] * x[k]
-        x[i] = t / L[i, i]
-    return x, True
-
-
 def _solve_damped(H, g, lam):
     """dx of (H + lam D) dx = -g, D = diag(H) floored; scaled by 1/lam when lam > 1 so that a huge
     lam never overflows. The matrix is symmetric positive definite (H is PSD, D > 0): Cholesky."""
@@ -614,7 +582,7 @@ def _solve_damped(H, g, lam):
         A, b = H / lam + np.diag(d), -g / lam
     else:
         A, b = H + lam * np.diag(d), -g
-    dx, ok = _cholesky_solve(np.ascontiguousarray(A), np.ascontiguousarray(b))
+    dx, ok = cholesky_solve(np.ascontiguousarray(A), np.ascontiguousarray(b))
     if not ok or not np.all(np.isfinite(dx)):
         dx = np.linalg.lstsq(A, b, rcond=None)[0]
     return dx

@@ -26,11 +26,11 @@ import time
 
 import numpy as np
 import scipy.sparse as sp
-from numba import njit
 from scipy.optimize import least_squares
 
 from d2gs_np.constants import BA_POINT_EIG_FLOOR, DAMPING_DIAG_FLOOR, LM_DAMPING_MAX, LM_DAMPING_MIN
 from d2gs_np.geometry.so3 import hat, left_jacobian, left_jacobian_inv, so3_exp, so3_log
+from d2gs_np.optim.linalg import cholesky_solve
 
 __all__ = ["reprojection_fwd", "reprojection_bwd", "reprojection_jacobian", "pose_prior_fwd", "BundleProblem",
            "bundle_adjust", "poses_to_params", "params_to_poses", "robust_loss", "SOLVERS", "LOSSES"]
@@ -226,41 +226,6 @@ def robust_loss(z, loss):
     raise ValueError(f"loss must be one of {LOSSES}; got {loss!r}")
 
 
-@njit(cache=True)
-def _cholesky_solve(S, b):
-    """x with S x = b for a symmetric positive definite S (n, n), by a plain Cholesky factorisation;
-    returns (x, True), or (zeros, False) as soon as a pivot is not positive and finite (S not positive
-    definite). Single-threaded on purpose: the camera system is small (6 x cameras + 1), and a threaded
-    LAPACK call on it was measured 100-800x slower than this on a busy 2-core machine."""
-    n = S.shape[0]
-    L = np.zeros((n, n))
-    for j in range(n):
-        d = S[j, j]
-        for k in range(j):
-            d -= L[j, k] * L[j, k]
-        if not (d > 0.0) or not np.isfinite(d):
-            return np.zeros(n), False
-        L[j, j] = np.sqrt(d)
-        for i in range(j + 1, n):
-            v = S[i, j]
-            for k in range(j):
-                v -= L[i, k] * L[j, k]
-            L[i, j] = v / L[j, j]
-    y = np.zeros(n)
-    for i in range(n):
-        v = b[i]
-        for k in range(i):
-            v -= L[i, k] * y[k]
-        y[i] = v / L[i, i]
-    x = np.zeros(n)
-    for i in range(n - 1, -1, -1):
-        v = y[i]
-        for k in range(i + 1, n):
-            v -= L[k, i] * x[k]
-        x[i] = v / L[i, i]
-    return x, True
-
-
 def _check_solver_args(solver, loss, f_scale, max_nfev, tol):
     if not isinstance(solver, str) or solver not in SOLVERS:
         raise ValueError(f"bundle_adjust: solver must be one of {SOLVERS}; got {solver!r}")
@@ -381,7 +346,7 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
     points, whose blocks V_p (3 x 3 per point) are independent:
         S = A + lam D_y - E (V + lam D_p)^-1 E^T,  S dy = -g_y + E (V + lam D_p)^-1 g_p,
         dp = -(V + lam D_p)^-1 (g_p + E^T dy);
-    S is dense (6 x free cameras [+ 1]) and Cholesky-factored (``_cholesky_solve``); each damped point block is inverted from
+    S is dense (6 x free cameras [+ 1]) and Cholesky-factored (``optim.linalg.cholesky_solve``); each damped point block is inverted from
     its eigendecomposition with its eigenvalues floored at BA_POINT_EIG_FLOOR x the largest (a point
     seen once, or along one ray, has a rank-2 block: the damping regularises it). A trial step is
     accepted only if the true cost falls (a non-finite residual counts as an infinite cost; a failed
@@ -483,7 +448,7 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
             rhs = -gy + E @ dp_rhs
             if not (np.all(np.isfinite(S)) and np.all(np.isfinite(rhs))):
                 return None
-            dy, ok = _cholesky_solve(np.ascontiguousarray(S), np.ascontiguousarray(rhs))
+            dy, ok = cholesky_solve(np.ascontiguousarray(S), np.ascontiguousarray(rhs))
             if not ok:
                 return None
             dp = -dp_rhs - Vinv_sp @ (E.T @ dy)
