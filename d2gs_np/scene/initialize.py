@@ -43,12 +43,15 @@ the figures; ``python examples/init_diagnostics.py SCENE...`` measures them, ``-
 the earlier rules): (a) the sweep's distinctness check compared the best cost with hypotheses
 two steps away, 0.04-0.17 source pixels on cube_sign, inside the minimum's own basin on blurred
 frames: it rejected 68-89 % of the pixels and the stereo kept 1.3 % with true poses (0.01 % on
-the demo's 160 x 90 scene); it now looks 1 source pixel away (``StereoConfig.distinct_px``):
+the demo's 160 x 90 scene); with ``StereoConfig.distinct_px = 1`` it looks 1 source pixel away:
 13.9 %. (b) With noisy poses 30 % of cube_sign's two-view points sat at 0.04-0.6x the true depth,
-and the 5th percentile stretched the sweep to [0.13, 11.8]; the range is now clipped to the
-median x exp(+-3 sigma) of the log depths (``robust_depth_range``). Where the poses themselves
-are off (the demo keeps its noisy given poses: the bundle adjustment finds too few tracks), the
-seeds' depths stay wrong whatever the checks.
+and the 5th percentile stretched the sweep to [0.13, 11.8]; ``depth_range_mad = 3`` clips the
+range to the median x exp(+-3 sigma) of the log depths (``robust_depth_range``). Where the poses
+themselves are off (the demo keeps its noisy given poses: the bundle adjustment finds too few
+tracks), the seeds' depths stay wrong whatever the checks. Both fixes are off by default
+(``distinct_px = 0``, ``depth_range_mad = 0``: the earlier rules, exactly): in 600 s runs they
+raised the deblurred views on cube_sign and the demo but lowered the novel views with true poses
+(docs/method.md §8).
 
 Sparse points given with the scene (``Scene.points3d``, the optional ``ply_file_path`` of
 docs/dataset_format.md §4, written by ``d2gs import-video``) replace steps 1-2's triangulation:
@@ -134,7 +137,7 @@ class InitConfig:
     # two-view points sat at 0.04-0.6 x the true depth (mismatches along the horizontal epipolar
     # lines of a panning camera on brick and grass); the 5th percentile put the sweep's near end
     # at 0.13, and its 128 hypotheses left about 2 for the true range.
-    depth_range_mad: float = 3.0
+    depth_range_mad: float = 0.0  # 0: the plain percentiles (default; 3 with distinct_px = 1: docs/method.md §8)
     dynamic_depth_factor: float = 0.8  # dynamic depth = factor x frame's median static depth
     dynamic_depth_jitter: float = 0.05  # relative half-width of the uniform depth jitter
 

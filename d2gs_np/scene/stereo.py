@@ -66,7 +66,9 @@ class StereoConfig:
     min_texture: float = 0.02  # grey-level standard deviation over the window (images in [0, 1])
     max_cost_ratio: float = 0.8  # best cost / best cost away from the minimum
     depth_margin: float = 0.5  # the sweep covers [(1 - m) near, (1 + m) far] of the given range
-    distinct_px: float = 1.0  # the distinctness check compares with hypotheses this many source pixels away
+    # the distinctness check compares with hypotheses this many source pixels away (0: two hypotheses
+    # away, the default; 1 fills cube_sign's stereo but cost novel views in 600 s runs: docs/method.md §8)
+    distinct_px: float = 0.0
 
     def __post_init__(self):
         for name in ("num_depths", "window", "min_sources"):

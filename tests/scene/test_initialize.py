@@ -377,19 +377,20 @@ def test_depth_range_ignores_outlying_triangulations():
     # reach down into them.
     rng = np.random.default_rng(0)
     z = np.concatenate([rng.uniform(3.5, 6.0, 70), rng.uniform(0.05, 0.6, 30)])
-    lo, hi, note = robust_depth_range(z, InitConfig())
+    robust = InitConfig(depth_range_mad=3.0)  # the clip (not the default: docs/method.md §8)
+    lo, hi, note = robust_depth_range(z, robust)
     # (the upper percentile of all 100 lies a little below the inliers' own 95th)
     assert lo <= np.percentile(z[:70], 5) and hi >= np.percentile(z[:70], 90)
     assert lo > 0.6 and hi < 2 * 6.0 and "clipped" in note
     lo_old, _, _ = robust_depth_range(z, InitConfig(depth_range_mad=0.0))
     assert lo_old < 0.6
     # without outliers the percentiles stand unchanged
-    lo, hi, note = robust_depth_range(z[:70], InitConfig())
+    lo, hi, note = robust_depth_range(z[:70], robust)
     assert (lo, hi) == pytest.approx(tuple(np.percentile(z[:70], (5.0, 95.0)))) and "clipped" not in note
 
 
 def test_depth_range_with_one_point_one_depth_or_none():
-    cfg = InitConfig()
+    cfg = InitConfig(depth_range_mad=3.0)
     f = ONE_DEPTH_RANGE_FACTOR
     # one point: a band around it, not an empty range
     lo, hi, note = robust_depth_range(np.array([4.0]), cfg)
