@@ -19,9 +19,9 @@ The default list (``default_plugins``), in order:
 4. ``Densify``: clone and split (``train/densify.py``);
 5. ``PoseSolver`` (name "pose_solver", ``train/pose_solver.py``, docs/method.md §5) when the
    config and the scene call for it (``use_pose_solver``).
-Plugins a loss term needs (``term.plugins``, e.g. ``NeighbourRefresh`` of L_ts) run after the
-default ones, so they see this step's pruning and densification, and before those passed to the
-trainer.
+Plugins a loss term needs (``term.plugins``: ``NeighbourRefresh`` of L_ts, ``DepthMemory`` of
+L_reproj) run after the default ones, so they see this step's pruning and densification, and
+before those passed to the trainer.
 """
 from __future__ import annotations
 
