@@ -103,7 +103,8 @@ def bilinear_fwd(image, pts):
     fx, fy = np.where(inside, x - x0, 0.0), np.where(inside, y - y0, 0.0)
     idx = np.stack([y0 * W + x0, y0 * W + x1, y1 * W + x0, y1 * W + x1], axis=1)  # (M, 4) flat taps
     w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
-    vals = (image.reshape(-1)[idx] * w).sum(axis=1)
+    taps = image.reshape(-1)[idx]
+    vals = w[:, 0] * taps[:, 0] + w[:, 1] * taps[:, 1] + w[:, 2] * taps[:, 2] + w[:, 3] * taps[:, 3]
     vals = np.where(inside, vals, np.nan)
     return vals, {"idx": idx, "w": w, "inside": inside, "shape": (H, W), "dtype": image.dtype}
 

@@ -79,6 +79,7 @@ from d2gs_np.constants import (  # noqa: F401 (LM_DAMPING_MAX is re-exported for
 )
 from d2gs_np.geometry.se3 import check_rigid
 from d2gs_np.geometry.so3 import _A_COEFFS, _B_COEFFS, _C_COEFFS, _D_COEFFS
+from d2gs_np.losses.reprojection import bilinear_fwd
 from d2gs_np.optim.linalg import cholesky_solve
 
 __all__ = [
@@ -282,20 +283,9 @@ def _mapped(kind: str, n: int) -> ca.Function:
 
 def sample_depth(depth_map, pts):
     """Bilinear read of an (H, W) depth map at (M, 2) points in our pixel convention (centres at
-    +0.5); points outside the image give NaN. Returns (M,)."""
-    depth_map = np.asarray(depth_map, dtype=np.float64)
-    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
-    H, W = depth_map.shape
-    x, y = pts[:, 0] - 0.5, pts[:, 1] - 0.5
-    out = np.full(len(pts), np.nan)
-    ok = (x >= 0) & (y >= 0) & (x <= W - 1) & (y <= H - 1)
-    x0 = np.clip(np.floor(x[ok]).astype(int), 0, max(W - 2, 0))
-    y0 = np.clip(np.floor(y[ok]).astype(int), 0, max(H - 2, 0))
-    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
-    fx, fy = x[ok] - x0, y[ok] - y0
-    out[ok] = ((1 - fx) * (1 - fy) * depth_map[y0, x0] + fx * (1 - fy) * depth_map[y0, x1]
-               + (1 - fx) * fy * depth_map[y1, x0] + fx * fy * depth_map[y1, x1])
-    return out
+    +0.5); points outside the image give NaN. Returns (M,). (``losses.reprojection.bilinear_fwd``,
+    which L_reproj differentiates.)"""
+    return bilinear_fwd(np.asarray(depth_map, dtype=np.float64), pts)[0]
 
 
 @dataclass

@@ -22,11 +22,14 @@ P90_REL_TOL = 0.06
 MIN_KEPT = 0.2
 
 
+def _scene_and_world(preset, kw):
+    """A ray-cast suite scene (seed 0) and its world, for true depth maps."""
+    return make_suite_scene(preset, seed=0, **kw), build_suite_world(resolve(preset, 0, **kw))
+
+
 @pytest.fixture(scope="module")
 def suite():
-    scene = make_suite_scene("photo_room", seed=0, **KW)
-    world = build_suite_world(resolve("photo_room", 0, **KW))
-    return scene, world
+    return _scene_and_world("photo_room", KW)
 
 
 def _sources(scene, idx):
@@ -122,9 +125,7 @@ CUBE_P90_REL_TOL = 0.2
 
 @pytest.fixture(scope="module")
 def cube():
-    scene = make_suite_scene("cube_sign", seed=0, **CUBE_KW)
-    world = build_suite_world(resolve("cube_sign", 0, **CUBE_KW))
-    return scene, world
+    return _scene_and_world("cube_sign", CUBE_KW)
 
 
 def test_distinctness_is_measured_in_source_pixels_on_blurred_small_parallax_frames(cube):

@@ -3,7 +3,6 @@ what it writes (the refined mid pose, exactly, with the endpoints kept relative 
 camera rows' Adam moments reset), and an exact resume with it in the run."""
 import dataclasses
 import json
-import shutil
 
 import numpy as np
 import pytest
@@ -18,6 +17,7 @@ from d2gs_np.train.model import Model
 from d2gs_np.train.pose_solver import PoseSolver, hold_trajectory_scale, use_pose_solver, write_mid_poses
 from d2gs_np.train.state import TrainState
 from d2gs_np.train.trainer import Trainer
+from run_fixtures import copy_run_for_resume
 
 SMALL = dict(width=96, height=54, num_frames=5)
 
@@ -120,9 +120,7 @@ def test_resume_is_exact_with_the_pose_solver(noisy_scene, tmp_path):
     full = Trainer(noisy_scene, cfg, tmp_path / "full")
     full.run()
     assert len(full.plugins[-1].history) == 2  # steps 3 and 6
-    (tmp_path / "part").mkdir()
-    for name in ("checkpoint.npz", "config.json", "log.json", "log.csv"):
-        shutil.copy(tmp_path / "full" / name, tmp_path / "part" / name)
+    copy_run_for_resume(tmp_path / "full", tmp_path / "part")
     resumed = Trainer(noisy_scene, cfg, tmp_path / "part", resume=True)
     assert resumed.step_index == 5 and len(resumed.plugins[-1].history) == 1
     resumed.run()

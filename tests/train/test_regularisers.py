@@ -3,7 +3,6 @@ the parameter blocks (central FD through the term API), the neighbour-list plugi
 any change of the dynamic rows, checkpointed for an exact resume), L_ts left out without a
 dynamic set, the log columns and the config's validation."""
 import dataclasses
-import shutil
 
 import numpy as np
 import pytest
@@ -14,6 +13,7 @@ from d2gs_np.train.config import METHOD_REGULARISER_WEIGHTS, ExperimentConfig, L
 from d2gs_np.train.plugins import NeighbourRefresh
 from d2gs_np.train.terms import TermInputs, loss_terms
 from d2gs_np.train.trainer import Trainer
+from run_fixtures import copy_run_for_resume
 
 TINY = dict(width=48, height=27, num_frames=6)
 # Central FD of a term's weighted value, h = 1e-6, on model parameters of size ~0.1-1: the terms
@@ -202,9 +202,7 @@ def test_resume_is_exact_with_l_ts_and_densification(dynamic_scene, tmp_path):
 
     full.plugins.append(Spy())
     full.run()
-    (tmp_path / "part").mkdir()
-    for name in ("checkpoint.npz", "config.json", "log.json", "log.csv"):
-        shutil.copy(tmp_path / "full" / name, tmp_path / "part" / name)
+    copy_run_for_resume(tmp_path / "full", tmp_path / "part")
     resumed = Trainer(dynamic_scene, cfg, tmp_path / "part", resume=True)
     assert resumed.step_index == 5
     knn_resumed = next(p for p in resumed.plugins if p.name == "knn")

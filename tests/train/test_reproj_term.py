@@ -3,7 +3,6 @@ the rendered expected depth against central differences, zero at consistent dept
 before the partner frame has a depth, the term in a training run (log column, weighted sum,
 exact resume with the depth memory checkpointed), and left out without a scene."""
 import dataclasses
-import shutil
 from types import SimpleNamespace
 
 import numpy as np
@@ -15,6 +14,7 @@ from d2gs_np.train.config import ExperimentConfig, LossConfig, PoseSolverConfig,
 from d2gs_np.train.plugins import DepthMemory
 from d2gs_np.train.terms import Reprojection, TermInputs, loss_terms
 from d2gs_np.train.trainer import Trainer
+from run_fixtures import copy_run_for_resume
 
 W, H = 40, 24
 K = np.array([[40.0, 0.0, 20.0], [0.0, 40.0, 12.0], [0.0, 0.0, 1.0]])
@@ -138,9 +138,7 @@ def test_training_logs_the_term_and_resumes_exactly(static_scene, tmp_path):
     assert all(np.isfinite(vals)) and vals[0] == 0.0 and max(vals) > 0  # the first step has no partner
     r = max(rows, key=lambda r: r["loss_reproj"])
     assert r["loss"] == pytest.approx(r["loss_photometric"] + 0.05 * r["loss_reproj"], rel=1e-12)
-    (tmp_path / "part").mkdir()
-    for name in ("checkpoint.npz", "config.json", "log.json", "log.csv"):
-        shutil.copy(tmp_path / "full" / name, tmp_path / "part" / name)
+    copy_run_for_resume(tmp_path / "full", tmp_path / "part")
     resumed = Trainer(static_scene, cfg, tmp_path / "part", resume=True)
     assert resumed.step_index == 7
     memory = next(p for p in resumed.plugins if p.name == "reproj_depths")

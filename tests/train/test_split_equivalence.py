@@ -19,7 +19,6 @@ Three checks, each able to fail on its own:
 """
 import dataclasses
 import hashlib
-import shutil
 
 import numpy as np
 import pytest
@@ -38,6 +37,7 @@ from d2gs_np.train.checkpoint import load_checkpoint
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 from d2gs_np.train.densify import DensifyConfig
 from d2gs_np.train.trainer import Trainer
+from run_fixtures import copy_run_for_resume
 
 TINY = dict(width=48, height=27, num_frames=6)
 ITERS = 16
@@ -142,10 +142,7 @@ def test_a_fixed_seed_run_gives_the_pinned_numbers(scene, full_run):
 
 
 def test_a_run_resumed_mid_way_ends_bitwise_like_the_uninterrupted_one(scene, full_run, tmp_path):
-    part = tmp_path / "part"
-    part.mkdir()
-    for name in ("checkpoint.npz", "config.json", "log.json", "log.csv"):  # the run as it was at step 10
-        shutil.copy(full_run / name, part / name)
+    part = copy_run_for_resume(full_run, tmp_path / "part")  # the run as it was at step 10
     assert int(load_checkpoint(part / "checkpoint.npz")[1]["step"]) == 10
     resumed = Trainer(scene, pinned_config(checkpoint_every=10), part, resume=True)
     assert resumed.step_index == 10

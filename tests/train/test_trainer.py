@@ -4,7 +4,6 @@ rejects bad input before doing any work."""
 import csv
 import dataclasses
 import json
-import shutil
 
 import numpy as np
 import pytest
@@ -14,6 +13,7 @@ from d2gs_np.data.synthetic import make_scene
 from d2gs_np.scene import deformation
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 from d2gs_np.train.trainer import Trainer
+from run_fixtures import copy_run_for_resume
 
 TINY = dict(width=48, height=27, num_frames=6)
 
@@ -263,9 +263,7 @@ def test_resume_is_exact_with_densification(dynamic_scene, tmp_path):
     full.run()
     # The run as it was after step 5 (densified at step 3; statistics of step 4 accumulated since),
     # resumed in another folder.
-    (tmp_path / "part").mkdir()
-    for name in ("checkpoint.npz", "config.json", "log.json", "log.csv"):
-        shutil.copy(tmp_path / "full" / name, tmp_path / "part" / name)
+    copy_run_for_resume(tmp_path / "full", tmp_path / "part")
     resumed = Trainer(dynamic_scene, cfg, tmp_path / "part", resume=True)
     assert resumed.step_index == 5
     assert any(v.any() for v in resumed.state.rows["densify/count"].values()), "statistics were not restored"
@@ -343,9 +341,7 @@ def test_plugins_run_in_order_and_their_state_is_checkpointed_for_an_exact_resum
     full = Trainer(dynamic_scene, cfg, tmp_path / "full", plugins=[Jitter()])
     assert [p.name for p in full.plugins][-1] == "jitter"
     full.run()
-    (tmp_path / "part").mkdir()
-    for name in ("checkpoint.npz", "config.json", "log.json", "log.csv"):
-        shutil.copy(tmp_path / "full" / name, tmp_path / "part" / name)
+    copy_run_for_resume(tmp_path / "full", tmp_path / "part")
     jitter = Jitter()
     resumed = Trainer(dynamic_scene, cfg, tmp_path / "part", plugins=[jitter], resume=True)
     assert resumed.step_index == 6 and jitter.calls == 6
