@@ -90,6 +90,11 @@ class TrajectoryConfig:
         floor; "random": a tiny spread in a random direction. The velocity start matters: with a
         tiny random spread the endpoints open far too slowly (measured on the dynamic preset:
         learned exposure rotations 0.03-0.57 deg against 0.6-1.6 deg true after 2000 steps).
+    velocity_window: h, the frames k-h..k+h the "velocity" start reads: 1 is the central
+        difference of the two neighbours; h >= 2 fits a quadratic in time to the tangents of those
+        frames relative to frame k by least squares (``velocity_endpoints``), which averages the
+        independent part of a pose error over more frames at the cost of a bias where the path
+        bends within the window (docs/method.md §4).
     """
 
     kind: str = "direct"
@@ -99,8 +104,12 @@ class TrajectoryConfig:
     activation: str = "tanh"
     output_init_scale: float = 1e-5
     init: str = "velocity"
+    velocity_window: int = 1
 
     def __post_init__(self):
+        v = self.velocity_window
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+            raise ValueError(f"TrajectoryConfig.velocity_window must be an int >= 1 (frames on each side); got {v!r}")
         if self.init not in ("velocity", "random"):
             raise ValueError(f"TrajectoryConfig.init must be 'velocity' or 'random'; got {self.init!r}")
         if self.kind not in TRAJECTORY_KINDS:
@@ -157,13 +166,17 @@ def _unit_vectors(rng, n):
     return d / np.linalg.norm(d, axis=1, keepdims=True)
 
 
-def velocity_endpoints(poses_est, times, exposure_fraction):
+def velocity_endpoints(poses_est, times, exposure_fraction, window=1):
     """Endpoint tangents (xi_start, xi_end) (N, 6) of an exposure centred on each estimated pose,
     moving with the camera's velocity estimated from the neighbouring estimates.
 
-    Velocity (left-perturbation tangent per unit time): v_k = log(T_{k+1} T_{k-1}^{-1}) / (t_{k+1} -
-    t_{k-1}), one-sided at the ends. The exposure lasts tau = exposure_fraction x the local frame
-    interval, so xi_start = -v tau / 2 and xi_end = +v tau / 2 (T(t) ~ exp((t - t_k) v) T_k).
+    Velocity v_k (left-perturbation tangent per unit time), from the frames within ``window`` of k:
+    window 1: v_k = log(T_{k+1} T_{k-1}^{-1}) / (t_{k+1} - t_{k-1}), one-sided at the ends;
+    window h >= 2: the linear coefficient of a least-squares quadratic in (t_j - t_k) through the
+    tangents log(T_j T_k^{-1}), j = k-h..k+h clipped to the frames (a line where only two frames
+    remain). Both are exact for a constant velocity. The exposure lasts tau = exposure_fraction x
+    the local frame interval, so xi_start = -v tau / 2 and xi_end = +v tau / 2
+    (T(t) ~ exp((t - t_k) v) T_k).
     """
     N = poses_est.shape[0]
     P = np.asarray(poses_est, dtype=np.float64)
@@ -171,9 +184,21 @@ def velocity_endpoints(poses_est, times, exposure_fraction):
     lo = np.clip(np.arange(N) - 1, 0, N - 1)
     hi = np.clip(np.arange(N) + 1, 0, N - 1)
     dt = t[hi] - t[lo]
-    rel = np.einsum("nij,njk->nik", P[hi], se3_inverse(P[lo]))
-    v = se3_log(rel) / np.where(dt > 0, dt, 1.0)[:, None]
-    v[dt <= 0] = 0.0
+    if window == 1:
+        rel = np.einsum("nij,njk->nik", P[hi], se3_inverse(P[lo]))
+        v = se3_log(rel) / np.where(dt > 0, dt, 1.0)[:, None]
+        v[dt <= 0] = 0.0
+    else:
+        v = np.zeros((N, 6))
+        inv = se3_inverse(P)
+        for k in range(N):
+            j = np.arange(max(0, k - window), min(N, k + window + 1))
+            d = t[j] - t[k]
+            if j.size < 2 or not np.ptp(d) > 0:
+                continue
+            y = se3_log(np.einsum("nij,jk->nik", P[j], inv[k]))
+            A = np.vander(d, min(3, j.size), increasing=True)
+            v[k] = np.linalg.lstsq(A, y, rcond=None)[0][1]
     interval = dt / np.maximum(hi - lo, 1)  # local frame interval
     half = 0.5 * float(exposure_fraction) * interval[:, None]
     return -v * half, v * half
@@ -200,7 +225,8 @@ def init_trajectory(config, poses_est, times, rng, exposure_fraction=None):
         d = _unit_vectors(rng, N)
         xs, xe = -s * d, s * d
         if config.init == "velocity" and N > 1:
-            vs, ve = velocity_endpoints(poses_est, times, 0.5 if exposure_fraction is None else exposure_fraction)
+            vs, ve = velocity_endpoints(poses_est, times, 0.5 if exposure_fraction is None else exposure_fraction,
+                                        window=config.velocity_window)
             # Keep the tiny random spread where the camera did not move (a saddle otherwise).
             moving = np.linalg.norm(ve - vs, axis=1) > 2 * s
             xs[moving], xe[moving] = vs[moving], ve[moving]
