@@ -95,6 +95,11 @@ class TrajectoryConfig:
         frames relative to frame k by least squares (``velocity_endpoints``), which averages the
         independent part of a pose error over more frames at the cost of a bias where the path
         bends within the window (docs/method.md §4).
+    centre: "auto" (default): when the scene flags its poses as exact (``poses_trusted``), the
+        exposure stays centred on the given pose, xi_start = -xi_end, and only its spread is
+        learned (at ``LearningRates.camera_spread``): trusted poses get no pose refinement, from
+        the solver or from Adam; otherwise both endpoints are free. "on" / "off" force it
+        ("on" needs kind "direct"). Measured, docs/method.md §4.
     """
 
     kind: str = "direct"
@@ -105,8 +110,14 @@ class TrajectoryConfig:
     output_init_scale: float = 1e-5
     init: str = "velocity"
     velocity_window: int = 1
+    centre: str = "auto"
 
     def __post_init__(self):
+        if self.centre not in ("auto", "on", "off"):
+            raise ValueError(f"TrajectoryConfig.centre must be 'auto', 'on' or 'off'; got {self.centre!r}")
+        if self.centre == "on" and self.kind != "direct":
+            raise ValueError("TrajectoryConfig.centre = 'on' needs kind 'direct' (a PoseNet's endpoints cannot be "
+                             "tied row by row); use centre 'auto' or 'off'")
         v = self.velocity_window
         if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
             raise ValueError(f"TrajectoryConfig.velocity_window must be an int >= 1 (frames on each side); got {v!r}")

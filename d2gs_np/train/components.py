@@ -36,6 +36,7 @@ class Components:
     blur: bool
     learn_exposure: bool
     exposure_fraction: float  # used when not learned
+    centred: bool = False  # the exposure stays centred on the reference pose (TrajectoryConfig.centre)
 
     def left_out(self, terms=(), plugins=()) -> list:
         """Names of the parts of the method this run does not have: the sets and models the scene
@@ -123,4 +124,15 @@ def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Cal
             say(f"virtual views follow each frame's blur length: 1 + ceil(L / {config.blur.view_spacing_px:g} px), "
                 f"2 to n = {config.blur.num_virtual} (blur.n_schedule = length)")
         say(f"trajectory model: {config.trajectory.kind}")
-    return Components(dynamic=dynamic, blur=blur, learn_exposure=learn, exposure_fraction=float(ef or 0.0))
+    centred = False
+    if blur:
+        tc_ = config.trajectory
+        trusted = bool(getattr(scene, "poses_trusted", None))
+        centred = tc_.centre == "on" or (tc_.centre == "auto" and trusted and tc_.kind == "direct")
+        if centred:
+            why = "config trajectory.centre = on" if tc_.centre == "on" else "the scene flags its poses as exact"
+            say(f"exposure endpoints: centred on the given poses, only their spread learned ({why})")
+        else:
+            say("exposure endpoints: both free (start and end learned; the mid pose moves with them)")
+    return Components(dynamic=dynamic, blur=blur, learn_exposure=learn, exposure_fraction=float(ef or 0.0),
+                      centred=centred)

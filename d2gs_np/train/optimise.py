@@ -8,7 +8,9 @@ Learning-rate policy (3DGS's, docs/method.md §8), decided per block from its na
 - other deformation coefficients, scales, rotations, opacities, colours: constants of
   ``LearningRates``;
 - camera endpoints (``camera.xi_*``) and PoseNet weights: exponential decay; the per-frame
-  endpoint rows are visited once per epoch, so they decay over the visits a row gets;
+  endpoint rows are visited once per epoch, so they decay over the visits a row gets. A centred
+  exposure (trusted poses, ``Components.centred``) trains only its spread h, xi_end = h =
+  -xi_start, at ``camera_spread`` (``centre_endpoint_grads``);
 - the exposure logit: a constant.
 
 A block no rule covers is an error naming the block and where to add its rate.
@@ -28,7 +30,8 @@ from d2gs_np.optim import adam
 from d2gs_np.trajectory import CAMERA, POSENET, XI_END, XI_START
 from d2gs_np.train.config import LearningRates
 
-__all__ = ["PER_FRAME_BLOCKS", "scene_extent", "size_extent", "block_learning_rate", "learning_rates", "optimiser_step"]
+__all__ = ["PER_FRAME_BLOCKS", "scene_extent", "size_extent", "block_learning_rate", "learning_rates", "centre_endpoint_grads",
+           "optimiser_step"]
 
 PER_FRAME_BLOCKS = (XI_START, XI_END)  # one row per frame: row-sparse Adam
 _RATE_FIELDS = {f.name for f in dataclasses.fields(LearningRates)}
@@ -65,12 +68,16 @@ def size_extent(poses, points, camera_extent) -> float:
     return max(float(camera_extent), 1.1 * float(np.percentile(d, 90)))
 
 
-def block_learning_rate(name: str, lr: LearningRates, extent: float, iters: int, num_frames: int):
-    """The learning rate (a number or an ``adam`` schedule) of block ``name`` (module docstring)."""
+def block_learning_rate(name: str, lr: LearningRates, extent: float, iters: int, num_frames: int,
+                        centred: bool = False):
+    """The learning rate (a number or an ``adam`` schedule) of block ``name`` (module docstring);
+    ``centred``: the endpoints are a centred exposure (only the spread is trained)."""
     kind = name.split(".", 1)[1] if "." in name else name
     if name.startswith((f"{CAMERA}.xi", f"{POSENET}.")):
         # Per-frame rows are visited once per epoch: decay over the visits a row gets.
         visits = iters // num_frames + 1 if name.startswith(f"{CAMERA}.xi") else iters
+        if centred and name.startswith(f"{CAMERA}.xi"):
+            return adam.exponential_decay(lr.camera_spread, lr.camera_spread_final, visits)
         return adam.exponential_decay(lr.camera, lr.camera_final, visits)
     if name == EXPOSURE_BLOCK:
         return lr.exposure
@@ -86,9 +93,23 @@ def block_learning_rate(name: str, lr: LearningRates, extent: float, iters: int,
                      "(train/config.py), or a rule for the block to block_learning_rate (train/optimise.py)")
 
 
-def learning_rates(block_names, lr: LearningRates, extent: float, iters: int, num_frames: int) -> adam.AdamConfig:
+def learning_rates(block_names, lr: LearningRates, extent: float, iters: int, num_frames: int,
+                   centred: bool = False) -> adam.AdamConfig:
     """AdamConfig with the rate of every block in ``block_names``."""
-    return adam.AdamConfig(lrs={n: block_learning_rate(n, lr, extent, iters, num_frames) for n in block_names})
+    return adam.AdamConfig(lrs={n: block_learning_rate(n, lr, extent, iters, num_frames, centred)
+                                for n in block_names})
+
+
+def centre_endpoint_grads(grads):
+    """Gradients of a centred exposure: with xi_end = h and xi_start = -h, dL/dh = g_end - g_start,
+    given to xi_end, and its negation to xi_start. From antisymmetric endpoints and moments
+    (``init_trajectory``'s starts are), Adam's updates then stay exact negations of each other
+    (its moment updates are odd in the gradient, v even), so xi_start = -xi_end holds to the last
+    bit and the exposure's geodesic midpoint stays the reference pose. Other blocks unchanged."""
+    if XI_START not in grads or XI_END not in grads:
+        return grads
+    g = grads[XI_END] - grads[XI_START]
+    return {**grads, XI_END: g, XI_START: -g}
 
 
 def optimiser_step(grads, adam_state, params, config: adam.AdamConfig, trainable, frame: int, lr_scale=1.0):

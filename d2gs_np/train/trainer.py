@@ -36,7 +36,7 @@ from d2gs_np.train.components import Components, composition_notes, decide_compo
 from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.log import RunLog, Stopwatch, psnr_from_mse
 from d2gs_np.train.model import Model, frame_render_bwd, frame_render_fwd
-from d2gs_np.train.optimise import learning_rates, optimiser_step, scene_extent
+from d2gs_np.train.optimise import centre_endpoint_grads, learning_rates, optimiser_step, scene_extent
 from d2gs_np.train.plugins import DepthMemory, default_plugins
 from d2gs_np.train.schedule import TargetCache, schedule_step, training_progress
 from d2gs_np.train.stages import Planner, make_stages
@@ -129,7 +129,7 @@ class Trainer:
         self.planner = Planner(config, [(f.width, f.height) for f in self.frames],
                                make_stages(config.train, self.components.dynamic))
         self.adam_config = learning_rates(self.params, config.train.lr, self.extent, config.train.iters,
-                                          len(self.frames))
+                                          len(self.frames), centred=self.components.centred)
 
     # ------------------------------------------------------------------ views of the state
     @property
@@ -195,6 +195,8 @@ class Trainer:
         grads, aux = frame_render_bwd(saved, **{f"v_{n}": v for n, v in v_render.items()})
         for n, g in v_terms.items():
             grads[n] = grads[n] + g if n in grads else g
+        if self.components.centred:
+            grads = centre_endpoint_grads(grads)
         params, adam_state = optimiser_step(grads, state.adam, state.params, self.adam_config, plan.stage.trainable,
                                             k, plan.lr_scale)
         sq = (out["image"] - tgt.image) ** 2

@@ -1,0 +1,104 @@
+"""A centred exposure (docs/method.md §4, ``TrajectoryConfig.centre``): with trusted poses only the
+spread of the exposure is learned, xi_start = -xi_end holds to the last bit through training, and
+the mid-exposure pose stays the given one; with untrusted poses both endpoints stay free."""
+import numpy as np
+import pytest
+
+from d2gs_np.data.synthetic import make_scene
+from d2gs_np.geometry.se3 import se3_exp, se3_interpolate, se3_log
+from d2gs_np.train.components import decide_components
+from d2gs_np.train.config import ExperimentConfig, LearningRates, TrainConfig
+from d2gs_np.train.optimise import block_learning_rate, centre_endpoint_grads
+from d2gs_np.train.trainer import Trainer
+from d2gs_np.trajectory import XI_END, XI_START, TrajectoryConfig
+
+TINY = dict(width=48, height=27, num_frames=6)
+
+
+def _config(iters=16, centre="auto"):
+    return ExperimentConfig(train=TrainConfig(iters=iters, quiet=True, eval_every=0, log_every=1, checkpoint_every=0,
+                                              prune_every=0, warmup_fraction=0.0, deform_fraction=0.0),
+                            trajectory=TrajectoryConfig(centre=centre))
+
+
+@pytest.fixture(scope="module")
+def trusted_scene():
+    scene = make_scene("dynamic", 0, rot_noise_deg=0.0, trans_noise_fraction=0.0, **TINY)
+    assert scene.poses_trusted is True
+    return scene
+
+
+@pytest.fixture(scope="module")
+def noisy_scene():
+    scene = make_scene("dynamic", 0, **TINY)
+    assert not scene.poses_trusted
+    return scene
+
+
+def test_components_centre_the_exposure_for_trusted_poses_only(trusted_scene, noisy_scene):
+    notes = []
+    assert decide_components(trusted_scene, _config(), notes.append).centred
+    assert any("centred on the given poses" in n for n in notes)
+    assert not decide_components(noisy_scene, _config()).centred
+    assert not decide_components(trusted_scene, _config(centre="off")).centred
+    assert decide_components(noisy_scene, _config(centre="on")).centred
+    posenet = ExperimentConfig(trajectory=TrajectoryConfig(kind="posenet"))
+    assert not decide_components(trusted_scene, posenet).centred  # auto never ties a PoseNet
+    with pytest.raises(ValueError, match="centre = 'on' needs kind 'direct'"):
+        TrajectoryConfig(kind="posenet", centre="on")
+    with pytest.raises(ValueError, match="centre must be"):
+        TrajectoryConfig(centre="yes")
+
+
+def test_centred_training_keeps_the_mid_pose_and_learns_the_spread(trusted_scene, tmp_path):
+    tr = Trainer(trusted_scene, _config(), tmp_path / "run")
+    assert tr.components.centred
+    start = {n: tr.params[n].copy() for n in (XI_START, XI_END)}
+    np.testing.assert_array_equal(start[XI_START], -start[XI_END])  # the velocity start is centred
+    tr.run()
+    xs, xe = tr.params[XI_START], tr.params[XI_END]
+    np.testing.assert_array_equal(xs, -xe)  # exact: Adam's updates are exact negations
+    assert np.abs(xe - start[XI_END]).max() > 1e-6  # the spread did train
+    m = tr.model
+    for k in range(m.num_frames):
+        mid = se3_interpolate(se3_exp(xs[k]) @ m.poses_ref[k], se3_exp(xe[k]) @ m.poses_ref[k], 0.5)
+        # the geodesic midpoint of exp(-h) T and exp(h) T is T; 1e-12: a few exp/log roundings
+        assert np.abs(se3_log(mid @ np.linalg.inv(m.poses_ref[k]))).max() < 1e-12
+        np.testing.assert_allclose(m.mid_pose(k), m.poses_ref[k], atol=1e-12)
+    np.testing.assert_array_equal(m.poses_ref, np.stack([f.cam_T_world for f in trusted_scene.frames]))
+
+
+def test_free_endpoints_move_the_mid_pose(trusted_scene, tmp_path):
+    """The same run with centre = off: the tie is what keeps the mid pose (this test's contrast)."""
+    tr = Trainer(trusted_scene, _config(centre="off"), tmp_path / "run")
+    tr.run()
+    assert not np.array_equal(tr.params[XI_START], -tr.params[XI_END])
+
+
+def test_centred_grads_are_the_derivative_along_the_spread():
+    """L(h) = f(xi_start = -h, xi_end = h) for a smooth f with known gradients: dL/dh = g_e - g_s,
+    checked by central differences (float64, step 1e-6: truncation ~1e-13 from the sine's third
+    derivative, rounding ~1e-10; hence 1e-8 relative)."""
+    rng = np.random.default_rng(0)
+    A, B = rng.standard_normal((6, 6)), rng.standard_normal((6, 6))
+
+    def f(xs, xe):
+        return 0.5 * xs @ A @ xs + xe @ B @ xs + np.sin(xe).sum()
+
+    h0 = rng.standard_normal(6) * 0.1
+    xs, xe = -h0, h0
+    g_s = 0.5 * (A + A.T) @ xs + B.T @ xe
+    g_e = B @ xs + np.cos(xe)
+    grads = centre_endpoint_grads({XI_START: g_s[None], XI_END: g_e[None], "other": np.ones(2)})
+    fd = np.array([(f(-(h0 + e), h0 + e) - f(-(h0 - e), h0 - e)) / 2e-6 for e in np.eye(6) * 1e-6])
+    np.testing.assert_allclose(grads[XI_END][0], fd, rtol=1e-8, atol=1e-9)
+    np.testing.assert_array_equal(grads[XI_START], -grads[XI_END])
+    np.testing.assert_array_equal(grads["other"], np.ones(2))
+
+
+def test_centred_endpoints_learn_at_the_spread_rate():
+    lr = LearningRates(camera=1e-3, camera_final=1e-5, camera_spread=2e-4, camera_spread_final=2e-6)
+    free = block_learning_rate(XI_END, lr, 1.0, 100, 5)
+    tied = block_learning_rate(XI_END, lr, 1.0, 100, 5, centred=True)
+    assert free.lr_init == 1e-3 and free.lr_final == 1e-5
+    assert tied.lr_init == 2e-4 and tied.lr_final == 2e-6
