@@ -1,9 +1,6 @@
 """examples/exposure_error.py: zero spread error for a run whose endpoints are the true ones, zero
 mid error for an exposure centred on the true mid pose, and a clear refusal of a scene without
 true exposures."""
-import importlib.util
-from pathlib import Path
-
 import numpy as np
 import pytest
 
@@ -13,15 +10,11 @@ from d2gs_np.geometry import se3_inverse, se3_log
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 from d2gs_np.train.trainer import Trainer
 from d2gs_np.trajectory import XI_END, XI_START
-
-ROOT = Path(__file__).resolve().parents[2]
+from example_fixtures import load_example
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("exposure_error", ROOT / "examples" / "exposure_error.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_example("exposure_error.py")
 
 
 def test_true_endpoints_score_zero_and_a_centred_exposure_has_no_mid_error(tmp_path):

@@ -1,18 +1,13 @@
 """examples/plot_pose_runs.py: reads run logs, writes the figure, and refuses a bad argument."""
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+from example_fixtures import load_example
 
 
 def _module():
-    spec = importlib.util.spec_from_file_location("plot_pose_runs", ROOT / "examples" / "plot_pose_runs.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_example("plot_pose_runs.py")
 
 
 def _run(tmp_path, name, with_solver):

@@ -1,19 +1,14 @@
 """examples/suite.py end to end on tiny cells: one table row per scene, a CSV, resume without recompute."""
-import importlib.util
 import json
-from pathlib import Path
 
 import pytest
 
-ROOT = Path(__file__).resolve().parents[2]
+from example_fixtures import load_example
 
 
 @pytest.fixture(scope="module")
 def suite_runner():
-    spec = importlib.util.spec_from_file_location("suite_runner", ROOT / "examples" / "suite.py")
-    mod = importlib.util.module_from_spec(spec)
-    spec.loader.exec_module(mod)
-    return mod
+    return load_example("suite.py", "suite_runner")
 
 
 @pytest.mark.slow
