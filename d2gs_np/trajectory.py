@@ -189,6 +189,8 @@ def velocity_endpoints(poses_est, times, exposure_fraction, window=1):
     the local frame interval, so xi_start = -v tau / 2 and xi_end = +v tau / 2
     (T(t) ~ exp((t - t_k) v) T_k).
     """
+    if isinstance(window, bool) or not isinstance(window, numbers.Integral) or window < 1:
+        raise ValueError(f"velocity_endpoints: window must be an int >= 1 (frames on each side); got {window!r}")
     N = poses_est.shape[0]
     P = np.asarray(poses_est, dtype=np.float64)
     t = np.asarray(times, dtype=np.float64)
