@@ -21,7 +21,7 @@ import numpy as np
 
 from d2gs_np.data.io import load_scene
 from d2gs_np.evaluate import load_run
-from d2gs_np.geometry import se3_exp, se3_interpolate, se3_inverse, se3_log
+from d2gs_np.geometry import se3_exp, se3_inverse, se3_log
 from d2gs_np.trajectory import XI_END, XI_START, velocity_endpoints
 
 
@@ -44,11 +44,10 @@ def exposure_errors(run_dir, scene_dir, windows=(1, 3)):
     if XI_START not in model.params:
         raise SystemExit(f"{run_dir}: the run has no direct endpoint blocks (blur model off, or PoseNet)")
     ts, te = (np.stack([getattr(f, a) for f in scene.frames]) for a in ("gt_exposure_start", "gt_exposure_end"))
-    P = model.poses_ref
-    Ts = np.stack([se3_exp(x) @ p for x, p in zip(model.params[XI_START], P)])
-    Te = np.stack([se3_exp(x) @ p for x, p in zip(model.params[XI_END], P)])
+    Ts = np.einsum("nij,njk->nik", se3_exp(model.params[XI_START]), model.poses_ref)
+    Te = np.einsum("nij,njk->nik", se3_exp(model.params[XI_END]), model.poses_ref)
     out = {"spread_learned": float(np.median(spread_error_deg(Ts, Te, ts, te)))}
-    mids = np.stack([se3_interpolate(a, b, 0.5) for a, b in zip(Ts, Te)])
+    mids = model.mid_poses()  # the geodesic midpoints of (Ts, Te)
     true_mids = np.stack([f.gt_cam_T_world for f in scene.frames])
     out["mid_learned"] = float(np.median(rotation_deg(np.einsum("nij,njk->nik", mids, se3_inverse(true_mids)))))
     times = np.array([f.time for f in scene.frames])

@@ -126,11 +126,11 @@ def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Cal
         say(f"trajectory model: {config.trajectory.kind}")
     centred = False
     if blur:
-        tc_ = config.trajectory
+        traj = config.trajectory
         trusted = bool(getattr(scene, "poses_trusted", None))
-        centred = tc_.centre == "on" or (tc_.centre == "auto" and trusted and tc_.kind == "direct")
+        centred = traj.centre == "on" or (traj.centre == "auto" and trusted and traj.kind == "direct")
         if centred:
-            why = "config trajectory.centre = on" if tc_.centre == "on" else "the scene flags its poses as exact"
+            why = "config trajectory.centre = on" if traj.centre == "on" else "the scene flags its poses as exact"
             say(f"exposure endpoints: centred on the given poses, only their spread learned ({why})")
         else:
             say("exposure endpoints: both free (start and end learned; the mid pose moves with them)")
