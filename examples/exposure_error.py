@@ -1,14 +1,15 @@
 """How far a run's exposure endpoints are from the true ones (docs/method.md §4), beside the
 velocity start's, on a synthetic scene with ``gt_exposure_start`` / ``gt_exposure_end``.
 
-For each RUN SCENE pair, medians over the frames, in degrees:
+For each RUN SCENE pair, medians over the frames, each as a rotation in degrees (``_deg``) and a
+translation in scene units (``_t``):
 
-- spread: the rotation of ``T_e T_s^-1`` (the exposure's own motion, invariant to the world
-  frame) against the truth's; learned, and the velocity start's from the run's start poses
-  (the given poses or their bundle adjustment) for each ``--windows`` h
-  (``TrajectoryConfig.velocity_window``);
-- mid: the rotation between the learned geodesic mid-exposure pose and the true mid pose
-  (after no alignment: meaningful for runs on true poses or after a small ATE).
+- spread: ``T_e T_s^-1`` (the exposure's own motion, invariant to the world frame) against the
+  truth's; learned, and the velocity start's from the run's start poses (the given poses or their
+  bundle adjustment) for each ``--windows`` h (``TrajectoryConfig.velocity_window``); beside the
+  true exposures' own rotation (``spread_true_deg``) for scale;
+- mid: the learned geodesic mid-exposure pose against the true mid pose (after no alignment:
+  meaningful for runs on true poses or after a small ATE).
 
     python examples/exposure_error.py runs/photo_room scenes/photo_room_s0_blurry_true \\
         runs/wall_disk scenes/wall_disk_s0_blurry_true --windows 1 3
@@ -26,17 +27,32 @@ from d2gs_np.trajectory import XI_END, XI_START, velocity_endpoints
 
 
 def rotation_deg(T):
-    return np.degrees(np.linalg.norm(se3_log(T)[..., :3], axis=-1))
+    """(...,) rotation angle of (..., 4, 4) rigid transforms in degrees (the phi of the se(3) log;
+    tangents are (rho, phi), translation first)."""
+    return np.degrees(np.linalg.norm(se3_log(T)[..., 3:], axis=-1))
 
 
-def spread_error_deg(starts, ends, true_starts, true_ends):
-    """(N,) rotation of (T_e T_s^-1)(T*_e T*_s^-1)^-1 in degrees."""
-    own = np.einsum("nij,njk->nik", ends, se3_inverse(starts))
-    true = np.einsum("nij,njk->nik", true_ends, se3_inverse(true_starts))
-    return rotation_deg(np.einsum("nij,njk->nik", own, se3_inverse(true)))
+def translation(T):
+    """(...,) length of the translation of (..., 4, 4) rigid transforms, in scene units."""
+    return np.linalg.norm(np.asarray(T)[..., :3, 3], axis=-1)
+
+
+def spread_error(starts, ends, true_starts, true_ends):
+    """(N,) the difference D = (T_e T_s^-1)(T*_e T*_s^-1)^-1 of the exposures' own motions:
+    (rotation of D in degrees, translation of D in scene units)."""
+    D = np.einsum("nij,njk->nik", own_motion(starts, ends), se3_inverse(own_motion(true_starts, true_ends)))
+    return rotation_deg(D), translation(D)
+
+
+def own_motion(starts, ends):
+    """(N, 4, 4) T_e T_s^-1: an exposure's own motion, invariant to the world frame."""
+    return np.einsum("nij,njk->nik", ends, se3_inverse(starts))
 
 
 def exposure_errors(run_dir, scene_dir, windows=(1, 3)):
+    """Medians over the frames: ``spread_true_deg`` (the true exposures' own rotation, for scale),
+    ``spread_learned_deg`` / ``_t``, ``mid_learned_deg`` / ``_t`` and ``spread_start_h{h}_deg`` /
+    ``_t`` (module docstring); ``_deg`` in degrees, ``_t`` in scene units."""
     scene = load_scene(scene_dir)
     if any(f.gt_exposure_start is None or f.gt_exposure_end is None for f in scene.frames):
         raise SystemExit(f"{scene_dir}: no gt_exposure_start / gt_exposure_end; use a synthetic scene")
@@ -44,19 +60,26 @@ def exposure_errors(run_dir, scene_dir, windows=(1, 3)):
     if XI_START not in model.params:
         raise SystemExit(f"{run_dir}: the run has no direct endpoint blocks (blur model off, or PoseNet)")
     ts, te = (np.stack([getattr(f, a) for f in scene.frames]) for a in ("gt_exposure_start", "gt_exposure_end"))
+    out = {"spread_true_deg": float(np.median(rotation_deg(own_motion(ts, te))))}
+
+    def put(name, rot, trans):
+        out[f"{name}_deg"] = float(np.median(rot))
+        out[f"{name}_t"] = float(np.median(trans))
+
     Ts = np.einsum("nij,njk->nik", se3_exp(model.params[XI_START]), model.poses_ref)
     Te = np.einsum("nij,njk->nik", se3_exp(model.params[XI_END]), model.poses_ref)
-    out = {"spread_learned": float(np.median(spread_error_deg(Ts, Te, ts, te)))}
+    put("spread_learned", *spread_error(Ts, Te, ts, te))
     mids = model.mid_poses()  # the geodesic midpoints of (Ts, Te)
     true_mids = np.stack([f.gt_cam_T_world for f in scene.frames])
-    out["mid_learned"] = float(np.median(rotation_deg(np.einsum("nij,njk->nik", mids, se3_inverse(true_mids)))))
+    D = np.einsum("nij,njk->nik", mids, se3_inverse(true_mids))
+    put("mid_learned", rotation_deg(D), translation(D))
     times = np.array([f.time for f in scene.frames])
     fraction = scene.exposure_fraction if scene.exposure_fraction is not None else 0.5
     for h in windows:
         xs, xe = velocity_endpoints(model.start_poses, times, fraction, window=h)
         Vs = np.einsum("nij,njk->nik", se3_exp(xs), model.start_poses)
         Ve = np.einsum("nij,njk->nik", se3_exp(xe), model.start_poses)
-        out[f"spread_start_h{h}"] = float(np.median(spread_error_deg(Vs, Ve, ts, te)))
+        put(f"spread_start_h{h}", *spread_error(Vs, Ve, ts, te))
     return out
 
 
@@ -69,7 +92,7 @@ def main():
         raise SystemExit("give RUN SCENE pairs")
     rows = [(r, exposure_errors(r, s, args.windows)) for r, s in zip(args.pairs[::2], args.pairs[1::2])]
     keys = list(rows[0][1])
-    print("| run | " + " | ".join(f"{k} deg" for k in keys) + " |")
+    print("| run | " + " | ".join(keys) + " |")
     print("|---|" + "---|" * len(keys))
     for r, e in rows:
         print(f"| {r} | " + " | ".join(f"{e[k]:.3f}" for k in keys) + " |")

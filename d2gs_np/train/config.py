@@ -96,8 +96,8 @@ class LearningRates:
     camera: float = 1e-3  # trajectory endpoints xi_start / xi_end and PoseNet weights; decays to camera_final
     camera_final: float = 1e-5
     # The spread of a centred exposure (trusted poses, TrajectoryConfig.centre): measured on the
-    # suite with true poses, Adam at 1e-3 walked the learned spread 0.08-0.64 deg away from its
-    # velocity start, which was within 0.01-0.1 deg of the truth (docs/method.md §4).
+    # suite with true poses, Adam at 1e-3 walked the learned spread to 0.07-0.25 deg from the true
+    # exposure's rotation; its velocity start was within 0.001-0.13 deg (docs/method.md §4).
     camera_spread: float = 1e-4
     camera_spread_final: float = 1e-6
     exposure: float = 1e-2

@@ -6,7 +6,7 @@ import pytest
 
 from d2gs_np.data.io import write_scene
 from d2gs_np.data.synthetic import make_scene
-from d2gs_np.geometry import se3_inverse, se3_log
+from d2gs_np.geometry import se3_exp, se3_inverse, se3_log
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 from d2gs_np.train.trainer import Trainer
 from d2gs_np.trajectory import XI_END, XI_START
@@ -31,14 +31,33 @@ def test_true_endpoints_score_zero_and_a_centred_exposure_has_no_mid_error(tmp_p
     tr.params = {**tr.params, XI_START: xs, XI_END: xe}
     tr.checkpoint(final=True)
     e = mod.exposure_errors(run, scene_dir, windows=(1,))
-    assert e["spread_learned"] < 1e-9 and np.isfinite(e["spread_start_h1"])
+    assert e["spread_learned_deg"] < 1e-9 and e["spread_learned_t"] < 1e-12
+    assert np.isfinite(e["spread_start_h1_deg"]) and np.isfinite(e["spread_start_h1_t"])
     # a centred exposure about the true mid pose (the reference here): no mid error, and a spread
     # error that is not zero (0.2 rad exposures are not the true ones)
     d = np.tile([0.0, 0.0, 0.0, 0.1, 0.0, 0.0], (len(P), 1))
     tr.params = {**tr.params, XI_START: -d, XI_END: d}
     tr.checkpoint(final=True)
     e = mod.exposure_errors(run, scene_dir, windows=(1,))
-    assert e["mid_learned"] < 1e-9 and e["spread_learned"] > 1.0
+    assert e["mid_learned_deg"] < 1e-9 and e["mid_learned_t"] < 1e-12 and e["spread_learned_deg"] > 1.0
+
+
+def test_rotation_and_translation_are_read_from_the_right_parts_of_the_pose():
+    """se(3) tangents are (rho, phi), translation first: a pure rotation of 2 degrees reads as 2
+    degrees and no translation, a pure translation as 0 degrees and its length."""
+    mod = _module()
+    axis = np.array([1.0, 2.0, -2.0]) / 3.0
+    R = se3_exp(np.concatenate([np.zeros(3), np.deg2rad(2.0) * axis]))
+    assert mod.rotation_deg(R) == pytest.approx(2.0, abs=1e-12)
+    assert mod.translation(R) == pytest.approx(0.0, abs=1e-15)
+    T = se3_exp(np.array([0.3, -0.4, 0.0, 0.0, 0.0, 0.0]))
+    assert mod.rotation_deg(T) == pytest.approx(0.0, abs=1e-12)
+    assert mod.translation(T) == pytest.approx(0.5, abs=1e-12)
+    # the spread error of an exposure turning 1 degree more than the truth about the same axis
+    I = np.eye(4)[None]
+    rot = lambda deg: se3_exp(np.concatenate([np.zeros(3), np.deg2rad(deg) * axis]))[None]
+    r, t = mod.spread_error(I, rot(3.0), I, rot(2.0))
+    assert r[0] == pytest.approx(1.0, abs=1e-10) and t[0] == pytest.approx(0.0, abs=1e-15)
 
 
 def test_a_scene_without_true_exposures_is_refused(tmp_path):
