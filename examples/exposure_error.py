@@ -7,7 +7,7 @@ translation in scene units (``_t``):
 - spread: ``T_e T_s^-1`` (the exposure's own motion, invariant to the world frame) against the
   truth's; learned, and the velocity start's from the run's start poses (the given poses or their
   bundle adjustment) for each ``--windows`` h (``TrajectoryConfig.velocity_window``); beside the
-  true exposures' own rotation (``spread_true_deg``) for scale;
+  true exposures' own motion (``spread_true_deg``, ``spread_true_t``) for scale;
 - mid: the learned geodesic mid-exposure pose against the true mid pose (after no alignment:
   meaningful for runs on true poses or after a small ATE).
 
@@ -50,7 +50,7 @@ def own_motion(starts, ends):
 
 
 def exposure_errors(run_dir, scene_dir, windows=(1, 3)):
-    """Medians over the frames: ``spread_true_deg`` (the true exposures' own rotation, for scale),
+    """Medians over the frames: ``spread_true_deg`` / ``_t`` (the true exposures' own motion, for scale),
     ``spread_learned_deg`` / ``_t``, ``mid_learned_deg`` / ``_t`` and ``spread_start_h{h}_deg`` /
     ``_t`` (module docstring); ``_deg`` in degrees, ``_t`` in scene units."""
     scene = load_scene(scene_dir)
@@ -60,7 +60,8 @@ def exposure_errors(run_dir, scene_dir, windows=(1, 3)):
     if XI_START not in model.params:
         raise SystemExit(f"{run_dir}: the run has no direct endpoint blocks (blur model off, or PoseNet)")
     ts, te = (np.stack([getattr(f, a) for f in scene.frames]) for a in ("gt_exposure_start", "gt_exposure_end"))
-    out = {"spread_true_deg": float(np.median(rotation_deg(own_motion(ts, te))))}
+    true_own = own_motion(ts, te)
+    out = {"spread_true_deg": float(np.median(rotation_deg(true_own))), "spread_true_t": float(np.median(translation(true_own)))}
 
     def put(name, rot, trans):
         out[f"{name}_deg"] = float(np.median(rot))
