@@ -1,11 +1,14 @@
 """Experiments: named sweeps of independent training runs, run in parallel on Dask (docs/method.md §10).
 
 An experiment is a list of variants; a sweep crosses it with scenes and seeds into cells. Each
-cell is one run with its own folders (``OUT/scenes/<scene>_s<seed>_<kind>``,
-``OUT/runs/<scene>_s<seed>_<variant>``): it makes its scene (if not there), trains with the
-variant's config, evaluates, and writes ``RUN/metrics.json``. A cell whose metrics exist is
-never recomputed (resume); a cell that raises is retried ``retries`` times and then reported as
-failed in the table and the return value, never silently dropped.
+cell is one run with its own folders (``OUT/scenes/<scene>_s<seed>_<kind>[_x<size>][_f<frames>]``,
+``OUT/runs/<experiment>/<scene>_s<seed>_<variant>[_x<size>][_f<frames>]``): it makes its scene
+(if not there), trains with the variant's config, evaluates, and writes ``RUN/metrics.json``.
+A cell whose metrics exist is never recomputed (resume); its settings (budget, steps, base
+config) are recorded in ``RUN/cell.json``, and a later sweep into the same folder with other
+settings is refused with an error naming the cell, never answered with the old result. A cell
+that raises is retried ``retries`` times and then reported as failed in the table and the
+return value, never silently dropped.
 
 Variants (``EXPERIMENTS``):
 - ``baselines``: the full method; no blur model (n = 1, no pose refinement: the paper's
@@ -50,7 +53,7 @@ from typing import Optional
 
 from d2gs_np.train.config import METHOD_REGULARISER_WEIGHTS
 
-__all__ = ["Variant", "EXPERIMENTS", "run_cell", "run_experiment", "experiment_cells"]
+__all__ = ["Variant", "EXPERIMENTS", "run_cell", "run_experiment", "experiment_cells", "cell_folder"]
 
 
 @dataclass(frozen=True)
@@ -146,8 +149,18 @@ def _scene_overrides(scene: str, variant: Variant, size: float) -> dict:
     return o
 
 
-def scene_folder(out, scene, variant: Variant, seed, size=1.0) -> Path:
-    return Path(out) / "scenes" / (f"{scene}_s{seed}_{variant.scene_kind}" + ("" if size == 1.0 else f"_x{size:g}"))
+def scene_folder(out, scene, variant: Variant, seed, size=1.0, frames=None) -> Path:
+    """OUT/scenes/<scene>_s<seed>_<kind>[_x<size>][_f<frames>]: every setting that changes the
+    scene is in its name, so sweeps at other sizes or frame counts in one OUT never share it."""
+    name = f"{scene}_s{seed}_{variant.scene_kind}" + ("" if size == 1.0 else f"_x{size:g}")
+    return Path(out) / "scenes" / (name + (f"_f{int(frames)}" if frames else ""))
+
+
+def scene_done_marker(folder) -> Path:
+    """The file that marks a scene folder as whole: the folder's name + ".done" (not
+    ``with_suffix``, which would cut a size such as x0.6667 at its dot)."""
+    folder = Path(folder)
+    return folder.with_name(folder.name + ".done")
 
 
 def _make_scene(out, scene, variant, seed, size, frames) -> Path:
@@ -155,8 +168,8 @@ def _make_scene(out, scene, variant, seed, size, frames) -> Path:
     from d2gs_np.data.suite import SUITE, write_suite_scene
     from d2gs_np.data.synthetic import write_synthetic_scene
 
-    folder = scene_folder(out, scene, variant, seed, size)
-    done = folder.with_suffix(".done")
+    folder = scene_folder(out, scene, variant, seed, size, frames)
+    done = scene_done_marker(folder)
     if done.exists():
         return folder
     o = _scene_overrides(scene, variant, size)
@@ -192,8 +205,26 @@ def _make_scene(out, scene, variant, seed, size, frames) -> Path:
     return folder
 
 
+def cell_folder(out, experiment, scene, variant: Variant, seed, size=1.0, frames=None) -> Path:
+    """OUT/runs/<experiment>/<scene>_s<seed>_<variant>[_x<size>][_f<frames>]: variants of other
+    experiments may share a name (``noblur``), and sweeps at other sizes or frame counts may share
+    an OUT, so all of these are in the path."""
+    name = f"{scene}_s{seed}_{variant.name}" + ("" if size == 1.0 else f"_x{size:g}")
+    return Path(out) / "runs" / str(experiment) / (name + (f"_f{int(frames)}" if frames else ""))
+
+
+def cell_settings(experiment, scene, variant: Variant, seed, budget, iters, size, frames, config_path) -> dict:
+    """What decides a cell's result besides its folder (``RUN/cell.json``)."""
+    base = None
+    if config_path is not None:
+        base = json.loads(Path(config_path).read_text())
+    return {"experiment": experiment, "scene": scene, "seed": int(seed), "variant": variant.name,
+            "variant_config": variant.config, "variant_scene": variant.scene, "two_stage": variant.two_stage,
+            "budget": budget, "iters": iters, "size": size, "frames": frames, "base_config": base}
+
+
 def run_cell(out, scene, variant: Variant, seed, budget=None, iters=None, size=1.0, threads=1, config_path=None,
-             frames=None) -> dict:
+             frames=None, experiment="cells") -> dict:
     """Make the scene, train, evaluate one cell (module docstring); returns its record. Runs in a
     worker; imports inside so a worker process starts light."""
     import numba
@@ -204,8 +235,18 @@ def run_cell(out, scene, variant: Variant, seed, budget=None, iters=None, size=1
     from d2gs_np.train.config import ExperimentConfig
     from d2gs_np.train.trainer import Trainer
 
-    run_dir = Path(out) / "runs" / f"{scene}_s{seed}_{variant.name}"
+    run_dir = cell_folder(out, experiment, scene, variant, seed, size, frames)
     metrics_path = run_dir / "metrics.json"
+    settings = json.loads(json.dumps(cell_settings(experiment, scene, variant, seed, budget, iters, size, frames,
+                                                   config_path)))
+    settings_path = run_dir / "cell.json"
+    if settings_path.exists():
+        before = json.loads(settings_path.read_text())
+        if before != settings:
+            diff = sorted(k for k in set(before) | set(settings) if before.get(k) != settings.get(k))
+            raise ValueError(f"cell {run_dir} was run with other settings ({', '.join(diff)}: "
+                             f"{[before.get(k) for k in diff]} then, {[settings.get(k) for k in diff]} now); "
+                             "give the sweep a new --out, or delete that cell's folder to rerun it")
     if not metrics_path.exists():
         base = ExperimentConfig.load(config_path) if config_path else None
         train = {"quiet": True, "seed": int(seed), "time_budget": budget}
@@ -213,6 +254,10 @@ def run_cell(out, scene, variant: Variant, seed, budget=None, iters=None, size=1
             train["iters"] = int(iters)
         cfg = variant_config(variant, base, **train)  # config errors before any scene is made
         sdir = _make_scene(out, scene, variant, seed, size, frames)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        tmp = settings_path.with_name("cell.json.tmp")
+        tmp.write_text(json.dumps(settings, indent=1) + "\n")
+        tmp.replace(settings_path)
         t0 = time.perf_counter()
         Trainer(load_scene(sdir), cfg, run_dir).run()
         wall = time.perf_counter() - t0
@@ -306,7 +351,8 @@ def run_experiment(name: str, out, scenes, seeds=(0,), budget: Optional[float] =
         variant_config(v, base)
     out = Path(out)
     out.mkdir(parents=True, exist_ok=True)
-    kw = dict(budget=budget, iters=iters, size=size, threads=threads, config_path=config_path, frames=frames)
+    kw = dict(budget=budget, iters=iters, size=size, threads=threads, config_path=config_path, frames=frames,
+              experiment=name)
     records = _run_cells(cells, str(out), retries, kw, jobs, scheduler)
     order = {(s, v.name, sd): i for i, (s, v, sd) in enumerate(cells)}
     records.sort(key=lambda r: order[(r["scene"], r["variant"], r["seed"])])

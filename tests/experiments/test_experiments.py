@@ -79,7 +79,8 @@ def test_a_sweep_on_a_two_worker_cluster_retries_reports_and_resumes(tmp_path, c
     assert (tmp_path / "virtual-views.csv").read_text().count("\n") == 4
     assert (tmp_path / "virtual-views_error_vs_time.png").exists()
     # resume: finished cells are not recomputed (their metrics files are untouched)
-    m1 = tmp_path / "runs" / "dynamic_s0_n1" / "metrics.json"
+    m1 = ex.cell_folder(tmp_path, "virtual-views", "dynamic", ex.EXPERIMENTS["virtual-views"][0], 0, TINY["size"],
+                        TINY["frames"]) / "metrics.json"
     stamp = m1.stat().st_mtime_ns
     monkeypatch.setattr(ex, "run_cell", real)
     again = ex.run_experiment("virtual-views", tmp_path, ["dynamic"], [0], variants=["n1", "n2"], scheduler=cluster,
@@ -93,13 +94,49 @@ def test_baselines_on_the_local_process_pool(tmp_path):
     by = {r["variant"]: r for r in recs}
     assert set(by) == {"full", "noblur", "two_stage", "sharp_bound"}
     assert all(r["status"] == "ok" for r in recs), [r.get("traceback") for r in recs]
-    two = json.loads((tmp_path / "runs" / "dynamic_s0_two_stage" / "metrics.json").read_text())
+    cell = {v.name: ex.cell_folder(tmp_path, "baselines", "dynamic", v, 0, TINY["size"], TINY["frames"])
+            for v in ex.EXPERIMENTS["baselines"]}
+    two = json.loads((cell["two_stage"] / "metrics.json").read_text())
     assert "blur_model" in two["left_out"]  # the deconvolved frames are trained as sharp input
-    sharp = json.loads((tmp_path / "runs" / "dynamic_s0_sharp_bound" / "metrics.json").read_text())
+    sharp = json.loads((cell["sharp_bound"] / "metrics.json").read_text())
     assert sharp["input_blur"]["psnr"] is None or sharp["input_blur"].get("identical") or \
         sharp["input_blur"]["psnr"] > by["full"]["input_psnr"]  # sharp inputs: far closer to the truth
     # FLIP agrees: the sharp inputs are perceptually nearer the truth than the blurry ones
     assert sharp["input_blur"]["flip"] < by["full"]["input_flip"]
+
+
+def test_a_finished_cell_is_never_answered_for_other_settings(tmp_path):
+    """The same OUT swept again with another budget (or steps) is refused, naming the cell and
+    what differs; variants of two experiments that share a name (``noblur``) get their own
+    folders, so one never resumes the other's result."""
+    kw = dict(TINY)
+    recs = ex.run_experiment("virtual-views", tmp_path, ["dynamic"], [0], variants=["n1"], **kw)
+    assert recs[0]["status"] == "ok", recs[0].get("traceback")
+    kw["iters"] = 4
+    again = ex.run_experiment("virtual-views", tmp_path, ["dynamic"], [0], variants=["n1"], retries=0, **kw)
+    assert again[0]["status"] == "failed" and "other settings" in again[0]["error"] and "iters" in again[0]["error"]
+    a = ex.cell_folder(tmp_path, "baselines", "dynamic", ex.EXPERIMENTS["baselines"][1], 0)
+    b = ex.cell_folder(tmp_path, "suite", "dynamic", ex.EXPERIMENTS["suite"][2], 0)
+    assert ex.EXPERIMENTS["baselines"][1].name == ex.EXPERIMENTS["suite"][2].name == "noblur" and a != b
+
+
+def test_scenes_of_other_sizes_or_frame_counts_never_share_a_folder_or_a_marker(tmp_path):
+    """Sizes with a decimal point (x0.6667, x0.5) once shared one ".done" marker (with_suffix cut
+    the name at the dot), and the frame count was not in the name: a second sweep in the same OUT
+    reused the first one's scene. Each setting now makes its own scene."""
+    from d2gs_np.data.io import load_scene
+
+    v = ex.EXPERIMENTS["virtual-views"][0]
+    a = ex._make_scene(tmp_path, "dynamic", v, 0, 40 / 240, 4)
+    b = ex._make_scene(tmp_path, "dynamic", v, 0, 48 / 240, 4)
+    c = ex._make_scene(tmp_path, "dynamic", v, 0, 40 / 240, 5)
+    assert len({a, b, c}) == 3
+    assert len({ex.scene_done_marker(f) for f in (a, b, c)}) == 3
+    assert all(ex.scene_done_marker(f).exists() for f in (a, b, c))
+    sa, sb, sc = load_scene(a), load_scene(b), load_scene(c)
+    assert (sa.frames[0].width, sa.num_frames) == (40, 4)
+    assert (sb.frames[0].width, sb.num_frames) == (48, 4)
+    assert (sc.frames[0].width, sc.num_frames) == (40, 5)
 
 
 def test_cells_sharing_a_scene_never_read_it_half_written(tmp_path):
@@ -128,5 +165,5 @@ def test_cells_sharing_a_scene_never_read_it_half_written(tmp_path):
     for t in threads:
         t.join()
     assert not errors, errors
-    assert len(set(folders)) == 1 and folders[0].with_suffix(".done").exists()
+    assert len(set(folders)) == 1 and ex.scene_done_marker(folders[0]).exists()
     assert not [p.name for p in folders[0].parent.iterdir() if ".tmp-" in p.name]
