@@ -21,7 +21,8 @@ Variants (``EXPERIMENTS``):
 - ``ablation``: the paper's Table V on the given poses: render only; + L_ts; + L_gs; + L_freq
   (each alone, at the method's weights); + the pose solver (the "+ L_reproj" row); all.
 - ``suite``: what ``examples/suite.py`` runs (sharp / blurry with true poses, with and without
-  the blur model / blurry with the given noisy poses).
+  the blur model / blurry with the given noisy poses); ``suite-ablation``: the ablation's
+  regularisers with true poses (``examples/suite.py --variants render_only ...``).
 A variant is a name, config overrides (a nested dict merged into the config's JSON form, so a
 variant is data and every key is checked by ``ExperimentConfig.from_dict``), scene overrides
 (``SuiteConfig`` fields, e.g. exposure 0 or true poses) and an optional preprocessing of the
@@ -103,6 +104,16 @@ EXPERIMENTS = {
         Variant("+reproj", config={"loss": {**_NO_REG, "lambda_reproj": _REG["lambda_reproj"]},
                                    "pose_solver": {"mode": "on"}}),
         Variant("all", config={"loss": dict(_REG), "pose_solver": {"mode": "on"}}),
+    ),
+    # The same ablation with true poses (examples/suite.py): the regularisers without pose error;
+    # trusted poses leave the pose solver out, so "+reproj" is L_reproj's depth term alone.
+    "suite-ablation": (
+        Variant("render_only", scene=_TRUE_POSES, config={"loss": _NO_REG}),
+        Variant("+ts", scene=_TRUE_POSES, config={"loss": {**_NO_REG, "lambda_ts": _REG["lambda_ts"]}}),
+        Variant("+gs", scene=_TRUE_POSES, config={"loss": {**_NO_REG, "lambda_gs": _REG["lambda_gs"]}}),
+        Variant("+freq", scene=_TRUE_POSES, config={"loss": {**_NO_REG, "lambda_freq": _REG["lambda_freq"]}}),
+        Variant("+reproj", scene=_TRUE_POSES, config={"loss": {**_NO_REG, "lambda_reproj": _REG["lambda_reproj"]}}),
+        Variant("all", scene=_TRUE_POSES, config={"loss": dict(_REG)}),
     ),
     "suite": (
         Variant("sharp", scene=_SHARP),
