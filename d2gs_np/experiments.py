@@ -371,12 +371,21 @@ def run_experiment(name: str, out, scenes, seeds=(0,), budget: Optional[float] =
     return records
 
 
+def compute_local(tasks, jobs):
+    """Dask delayed ``tasks`` on the local process pool, ``jobs`` at once. One task per dispatch
+    (``chunksize=1``): Dask's default batches up to 6 ready tasks into one worker's job, which on
+    a sweep of minutes-long cells left a worker idle while the other ran a batch in turn."""
+    import dask
+
+    return list(dask.compute(*tasks, scheduler="processes", num_workers=jobs, chunksize=1))
+
+
 def _run_cells(cells, out, retries, kw, jobs, scheduler):
     import dask
 
     tasks = [dask.delayed(_cell_with_retries, pure=False)(retries, out, s, v, sd, **kw) for s, v, sd in cells]
     if scheduler is None:
-        return list(dask.compute(*tasks, scheduler="processes", num_workers=jobs))
+        return compute_local(tasks, jobs)
     from distributed import Client
 
     client = scheduler if isinstance(scheduler, Client) else Client(scheduler)

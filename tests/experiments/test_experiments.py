@@ -105,6 +105,23 @@ def test_baselines_on_the_local_process_pool(tmp_path):
     assert sharp["input_blur"]["flip"] < by["full"]["input_flip"]
 
 
+def test_the_local_pool_runs_as_many_cells_at_once_as_jobs():
+    """Four cells on two local workers: both workers run cells (with Dask's default batching of
+    ready tasks, all four went to one worker's job while the other stood idle)."""
+    import os
+
+    import dask
+
+    def cell(i):
+        import time
+
+        time.sleep(0.5)
+        return os.getpid()
+
+    pids = ex.compute_local([dask.delayed(cell, pure=False)(i) for i in range(4)], jobs=2)
+    assert len(pids) == 4 and len(set(pids)) == 2 and os.getpid() not in pids
+
+
 def test_a_finished_cell_is_never_answered_for_other_settings(tmp_path):
     """The same OUT swept again with another budget (or steps) is refused, naming the cell and
     what differs; variants of two experiments that share a name (``noblur``) get their own
