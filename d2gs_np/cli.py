@@ -381,7 +381,7 @@ def build_parser() -> argparse.ArgumentParser:
     ex = sub.add_parser("experiment", help="run a sweep of training runs on Dask and write one table "
                         "(docs/method.md §10)",
                         description="Run an experiment (baselines, ablation, progressive, virtual-views, suite, suite-ablation) over scenes "
-                                    "and seeds: every cell an independent run in OUT/runs, in parallel on Dask's "
+                                    "and seeds: every cell an independent run in OUT/runs/NAME, in parallel on Dask's "
                                     "local process pool or on a dask.distributed cluster (--scheduler). Finished "
                                     "cells are never recomputed; failed ones are retried, then reported. Writes "
                                     "OUT/NAME.md, NAME.csv and NAME_error_vs_time.png. Baselines and metrics: "
