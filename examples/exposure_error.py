@@ -9,7 +9,13 @@ translation in scene units (``_t``):
   bundle adjustment) for each ``--windows`` h (``TrajectoryConfig.velocity_window``); beside the
   true exposures' own motion (``spread_true_deg``, ``spread_true_t``) for scale;
 - mid: the learned geodesic mid-exposure pose against the true mid pose (after no alignment:
-  meaningful for runs on true poses or after a small ATE).
+  meaningful for runs on true poses or after a small ATE);
+- blur (``_px``, suite scenes only: it needs the true world of ``suite_config.json``): what the
+  blur looks like in the image. Every 4th pixel of each frame is lifted at its true depth into the
+  camera at the exposure's geodesic midpoint; its blur vector is its projection at the exposure's
+  end minus at its start. The error is |b - b*| against the true exposure's b*, median over pixels
+  and frames, in pixels; ``blur_true_px`` is the median length of b* for scale. Unlike the angles,
+  it weighs rotation and translation as the image sees them (translation by inverse depth).
 
     python examples/exposure_error.py runs/photo_room scenes/photo_room_s0_blurry_true \\
         runs/wall_disk scenes/wall_disk_s0_blurry_true --windows 1 3
@@ -49,10 +55,68 @@ def own_motion(starts, ends):
     return np.einsum("nij,njk->nik", ends, se3_inverse(starts))
 
 
+def geodesic_mid(starts, ends):
+    """(N, 4, 4) the geodesic midpoints exp(log(T_e T_s^-1) / 2) T_s."""
+    return np.einsum("nij,njk->nik", se3_exp(0.5 * se3_log(own_motion(starts, ends))), starts)
+
+
+def mid_camera_points(scene_dir, true_starts, true_ends, step=4):
+    """Per frame (M, 3) points in the camera of the true exposure's geodesic midpoint: every
+    ``step``-th pixel lifted at the true depth of the scene's world (suite scenes: rebuilt from
+    ``suite_config.json``); None for a scene without one."""
+    from pathlib import Path
+
+    from d2gs_np.data.suite import SuiteConfig, build_suite_world, suite_depth_map
+
+    cfg_path = Path(scene_dir) / "suite_config.json"
+    if not cfg_path.exists():
+        return None
+    import json
+
+    world = build_suite_world(SuiteConfig(**json.loads(cfg_path.read_text())))
+    scene = load_scene(scene_dir, load_images=False)
+    mids = geodesic_mid(true_starts, true_ends)
+    out = []
+    for k, f in enumerate(scene.frames):
+        K = np.asarray(f.K, dtype=np.float64)
+        jj, ii = np.meshgrid(np.arange(0, f.width, step), np.arange(0, f.height, step))
+        depth = suite_depth_map(world, f.gt_cam_T_world, f.time, K, f.width, f.height)[ii, jj]
+        ok = np.isfinite(depth)
+        d = depth[ok]
+        x = np.stack([(jj[ok] + 0.5 - K[0, 2]) / K[0, 0] * d, (ii[ok] + 0.5 - K[1, 2]) / K[1, 1] * d, d], axis=1)
+        A = mids[k] @ se3_inverse(f.gt_cam_T_world)  # the frame's true camera -> the exposure's mid camera
+        out.append(x @ A[:3, :3].T + A[:3, 3])
+    return out
+
+
+def blur_vectors(points, K, starts, ends):
+    """Per frame (M, 2) blur vectors in pixels: the projection of each mid-camera point at the
+    exposure's end minus at its start (mid = the geodesic midpoint of starts, ends)."""
+    K = np.asarray(K, dtype=np.float64)
+    mids = geodesic_mid(starts, ends)
+    out = []
+    for k, x in enumerate(points):
+        uv = []
+        for T in (starts[k], ends[k]):
+            A = T @ se3_inverse(mids[k])
+            y = x @ A[:3, :3].T + A[:3, 3]
+            uv.append(np.stack([K[0, 0] * y[:, 0] / y[:, 2] + K[0, 2], K[1, 1] * y[:, 1] / y[:, 2] + K[1, 2]], 1))
+        out.append(uv[1] - uv[0])
+    return out
+
+
+def blur_error_px(points, K, starts, ends, true_starts, true_ends):
+    """Median |b - b*| over all points and frames (``blur_vectors``), in pixels."""
+    b = blur_vectors(points, K, starts, ends)
+    bt = blur_vectors(points, K, true_starts, true_ends)
+    return float(np.median(np.concatenate([np.linalg.norm(u - v, axis=1) for u, v in zip(b, bt)])))
+
+
 def exposure_errors(run_dir, scene_dir, windows=(1, 3)):
     """Medians over the frames: ``spread_true_deg`` / ``_t`` (the true exposures' own motion, for scale),
     ``spread_learned_deg`` / ``_t``, ``mid_learned_deg`` / ``_t`` and ``spread_start_h{h}_deg`` /
-    ``_t`` (module docstring); ``_deg`` in degrees, ``_t`` in scene units."""
+    ``_t`` (module docstring); ``_deg`` in degrees, ``_t`` in scene units; on suite scenes also
+    ``blur_true_px``, ``blur_learned_px`` and ``blur_start_h{h}_px``."""
     scene = load_scene(scene_dir)
     if any(f.gt_exposure_start is None or f.gt_exposure_end is None for f in scene.frames):
         raise SystemExit(f"{scene_dir}: no gt_exposure_start / gt_exposure_end; use a synthetic scene")
@@ -67,9 +131,16 @@ def exposure_errors(run_dir, scene_dir, windows=(1, 3)):
         out[f"{name}_deg"] = float(np.median(rot))
         out[f"{name}_t"] = float(np.median(trans))
 
+    points = mid_camera_points(scene_dir, ts, te)
+    K = scene.frames[0].K
+    if points is not None:
+        out["blur_true_px"] = float(np.median(np.concatenate([np.linalg.norm(b, axis=1)
+                                                              for b in blur_vectors(points, K, ts, te)])))
     Ts = np.einsum("nij,njk->nik", se3_exp(model.params[XI_START]), model.poses_ref)
     Te = np.einsum("nij,njk->nik", se3_exp(model.params[XI_END]), model.poses_ref)
     put("spread_learned", *spread_error(Ts, Te, ts, te))
+    if points is not None:
+        out["blur_learned_px"] = blur_error_px(points, K, Ts, Te, ts, te)
     mids = model.mid_poses()  # the geodesic midpoints of (Ts, Te)
     true_mids = np.stack([f.gt_cam_T_world for f in scene.frames])
     D = np.einsum("nij,njk->nik", mids, se3_inverse(true_mids))
@@ -81,6 +152,8 @@ def exposure_errors(run_dir, scene_dir, windows=(1, 3)):
         Vs = np.einsum("nij,njk->nik", se3_exp(xs), model.start_poses)
         Ve = np.einsum("nij,njk->nik", se3_exp(xe), model.start_poses)
         put(f"spread_start_h{h}", *spread_error(Vs, Ve, ts, te))
+        if points is not None:
+            out[f"blur_start_h{h}_px"] = blur_error_px(points, K, Vs, Ve, ts, te)
     return out
 
 

@@ -68,3 +68,32 @@ def test_a_scene_without_true_exposures_is_refused(tmp_path):
             f.gt_exposure_start = None
         write_scene(scene, tmp_path / "s")
         mod.exposure_errors(tmp_path / "missing_run", tmp_path / "s")
+
+
+def test_the_blur_vector_error_is_zero_for_the_truth_and_f_alpha_for_a_turn(tmp_path):
+    """On a suite scene (its true world rebuilt from suite_config.json): the true exposures' blur
+    vectors have zero error; turning both endpoints by alpha/2 more about the camera's y axis
+    (a pure rotation, so every depth moves alike) changes a blur vector by f alpha (1 + x^2) at
+    normalised image abscissa x: between f alpha and f alpha (1 + tan^2(fov_x / 2)) = 1.33 f alpha
+    for the suite's 60 degree field of view."""
+    from d2gs_np.data.suite import write_suite_scene
+
+    mod = _module()
+    scene_dir = write_suite_scene(tmp_path / "s", "cube_sign", 0, num_frames=4, width=48, height=27)
+    from d2gs_np.data.io import load_scene
+    scene = load_scene(scene_dir, load_images=False)
+    ts = np.stack([f.gt_exposure_start for f in scene.frames])
+    te = np.stack([f.gt_exposure_end for f in scene.frames])
+    pts = mod.mid_camera_points(scene_dir, ts, te, step=2)
+    assert pts is not None and all(len(p) > 100 for p in pts)
+    K = scene.frames[0].K
+    assert mod.blur_error_px(pts, K, ts, te, ts, te) == 0.0
+    alpha = np.deg2rad(0.5)
+    turn = lambda a: se3_exp(np.array([0.0, 0.0, 0.0, 0.0, a, 0.0]))
+    # left perturbations act in the camera frame: exp(d) T turns the camera about its own y axis
+    e = mod.blur_error_px(pts, K, np.einsum("ij,njk->nik", turn(-alpha / 2), ts),
+                          np.einsum("ij,njk->nik", turn(alpha / 2), te), ts, te)
+    f_alpha = K[0, 0] * alpha
+    assert f_alpha * 0.99 <= e <= f_alpha * 1.34, (e, f_alpha)
+    # a scene folder without a world has no pixel metric
+    assert mod.mid_camera_points(tmp_path / "nowhere", ts, te) is None
