@@ -5,7 +5,7 @@ cell is one run with its own folders (``OUT/scenes/<scene>_s<seed>_<kind>[_x<siz
 ``OUT/runs/<experiment>/<scene>_s<seed>_<variant>[_x<size>][_f<frames>]``): it makes its scene
 (if not there), trains with the variant's config, evaluates, and writes ``RUN/metrics.json``.
 A cell whose metrics exist is never recomputed (resume); its settings (budget, steps, base
-config) are recorded in ``RUN/cell.json``, and a later sweep into the same folder with other
+config, and with a budget the thread count) are recorded in ``RUN/cell.json``, and a later sweep into the same folder with other
 settings is refused with an error naming the cell, never answered with the old result. A cell
 that raises is retried ``retries`` times and then reported as failed in the table and the
 return value, never silently dropped.
@@ -224,14 +224,17 @@ def cell_folder(out, experiment, scene, variant: Variant, seed, size=1.0, frames
     return Path(out) / "runs" / str(experiment) / (name + (f"_f{int(frames)}" if frames else ""))
 
 
-def cell_settings(experiment, scene, variant: Variant, seed, budget, iters, size, frames, config_path) -> dict:
-    """What decides a cell's result besides its folder (``RUN/cell.json``)."""
+def cell_settings(experiment, scene, variant: Variant, seed, budget, iters, size, frames, config_path,
+                  threads=1) -> dict:
+    """What decides a cell's result besides its folder (``RUN/cell.json``). The thread count only
+    with a time budget: results do not depend on it, but the steps a budget buys do."""
     base = None
     if config_path is not None:
         base = json.loads(Path(config_path).read_text())
     return {"experiment": experiment, "scene": scene, "seed": int(seed), "variant": variant.name,
             "variant_config": variant.config, "variant_scene": variant.scene, "two_stage": variant.two_stage,
-            "budget": budget, "iters": iters, "size": size, "frames": frames, "base_config": base}
+            "budget": budget, "iters": iters, "size": size, "frames": frames, "base_config": base,
+            "threads": None if budget is None else int(threads)}
 
 
 def run_cell(out, scene, variant: Variant, seed, budget=None, iters=None, size=1.0, threads=1, config_path=None,
@@ -249,7 +252,7 @@ def run_cell(out, scene, variant: Variant, seed, budget=None, iters=None, size=1
     run_dir = cell_folder(out, experiment, scene, variant, seed, size, frames)
     metrics_path = run_dir / "metrics.json"
     settings = json.loads(json.dumps(cell_settings(experiment, scene, variant, seed, budget, iters, size, frames,
-                                                   config_path)))
+                                                   config_path, threads)))
     settings_path = run_dir / "cell.json"
     if settings_path.exists():
         before = json.loads(settings_path.read_text())

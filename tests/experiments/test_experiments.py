@@ -132,6 +132,13 @@ def test_a_finished_cell_is_never_answered_for_other_settings(tmp_path):
     kw["iters"] = 4
     again = ex.run_experiment("virtual-views", tmp_path, ["dynamic"], [0], variants=["n1"], retries=0, **kw)
     assert again[0]["status"] == "failed" and "other settings" in again[0]["error"] and "iters" in again[0]["error"]
+    # with a time budget the thread count decides the steps bought, so it is a setting too; with
+    # steps alone it is not (results do not depend on it)
+    v = ex.EXPERIMENTS["virtual-views"][0]
+    s1 = ex.cell_settings("e", "dynamic", v, 0, 60.0, None, 1.0, None, None, threads=1)
+    assert s1 != ex.cell_settings("e", "dynamic", v, 0, 60.0, None, 1.0, None, None, threads=2)
+    assert ex.cell_settings("e", "dynamic", v, 0, None, 5, 1.0, None, None, threads=1) == \
+        ex.cell_settings("e", "dynamic", v, 0, None, 5, 1.0, None, None, threads=2)
     a = ex.cell_folder(tmp_path, "baselines", "dynamic", ex.EXPERIMENTS["baselines"][1], 0)
     b = ex.cell_folder(tmp_path, "suite", "dynamic", ex.EXPERIMENTS["suite"][2], 0)
     assert ex.EXPERIMENTS["baselines"][1].name == ex.EXPERIMENTS["suite"][2].name == "noblur" and a != b
