@@ -28,14 +28,15 @@ import numpy as np
 
 from d2gs_np.data.io import load_scene
 from d2gs_np.evaluate import load_run
-from d2gs_np.geometry import se3_exp, se3_inverse, se3_log
+from d2gs_np.geometry import se3_exp, se3_interpolate, se3_inverse
+from d2gs_np.geometry.camera import project_points, unproject_points
+from d2gs_np.geometry.so3 import so3_log
 from d2gs_np.trajectory import XI_END, XI_START, velocity_endpoints
 
 
 def rotation_deg(T):
-    """(...,) rotation angle of (..., 4, 4) rigid transforms in degrees (the phi of the se(3) log;
-    tangents are (rho, phi), translation first)."""
-    return np.degrees(np.linalg.norm(se3_log(T)[..., 3:], axis=-1))
+    """(...,) rotation angle of (..., 4, 4) rigid transforms in degrees (of their rotation block)."""
+    return np.degrees(np.linalg.norm(so3_log(np.asarray(T)[..., :3, :3]), axis=-1))
 
 
 def translation(T):
@@ -55,15 +56,11 @@ def own_motion(starts, ends):
     return np.einsum("nij,njk->nik", ends, se3_inverse(starts))
 
 
-def geodesic_mid(starts, ends):
-    """(N, 4, 4) the geodesic midpoints exp(log(T_e T_s^-1) / 2) T_s."""
-    return np.einsum("nij,njk->nik", se3_exp(0.5 * se3_log(own_motion(starts, ends))), starts)
-
-
-def mid_camera_points(scene_dir, true_starts, true_ends, step=4):
+def mid_camera_points(scene_dir, true_starts, true_ends, step=4, scene=None):
     """Per frame (M, 3) points in the camera of the true exposure's geodesic midpoint: every
     ``step``-th pixel lifted at the true depth of the scene's world (suite scenes: rebuilt from
-    ``suite_config.json``); None for a scene without one."""
+    ``suite_config.json``); None for a scene without one. ``scene``: the folder already loaded."""
+    import json
     from pathlib import Path
 
     from d2gs_np.data.suite import SuiteConfig, build_suite_world, suite_depth_map
@@ -71,45 +68,34 @@ def mid_camera_points(scene_dir, true_starts, true_ends, step=4):
     cfg_path = Path(scene_dir) / "suite_config.json"
     if not cfg_path.exists():
         return None
-    import json
-
     world = build_suite_world(SuiteConfig(**json.loads(cfg_path.read_text())))
-    scene = load_scene(scene_dir, load_images=False)
-    mids = geodesic_mid(true_starts, true_ends)
+    scene = load_scene(scene_dir, load_images=False) if scene is None else scene
+    mids = se3_interpolate(true_starts, true_ends, 0.5)
     out = []
     for k, f in enumerate(scene.frames):
-        K = np.asarray(f.K, dtype=np.float64)
         jj, ii = np.meshgrid(np.arange(0, f.width, step), np.arange(0, f.height, step))
-        depth = suite_depth_map(world, f.gt_cam_T_world, f.time, K, f.width, f.height)[ii, jj]
+        depth = suite_depth_map(world, f.gt_cam_T_world, f.time, f.K, f.width, f.height)[ii, jj]
         ok = np.isfinite(depth)
-        d = depth[ok]
-        x = np.stack([(jj[ok] + 0.5 - K[0, 2]) / K[0, 0] * d, (ii[ok] + 0.5 - K[1, 2]) / K[1, 1] * d, d], axis=1)
-        A = mids[k] @ se3_inverse(f.gt_cam_T_world)  # the frame's true camera -> the exposure's mid camera
-        out.append(x @ A[:3, :3].T + A[:3, 3])
+        X = unproject_points(np.stack([jj[ok], ii[ok]], axis=1) + 0.5, depth[ok], f.gt_cam_T_world, f.K)
+        out.append(X @ mids[k][:3, :3].T + mids[k][:3, 3])  # world -> the exposure's mid camera
     return out
 
 
 def blur_vectors(points, K, starts, ends):
     """Per frame (M, 2) blur vectors in pixels: the projection of each mid-camera point at the
     exposure's end minus at its start (mid = the geodesic midpoint of starts, ends)."""
-    K = np.asarray(K, dtype=np.float64)
-    mids = geodesic_mid(starts, ends)
-    out = []
-    for k, x in enumerate(points):
-        uv = []
-        for T in (starts[k], ends[k]):
-            A = T @ se3_inverse(mids[k])
-            y = x @ A[:3, :3].T + A[:3, 3]
-            uv.append(np.stack([K[0, 0] * y[:, 0] / y[:, 2] + K[0, 2], K[1, 1] * y[:, 1] / y[:, 2] + K[1, 2]], 1))
-        out.append(uv[1] - uv[0])
-    return out
+    mids = se3_interpolate(starts, ends, 0.5)
+    return [project_points(x, ends[k] @ se3_inverse(mids[k]), K)[0]
+            - project_points(x, starts[k] @ se3_inverse(mids[k]), K)[0] for k, x in enumerate(points)]
+
+
+def _median_distance(b, bt):
+    return float(np.median(np.concatenate([np.linalg.norm(u - v, axis=1) for u, v in zip(b, bt)])))
 
 
 def blur_error_px(points, K, starts, ends, true_starts, true_ends):
     """Median |b - b*| over all points and frames (``blur_vectors``), in pixels."""
-    b = blur_vectors(points, K, starts, ends)
-    bt = blur_vectors(points, K, true_starts, true_ends)
-    return float(np.median(np.concatenate([np.linalg.norm(u - v, axis=1) for u, v in zip(b, bt)])))
+    return _median_distance(blur_vectors(points, K, starts, ends), blur_vectors(points, K, true_starts, true_ends))
 
 
 def exposure_errors(run_dir, scene_dir, windows=(1, 3)):
@@ -131,16 +117,16 @@ def exposure_errors(run_dir, scene_dir, windows=(1, 3)):
         out[f"{name}_deg"] = float(np.median(rot))
         out[f"{name}_t"] = float(np.median(trans))
 
-    points = mid_camera_points(scene_dir, ts, te)
+    points = mid_camera_points(scene_dir, ts, te, scene=scene)
     K = scene.frames[0].K
     if points is not None:
-        out["blur_true_px"] = float(np.median(np.concatenate([np.linalg.norm(b, axis=1)
-                                                              for b in blur_vectors(points, K, ts, te)])))
+        true_blur = blur_vectors(points, K, ts, te)  # once: every error below is against it
+        out["blur_true_px"] = float(np.median(np.concatenate([np.linalg.norm(b, axis=1) for b in true_blur])))
     Ts = np.einsum("nij,njk->nik", se3_exp(model.params[XI_START]), model.poses_ref)
     Te = np.einsum("nij,njk->nik", se3_exp(model.params[XI_END]), model.poses_ref)
     put("spread_learned", *spread_error(Ts, Te, ts, te))
     if points is not None:
-        out["blur_learned_px"] = blur_error_px(points, K, Ts, Te, ts, te)
+        out["blur_learned_px"] = _median_distance(blur_vectors(points, K, Ts, Te), true_blur)
     mids = model.mid_poses()  # the geodesic midpoints of (Ts, Te)
     true_mids = np.stack([f.gt_cam_T_world for f in scene.frames])
     D = np.einsum("nij,njk->nik", mids, se3_inverse(true_mids))
@@ -153,7 +139,7 @@ def exposure_errors(run_dir, scene_dir, windows=(1, 3)):
         Ve = np.einsum("nij,njk->nik", se3_exp(xe), model.start_poses)
         put(f"spread_start_h{h}", *spread_error(Vs, Ve, ts, te))
         if points is not None:
-            out[f"blur_start_h{h}_px"] = blur_error_px(points, K, Vs, Ve, ts, te)
+            out[f"blur_start_h{h}_px"] = _median_distance(blur_vectors(points, K, Vs, Ve), true_blur)
     return out
 
 

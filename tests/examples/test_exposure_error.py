@@ -4,7 +4,7 @@ true exposures."""
 import numpy as np
 import pytest
 
-from d2gs_np.data.io import write_scene
+from d2gs_np.data.io import load_scene, write_scene
 from d2gs_np.data.synthetic import make_scene
 from d2gs_np.geometry import se3_exp, se3_inverse, se3_log
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
@@ -80,7 +80,6 @@ def test_the_blur_vector_error_is_zero_for_the_truth_and_f_alpha_for_a_turn(tmp_
 
     mod = _module()
     scene_dir = write_suite_scene(tmp_path / "s", "cube_sign", 0, num_frames=4, width=48, height=27)
-    from d2gs_np.data.io import load_scene
     scene = load_scene(scene_dir, load_images=False)
     ts = np.stack([f.gt_exposure_start for f in scene.frames])
     te = np.stack([f.gt_exposure_end for f in scene.frames])
