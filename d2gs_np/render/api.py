@@ -197,14 +197,14 @@ def _render(inputs, width, height, config, dtype):
     consts = make_consts(config, width, height, dtype)
     proj = project_fwd(inputs["means"], inputs["quats"], inputs["scales"], inputs["opacities"],
                        inputs["cam_T_world"], inputs["K"], consts, config.antialiased)
-    isect = build_intersections(proj["means2d"], proj["radii_f"], proj["depths"], consts, width, height, ts)
+    isect = build_intersections(proj, consts, width, height, ts)
     raster = rasterize_fwd(proj, inputs["colors"], inputs["background"], consts, isect, width, height, ts)
     alpha = 1 - raster["T_final"]
     expected_depth = raster["depth"] / np.maximum(alpha, dtype.type(C.EXPECTED_DEPTH_ALPHA_MIN))
     radii = np.minimum(proj["radii_f"], _INT32_MAX).astype(np.int32)
     out = dict(image=raster["image"], alpha=alpha, depth=raster["depth"], expected_depth=expected_depth,
                radii=radii, means2d=proj["means2d"], depths=proj["depths"], conics=proj["conics"],
-               num_intersections=int(isect["n_isect"]))
+               num_intersections=isect["n_box_isect"])
     saved = RenderSaved(inputs, width, height, config, dtype, consts, proj, isect, raster)
     return out, saved
 

@@ -468,6 +468,60 @@ def test_band_rows_hold_every_pixel_below_the_cutoff():
     assert tighter > 10  # 29 of the 400 (most miss the tile or are bright)
 
 
+def _render_with_lists(scene, tight, config=None):
+    """Forward + backward of the fast renderer with the tile lists cut to the bands (``tight``) or
+    holding every tile of the 3.33-sigma boxes (gsplat's lists)."""
+    config = config or RenderConfig()
+    W, H, ts = scene["width"], scene["height"], int(config.tile_size)
+    inputs = {k: scene[k] for k in ("means", "quats", "scales", "opacities", "colors", "cam_T_world", "K",
+                                    "background")}
+    consts = fast_project.make_consts(config, W, H, np.float64)
+    proj = fast_project.project_fwd(inputs["means"], inputs["quats"], inputs["scales"], inputs["opacities"],
+                                    inputs["cam_T_world"], inputs["K"], consts, config.antialiased)
+    isect = fast_rasterize.build_intersections(proj, consts, W, H, ts, tight=tight)
+    raster = fast_rasterize.rasterize_fwd(proj, inputs["colors"], inputs["background"], consts, isect, W, H, ts)
+    rng = np.random.default_rng(1)
+    grads = fast_rasterize.rasterize_bwd(proj, inputs["colors"], consts, isect, raster, ts,
+                                         rng.normal(size=(H, W, 3)), rng.normal(size=(H, W)), rng.normal(size=(H, W)))
+    return proj, isect, raster, grads
+
+
+@pytest.mark.parametrize("seed, config", [(0, RenderConfig()), (1, RenderConfig(eps2d=0.0, tile_size=7)),
+                                          (2, RenderConfig(antialiased=True))])
+def test_tight_tile_lists_list_every_reachable_tile_and_change_nothing(seed, config):
+    """The tile lists cut to the Gaussians' bands (``build_intersections``) hold every (Gaussian,
+    tile) pair with a pixel of sigma <= sigma_cut (checked densely in NumPy), are a subset of the
+    3.33-sigma boxes' pairs (whose count stays ``num_intersections``), are strictly smaller on faint
+    Gaussians (so the test can fail both ways), and give the same image, depth, transmittance and
+    gradients to the last bit as the box lists (a left-out tile only ever added exact zeros)."""
+    rng = np.random.default_rng(seed)
+    scene = rf.random_scene(rng, 300, 61, 45, sigma_px_range=(0.3, 6.0), opacity_range=(0.0, 1.0))
+    proj, tight, ras_t, g_t = _render_with_lists(scene, True, config)
+    _, box, ras_b, g_b = _render_with_lists(scene, False, config)
+    ts, gw = int(config.tile_size), tight["grid_w"]
+    assert tight["n_box_isect"] == box["n_box_isect"] == box["n_isect"] > tight["n_isect"]
+
+    def pairs(isect):
+        off = isect["tile_offsets"]
+        return {(int(g), t) for t in range(off.size - 1) for g in isect["isect_gauss"][off[t]:off[t + 1]]}
+
+    listed, boxed = pairs(tight), pairs(box)
+    assert listed <= boxed
+    H, W = ras_t["T_final"].shape
+    py, px = np.mgrid[0:H, 0:W] + 0.5
+    for g, t in boxed - listed:
+        a, b, c = proj["conics"][g]
+        ty, tx = divmod(t, gw)
+        sl = np.s_[ty * ts:(ty + 1) * ts, tx * ts:(tx + 1) * ts]
+        dx, dy = proj["means2d"][g, 0] - px[sl], proj["means2d"][g, 1] - py[sl]
+        sigma = 0.5 * (a * dx * dx + c * dy * dy) + b * dx * dy
+        assert not np.any((sigma >= 0) & (sigma <= tight["sigma_cut"][g])), (g, t)
+    for k in ("image", "depth", "T_final"):
+        np.testing.assert_array_equal(ras_t[k], ras_b[k])
+    for k in g_t:
+        np.testing.assert_array_equal(g_t[k], g_b[k])
+
+
 @pytest.mark.parametrize("x0, x1, y0, y1", [(0, 16, 0, 16), (32, 45, 16, 23), (0, 3, 0, 1), (16, 17, 0, 16)])
 def test_lane_layout_is_a_bijection_with_contiguous_strip_runs(x0, x1, y0, y1):
     """Every tile pixel has its own lane in [0, npix) (full and partial tiles), and the lanes of rows

@@ -52,11 +52,13 @@ ITERS = 16
 # end), which moves the metrics by ~5e-3 dB / 2e-7; and again when the initialisation changed on
 # purpose (dense seeds at plane-sweep stereo depth, fill on the seeds' surface, initial scales
 # capped in pixels: scene/initialize.py), which moved them from 16.8985 dB / ATE 0.0124873 to the
-# values below.
+# values below; then the hash alone when the rasteriser's bands lost their extra pixel of margin
+# (render/rasterize.py ``_box_range``: the vectorised backward sums run over other lanes, so in
+# another order; 17.3513728 -> 17.3513828 dB, ATE 1.0000002x: rounding only).
 PINNED = {
-    "params_sha256": "938fdb94495480a80ebd7dee3f451371bfbbf984de1539dbfc6e2712bb8e1688",
-    "dvs_psnr": 17.351372836496406,
-    "ate": 0.012225696487942592,
+    "params_sha256": "293d11758e19d1785ff6f5e86692579ec78842f969c99e1cf6abb69ed1e549bd",
+    "dvs_psnr": 17.351382762224503,
+    "ate": 0.012225699416908946,
     "machine": "730346383275",  # machine_kind() of the AMD EPYC (AVX-512) machine that recorded them
 }
 # The last bits are not portable across CPU kinds: NumPy's SIMD exp/log/sum kernels and LLVM's code
