@@ -117,16 +117,16 @@ class BlurConfig:
         frame and step from the blur's current length in render pixels (``blur_length_px`` of
         the current endpoints and scene, ``views_for_length``): just enough views to keep
         neighbouring views at most ``view_spacing_px`` render pixels apart, at most n. It
-        follows the render scale too, and gives a short blur few views. Measured (photo_room,
-        blurry input, true poses, 600 s, 1 thread): 1735 steps instead of 656, but the deblurred
-        views scored 29.09 dB against 29.23 dB with "fixed" (input 28.82 dB): the extra steps do
-        not buy detail the blur hides, so "fixed" stays the default.
+        follows the render scale too, and gives a short blur few views. The default: on the
+        five suite scenes (blurry input, true poses, 600 s, one thread, two runs at a time) it
+        made 1.10-1.70x the steps of "fixed" and deblurred as well or better on every scene
+        (+0.05 to +1.02 dB; docs/method.md §4).
     view_spacing_px: the largest gap, in render pixels, between neighbouring virtual views of
         the "length" schedule (> 0).
     """
 
     num_virtual: int = 8
-    n_schedule: str = "fixed"
+    n_schedule: str = "length"
     view_spacing_px: float = 1.0
 
     def __post_init__(self):

@@ -378,6 +378,7 @@ def test_a_time_budget_buys_a_finished_schedule(dynamic_scene, tmp_path):
     # 10 000 steps can never run in 4 s here: the budget ends the run, and every schedule reads the
     # budget's progress, so the run still reaches full resolution and passes through every stage.
     cfg = _config(iters=10000, time_budget=4.0, progressive=True, log_every=1)
+    cfg = cfg.replace(blur=dataclasses.replace(cfg.blur, n_schedule="fixed"))
     tr = Trainer(dynamic_scene, cfg, tmp_path / "run")
     out = tr.run()
     assert out["steps"] < 10000
