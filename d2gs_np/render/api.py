@@ -44,12 +44,13 @@ class RenderSaved:
 
     Attributes: inputs (dict of the input arrays), width, height, config, dtype, consts,
     proj (projection outputs), isect (intersection lists), raster (per-pixel T_final, last
-    contributor, evaluation count, accumulated depth).
+    contributor, evaluation count, accumulated depth, in the rasteriser's dtype), rast (the
+    rasteriser's float32 inputs with ``RenderConfig.raster_float32``, else None).
     """
 
-    __slots__ = ("inputs", "width", "height", "config", "dtype", "consts", "proj", "isect", "raster")
+    __slots__ = ("inputs", "width", "height", "config", "dtype", "consts", "proj", "isect", "raster", "rast")
 
-    def __init__(self, inputs, width, height, config, dtype, consts, proj, isect, raster):
+    def __init__(self, inputs, width, height, config, dtype, consts, proj, isect, raster, rast=None):
         self.inputs = inputs
         self.width = width
         self.height = height
@@ -59,6 +60,9 @@ class RenderSaved:
         self.proj = proj
         self.isect = isect
         self.raster = raster
+        # what the rasteriser ran on: (proj, colors, background, consts) in its dtype (float32
+        # with RenderConfig.raster_float32), None when that is the render's own
+        self.rast = rast
 
     @property
     def num_evaluations(self):
@@ -192,20 +196,50 @@ def _render_fwd(means, quats, scales, opacities, colors, cam_T_world, K, width, 
     return _render(inputs, width, height, config, means.dtype)
 
 
+# the projection outputs the binning and the compositing read
+_RASTER_PROJ = ("means2d", "conics", "opac_eff", "depths", "radii_f", "cov2d")
+
+
+def _raster_inputs(proj, colors, background, config, width, height, dtype):
+    """(proj, colors, background, consts) for the rasteriser: the render's own, or their float32
+    casts with ``RenderConfig.raster_float32`` on float64 inputs (second item: whether cast).
+    A render whose values do not all fit float32 (a 2D covariance or conic beyond 3.4e38, from
+    absurd scales) keeps float64: the cast never turns a finite render into inf or NaN."""
+    own = (proj, colors, background, make_consts(config, width, height, dtype)), False
+    if not (config.raster_float32 and dtype == np.float64):
+        return own
+    f32 = np.float32
+    with np.errstate(over="ignore"):
+        rproj = {k: np.ascontiguousarray(proj[k], f32) for k in _RASTER_PROJ}
+        rcolors = np.ascontiguousarray(colors, f32)
+    if not all(np.isfinite(a).all() for a in (*rproj.values(), rcolors)):
+        return own
+    # background zero: the float64 background is added to the float32 colour sum afterwards
+    return (rproj, rcolors, np.zeros(3, f32), make_consts(config, width, height, f32)), True
+
+
 def _render(inputs, width, height, config, dtype):
     ts = int(config.tile_size)
     consts = make_consts(config, width, height, dtype)
     proj = project_fwd(inputs["means"], inputs["quats"], inputs["scales"], inputs["opacities"],
                        inputs["cam_T_world"], inputs["K"], consts, config.antialiased)
-    isect = build_intersections(proj, consts, width, height, ts)
-    raster = rasterize_fwd(proj, inputs["colors"], inputs["background"], consts, isect, width, height, ts)
-    alpha = 1 - raster["T_final"]
-    expected_depth = raster["depth"] / np.maximum(alpha, dtype.type(C.EXPECTED_DEPTH_ALPHA_MIN))
+    rast, cast = _raster_inputs(proj, inputs["colors"], inputs["background"], config, width, height, dtype)
+    rproj, rcolors, rbackground, rconsts = rast
+    isect = build_intersections(rproj, rconsts, width, height, ts)
+    raster = rasterize_fwd(rproj, rcolors, rbackground, rconsts, isect, width, height, ts)
+    image, depth, T_final = raster["image"], raster["depth"], raster["T_final"]
+    if cast:
+        depth, T_final = depth.astype(dtype), T_final.astype(dtype)
+        image = raster["image"].astype(dtype) + T_final[..., None] * inputs["background"]
+    alpha = 1 - T_final
+    expected_depth = depth / np.maximum(alpha, dtype.type(C.EXPECTED_DEPTH_ALPHA_MIN))
     radii = np.minimum(proj["radii_f"], _INT32_MAX).astype(np.int32)
-    out = dict(image=raster["image"], alpha=alpha, depth=raster["depth"], expected_depth=expected_depth,
+    out = dict(image=image, alpha=alpha, depth=depth, expected_depth=expected_depth,
                radii=radii, means2d=proj["means2d"], depths=proj["depths"], conics=proj["conics"],
                num_intersections=isect["n_box_isect"])
-    saved = RenderSaved(inputs, width, height, config, dtype, consts, proj, isect, raster)
+    if cast:
+        raster = {**raster, "T_final": T_final, "depth": depth, "T_final_r": raster["T_final"]}
+    saved = RenderSaved(inputs, width, height, config, dtype, consts, proj, isect, raster, rast if cast else None)
     return out, saved
 
 
@@ -258,8 +292,16 @@ def _render_grads(saved, v_image, v_alpha, v_depth, v_ed):
     v_background = np.array([np.sum(T_final * v_image[..., c]) for c in range(3)], dtype=dtype)
 
     ts = int(cfg.tile_size)
-    g = rasterize_bwd(proj, inp["colors"], saved.consts, saved.isect, raster, ts, v_image,
-                      np.ascontiguousarray(v_depth_tot), np.ascontiguousarray(v_T))
+    if saved.rast is None:
+        g = rasterize_bwd(proj, inp["colors"], saved.consts, saved.isect, raster, ts, v_image,
+                          np.ascontiguousarray(v_depth_tot), np.ascontiguousarray(v_T))
+    else:  # RenderConfig.raster_float32: the compositing backward in float32, the rest in dtype
+        rproj, rcolors, _, rconsts = saved.rast
+        f32 = np.float32
+        g = rasterize_bwd(rproj, rcolors, rconsts, saved.isect, {**raster, "T_final": raster["T_final_r"]}, ts,
+                          np.ascontiguousarray(v_image, f32), np.ascontiguousarray(v_depth_tot, f32),
+                          np.ascontiguousarray(v_T, f32))
+        g = {k: v.astype(dtype) for k, v in g.items()}
     v_means, v_quats, v_scales, v_opacities, v_view = project_bwd(
         inp["means"], inp["quats"], inp["scales"], inp["opacities"], inp["cam_T_world"], inp["K"],
         saved.consts, cfg.antialiased, proj["radii_f"], g["v_means2d"], g["v_depths"], g["v_conics"],

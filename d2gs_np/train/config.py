@@ -251,7 +251,9 @@ class PoseSolverConfig:
 class ExperimentConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
     loss: LossConfig = field(default_factory=LossConfig)
-    render: RenderConfig = field(default_factory=RenderConfig)
+    # training steps rasterise in float32 (RenderConfig.raster_float32; docs/method.md §8): ~1.2x the
+    # steps; evaluation and Model.render stay float64
+    render: RenderConfig = field(default_factory=lambda: RenderConfig(raster_float32=True))
     deform: DeformConfig = field(default_factory=DeformConfig)
     blur: BlurConfig = field(default_factory=BlurConfig)
     trajectory: TrajectoryConfig = field(default_factory=TrajectoryConfig)
@@ -302,7 +304,9 @@ def _to_plain(obj):
     return obj
 
 
-def _from_plain(cls, data, where):
+def _from_plain(cls, data, where, base=None):
+    """``cls`` from a JSON object; keys left out take ``base``'s values (the enclosing config's
+    default for a section), else the class defaults."""
     if not isinstance(data, dict):
         raise ValueError(f"{where} must be a JSON object; got {type(data).__name__}")
     hints = typing.get_type_hints(cls)
@@ -314,12 +318,20 @@ def _from_plain(cls, data, where):
     for name, value in data.items():
         tp = hints[name]
         if dataclasses.is_dataclass(tp):
-            kwargs[name] = _from_plain(tp, value, f"{where}.{name}")
+            kwargs[name] = _from_plain(tp, value, f"{where}.{name}", _field_default(cls, name))
         elif isinstance(value, list):
             kwargs[name] = tuple(value)
         else:
             kwargs[name] = value
     try:
-        return cls(**kwargs)
+        return cls(**kwargs) if base is None else dataclasses.replace(base, **kwargs)
     except TypeError as e:
         raise ValueError(f"{where}: {e}") from e
+
+
+def _field_default(cls, name):
+    """The default value of field ``name`` of dataclass ``cls`` (None if it has none)."""
+    f = next(f for f in dataclasses.fields(cls) if f.name == name)
+    if f.default_factory is not dataclasses.MISSING:
+        return f.default_factory()
+    return None if f.default is dataclasses.MISSING else f.default

@@ -238,7 +238,9 @@ class Model:
         return np.stack([self.mid_pose(k) for k in range(self.num_frames)])
 
     def render(self, view, t=None, K=None, width=None, height=None) -> np.ndarray:
-        """Sharp render (H, W, 3) of the scene at time t.
+        """Sharp render (H, W, 3) of the scene at time t, in float64 throughout (evaluation, reports
+        and exports: the float32 rasterisation of training steps, RenderConfig.raster_float32, is
+        not used here).
 
         view: a training frame index k (its mid-exposure pose; t, K and the size default to the
             frame's), or a (4, 4) cam_T_world pose (then t, K, width and height are required).
@@ -259,7 +261,7 @@ class Model:
         ri, _ = evaluate_fwd(scene, float(t), self.config.deform)
         out, _ = render_fwd(ri["means"], ri["quats"], ri["scales"], ri["opacities"], ri["colors"],
                             np.asarray(pose, dtype=np.float64), np.asarray(K, dtype=np.float64), int(width),
-                            int(height), self.background, self.config.render)
+                            int(height), self.background, dataclasses.replace(self.config.render, raster_float32=False))
         return out["image"]
 
     def _frame(self, k) -> int:

@@ -12,6 +12,7 @@ from d2gs_np import blur as blur_model
 from d2gs_np.data.synthetic import make_scene
 from d2gs_np.scene import deformation
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
+from d2gs_np.render import RenderConfig
 from d2gs_np.train.trainer import Trainer
 from run_fixtures import copy_run_for_resume
 
@@ -222,6 +223,31 @@ def test_warmup_survives_frames_whose_ssim_interior_is_all_moving(dynamic_scene,
     tr = Trainer(scene, _config(iters=10, warmup_fraction=0.5), tmp_path / "r")
     tr.run()
     assert tr.step_index == 10
+
+
+def test_a_partial_config_section_keeps_the_experiment_defaults():
+    """A config JSON that names one key of a section takes the other keys from ExperimentConfig's
+    own default for that section, not from the section class: training rasterises in float32
+    (render.raster_float32) although RenderConfig() itself does not."""
+    base = ExperimentConfig()
+    cfg = ExperimentConfig.from_dict({"render": {"eps2d": 0.1}, "train": {"iters": 7}})
+    assert cfg.render == dataclasses.replace(base.render, eps2d=0.1)
+    assert cfg.render.raster_float32 != RenderConfig().raster_float32
+    assert cfg.train == dataclasses.replace(base.train, iters=7)
+    assert ExperimentConfig.from_dict(base.to_dict()) == base
+    off = ExperimentConfig.from_dict({"render": {"raster_float32": False}})
+    assert not off.render.raster_float32
+
+
+def test_model_render_is_float64_while_steps_rasterise_in_float32(dynamic_scene, tmp_path):
+    """Model.render (evaluation, reports) ignores render.raster_float32: the same params give
+    bitwise the same image with the option on and off, and that image is the float64 render."""
+    cfg = _config(iters=2)
+    tr = Trainer(dynamic_scene, cfg, tmp_path / "run")
+    assert tr.config.render.raster_float32
+    on = tr.model.render(1)
+    off_model = tr.model.replace(config=cfg.replace(render=dataclasses.replace(cfg.render, raster_float32=False)))
+    np.testing.assert_array_equal(on, off_model.render(1))
 
 
 def test_float_and_bool_config_types_are_checked():
