@@ -1,7 +1,8 @@
 """Benchmark of the Numba splatter (d2gs_np.render) against the NumPy reference.
 
-Times render_fwd and render_fwd + render_bwd in float64 and float32 with 1 and 2 Numba threads,
-after JIT warm-up, on
+Times render_fwd and render_fwd + render_bwd in float64, float32 and "mixed" (float64 inputs with
+RenderConfig(raster_float32=True), what training steps use) with 1 and 2 Numba threads, after JIT
+warm-up, on
   (a) N = 5 000 random Gaussians at 256 x 256,
   (b) N = 50 000 random Gaussians at 512 x 512,
   (c) scene (a) with 4x the scales (large, heavily overlapping Gaussians),
@@ -20,8 +21,8 @@ uniform in [1, 6] px, random rotations, opacity uniform in [0.05, 0.95], colours
 The backward pass gets a random v_image and v_alpha (v_depth and v_expected_depth None).
 Reported: median and min wall times over --reps repetitions, Gaussian-pixel evaluations per
 second of the forward pass (evaluations = sigma evaluations inside footprints), tile
-intersections, the bytes kept in ``saved`` (O(N + n_isect + pixels)), and the float32 path's
-relative error vs float64 (max |x32 - x64| / max |x64| over image and over each gradient).
+intersections, the bytes kept in ``saved`` (O(N + n_isect + pixels)), and the float32 and mixed
+paths' relative error vs float64 (max |x32 - x64| / max |x64| over image and over each gradient).
 fastmath is off everywhere (not measured).
 
 Usage: python examples/bench_render.py [--out bench_render.json] [--reps 5] [--no-compile]
@@ -164,40 +165,49 @@ def first_call_times(cache_dir):
 # ---------------------------------------------------------------------------------------------
 
 
-def bench_fast(name, dtype, threads, reps):
+# precisions timed: (label, input dtype, RenderConfig.raster_float32); "mixed" is what training
+# steps use (float64 in and out, binning and compositing in float32)
+PRECISIONS = (("float64", np.float64, False), ("float32", np.float32, False), ("mixed", np.float64, True))
+
+
+def bench_fast(name, precision, threads, reps):
     import numba
 
-    from d2gs_np.render import render_bwd, render_fwd
+    from d2gs_np.render import RenderConfig, render_bwd, render_fwd
 
+    label, dtype, raster32 = next(p for p in PRECISIONS if p[0] == precision)
     n, W, H = SCENES[name]
     numba.set_num_threads(threads)
-    scene = random_scene(n, W, H, dtype=dtype, scale=SCALE.get(name, 1.0))
+    scene = dict(random_scene(n, W, H, dtype=dtype, scale=SCALE.get(name, 1.0)),
+                 config=RenderConfig(raster_float32=raster32))
     cot = cotangents(W, H, dtype)
     out, saved = render_fwd(**scene)  # warm-up (JIT or cache load)
     render_bwd(saved, **cot)
     t_fwd, t_fwd_min = _timeit(lambda: render_fwd(**scene), reps)
     t_both, t_both_min = _timeit(lambda: render_bwd(render_fwd(**scene)[1], **cot), reps)
     n_eval = saved.num_evaluations
-    return dict(scene=name, n=n, width=W, height=H, dtype=np.dtype(dtype).name, threads=threads,
+    return dict(scene=name, n=n, width=W, height=H, dtype=label, threads=threads,
                 fwd_ms=1e3 * t_fwd, fwd_min_ms=1e3 * t_fwd_min, fwd_bwd_ms=1e3 * t_both,
                 fwd_bwd_min_ms=1e3 * t_both_min, evaluations=n_eval, evals_per_s=n_eval / t_fwd,
                 intersections=out["num_intersections"], saved_mb=saved_bytes(saved) / 2**20)
 
 
-def float32_errors(name):
-    """float32 vs float64 on scene ``name``: max and 99.9 % quantile of the relative errors, and
-    the number of pixels whose set of contributors differs (a threshold decision flipped)."""
-    from d2gs_np.render import render_bwd, render_fwd
+def float32_errors(name, precision="float32"):
+    """float32 (or "mixed") vs float64 on scene ``name``: max and 99.9 % quantile of the relative
+    errors, and the number of pixels whose set of contributors differs (a threshold decision
+    flipped)."""
+    from d2gs_np.render import RenderConfig, render_bwd, render_fwd
 
     n, W, H = SCENES[name]
     outs, grads, saves = {}, {}, {}
-    for dtype in (np.float64, np.float32):
-        out, saved = render_fwd(**random_scene(n, W, H, dtype=dtype, scale=SCALE.get(name, 1.0)))
-        outs[dtype], saves[dtype] = out, saved
-        grads[dtype] = render_bwd(saved, **cotangents(W, H, dtype))
-    i32, i64 = outs[np.float32]["image"], outs[np.float64]["image"]
-    g32, g64 = grads[np.float32], grads[np.float64]
-    last32, last64 = saves[np.float32].raster["last_idx"], saves[np.float64].raster["last_idx"]
+    for label, dtype, raster32 in (PRECISIONS[0], next(p for p in PRECISIONS if p[0] == precision)):
+        out, saved = render_fwd(**random_scene(n, W, H, dtype=dtype, scale=SCALE.get(name, 1.0)),
+                                config=RenderConfig(raster_float32=raster32))
+        outs[label], saves[label] = out, saved
+        grads[label] = render_bwd(saved, **cotangents(W, H, dtype))
+    i32, i64 = outs[precision]["image"], outs["float64"]["image"]
+    g32, g64 = grads[precision], grads["float64"]
+    last32, last64 = saves[precision].raster["last_idx"], saves["float64"].raster["last_idx"]
     return dict(image=rel(i32, i64), image_q999=rel(i32, i64, q=0.999),
                 grads_max=max(rel(g32[k], g64[k]) for k in g64),
                 grads_q999=max(rel(g32[k], g64[k], q=0.999) for k in g64),
@@ -256,11 +266,12 @@ def markdown(results):
         lines.append(f"| {r['scene']} | {r['n']} | {r['width']}x{r['height']} | {r['threads']} | {r['ref_fwd_ms']:.0f} | "
                      f"{r['fast_fwd_ms']:.2f} | {r['ratio_fwd']:.0f}x | {r['ref_fwd_bwd_ms']:.0f} | "
                      f"{r['fast_fwd_bwd_ms']:.2f} | {r['ratio_fwd_bwd']:.0f}x |")
-    lines += ["", "### float32 vs float64 (|x32 - x64| / max |x64|: max, and 99.9 % quantile)", "",
-              "| scene | image max | image q99.9 | worst gradient max | worst gradient q99.9 | "
-              "pixels whose last contributor differs |", "|---|---|---|---|---|---|"]
-    for name, e in results["float32_error"].items():
-        lines.append(f"| {name} | {e['image']:.1e} | {e['image_q999']:.1e} | {e['grads_max']:.1e} | "
+    lines += ["", "### float32 and mixed vs float64 (|x - x64| / max |x64|: max, and 99.9 % quantile)", "",
+              "| scene | precision | image max | image q99.9 | worst gradient max | worst gradient q99.9 | "
+              "pixels whose last contributor differs |", "|---|---|---|---|---|---|---|"]
+    for key, e in results["float32_error"].items():
+        name, precision = key.split(":") if ":" in key else (key, "float32")
+        lines.append(f"| {name} | {precision} | {e['image']:.1e} | {e['image_q999']:.1e} | {e['grads_max']:.1e} | "
                      f"{e['grads_q999']:.1e} | {e['pixels_last_contributor_differs']} |")
     lines += ["", "### Targets (float64, 2 threads; met = median within target)", "",
               "| scene | measure | target (ms) | median (ms) | min (ms) | met |", "|---|---|---|---|---|---|"]
@@ -293,11 +304,12 @@ def main(argv=None):
     results["fast"] = []
     for name in ("a", "c", "b"):
         reps = args.reps if name == "a" else max(2, args.reps // 2)
-        for dtype in (np.float64, np.float32):
+        for precision, _, _ in PRECISIONS:
             for threads in sorted({1, max_threads}):
-                results["fast"].append(bench_fast(name, dtype, threads, reps))
+                results["fast"].append(bench_fast(name, precision, threads, reps))
     results["reference"] = [bench_reference(max_threads, args.reps)]
-    results["float32_error"] = {name: float32_errors(name) for name in ("a", "c", "b")}
+    results["float32_error"] = {f"{name}:{precision}": float32_errors(name, precision)
+                                for name in ("a", "c", "b") for precision in ("float32", "mixed")}
     results["targets"] = []
     for (name, measure), target in TARGETS_MS.items():
         row = next(r for r in results["fast"]

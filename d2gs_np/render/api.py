@@ -27,6 +27,7 @@ Choices the contract leaves open (documented here):
 """
 from __future__ import annotations
 
+import dataclasses
 import numbers
 
 import numpy as np
@@ -237,8 +238,6 @@ def _render(inputs, width, height, config, dtype):
     out = dict(image=image, alpha=alpha, depth=depth, expected_depth=expected_depth,
                radii=radii, means2d=proj["means2d"], depths=proj["depths"], conics=proj["conics"],
                num_intersections=isect["n_box_isect"])
-    if cast:
-        raster = {**raster, "T_final": T_final, "depth": depth, "T_final_r": raster["T_final"]}
     saved = RenderSaved(inputs, width, height, config, dtype, consts, proj, isect, raster, rast if cast else None)
     return out, saved
 
@@ -277,8 +276,8 @@ def _render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth=Non
 def _render_grads(saved, v_image, v_alpha, v_depth, v_ed):
     dtype = saved.dtype
     inp, proj, raster, cfg = saved.inputs, saved.proj, saved.raster, saved.config
-    T_final = raster["T_final"]
-    depth = raster["depth"]
+    T_final = raster["T_final"].astype(dtype, copy=False)  # float32 with RenderConfig.raster_float32
+    depth = raster["depth"].astype(dtype, copy=False)
     bg = inp["background"]
 
     # expected_depth = depth / max(alpha, eps); alpha = 1 - T_final; image = C + T_final bg
@@ -298,9 +297,8 @@ def _render_grads(saved, v_image, v_alpha, v_depth, v_ed):
     else:  # RenderConfig.raster_float32: the compositing backward in float32, the rest in dtype
         rproj, rcolors, _, rconsts = saved.rast
         f32 = np.float32
-        g = rasterize_bwd(rproj, rcolors, rconsts, saved.isect, {**raster, "T_final": raster["T_final_r"]}, ts,
-                          np.ascontiguousarray(v_image, f32), np.ascontiguousarray(v_depth_tot, f32),
-                          np.ascontiguousarray(v_T, f32))
+        g = rasterize_bwd(rproj, rcolors, rconsts, saved.isect, raster, ts, np.ascontiguousarray(v_image, f32),
+                          np.ascontiguousarray(v_depth_tot, f32), np.ascontiguousarray(v_T, f32))
         g = {k: v.astype(dtype) for k, v in g.items()}
     v_means, v_quats, v_scales, v_opacities, v_view = project_bwd(
         inp["means"], inp["quats"], inp["scales"], inp["opacities"], inp["cam_T_world"], inp["K"],
@@ -311,10 +309,15 @@ def _render_grads(saved, v_image, v_alpha, v_depth, v_ed):
 
 
 def warm_up(config=None):
-    """Compile (or load from the Numba cache) the float64 kernels of ``render_fwd`` and
-    ``render_bwd`` on one tiny Gaussian, so that timing what follows measures work, not JIT."""
+    """Compile (or load from the Numba cache) the kernels of ``render_fwd`` and ``render_bwd`` for
+    float64 inputs on one tiny Gaussian, so that timing what follows measures work, not JIT: with
+    ``config.raster_float32`` both the float32 rasteriser and the float64 one (evaluation)."""
     one = np.ones((1, 3))
-    out, saved = render_fwd(np.array([[0.0, 0.0, 2.0]]), np.array([[1.0, 0.0, 0.0, 0.0]]), 0.1 * one,
-                            np.array([0.5]), 0.5 * one, np.eye(4), np.array([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]),
-                            8, 8, np.zeros(3), config)
-    render_bwd(saved, np.ones_like(out["image"]))
+    configs = [config]
+    if config is not None and config.raster_float32:
+        configs.append(dataclasses.replace(config, raster_float32=False))
+    for cfg in configs:
+        out, saved = render_fwd(np.array([[0.0, 0.0, 2.0]]), np.array([[1.0, 0.0, 0.0, 0.0]]), 0.1 * one,
+                                np.array([0.5]), 0.5 * one, np.eye(4),
+                                np.array([[8.0, 0, 4], [0, 8.0, 4], [0, 0, 1]]), 8, 8, np.zeros(3), cfg)
+        render_bwd(saved, np.ones_like(out["image"]))

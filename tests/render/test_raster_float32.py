@@ -33,6 +33,13 @@ def rel_err(a, b):
     return float(np.max(np.abs(a - b)) / scale) if scale > 0 else float(np.max(np.abs(a)))
 
 
+def assert_bitwise_equal(out_a, out_b, g_a, g_b):
+    for key in OUT_KEYS:
+        np.testing.assert_array_equal(out_a[key], out_b[key], err_msg=key)
+    for key in GRAD_KEYS:
+        np.testing.assert_array_equal(g_a[key], g_b[key], err_msg=key)
+
+
 def both(scene, cot):
     out64, s64 = render_fwd(**scene)
     outm, sm = render_fwd(**scene, config=MIXED)
@@ -138,10 +145,7 @@ def test_values_beyond_float32_keep_float64():
     cot = rf.random_cotangents(rng, 21, 17)
     out64, outm, g64, gm, saved = both(scene, cot)
     assert saved.rast is None
-    for key in OUT_KEYS:
-        np.testing.assert_array_equal(outm[key], out64[key])
-    for key in GRAD_KEYS:
-        np.testing.assert_array_equal(gm[key], g64[key])
+    assert_bitwise_equal(outm, out64, gm, g64)
 
 
 def test_no_effect_on_float32_inputs():
@@ -150,11 +154,7 @@ def test_no_effect_on_float32_inputs():
     cot = rf.cast_scene(rf.random_cotangents(rng, 19, 15), np.float32)
     out_a, sa = render_fwd(**scene)
     out_b, sb = render_fwd(**scene, config=MIXED)
-    ga, gb = render_bwd(sa, **cot), render_bwd(sb, **cot)
-    for key in OUT_KEYS:
-        np.testing.assert_array_equal(out_a[key], out_b[key])
-    for key in GRAD_KEYS:
-        np.testing.assert_array_equal(ga[key], gb[key])
+    assert_bitwise_equal(out_b, out_a, render_bwd(sb, **cot), render_bwd(sa, **cot))
 
 
 def test_empty_scene():
