@@ -215,6 +215,9 @@ class Trainer:
         self.log.note(f"JIT warm-up (compile or cache load) took {time.perf_counter() - t_start:.1f}s, not counted "
                       "as training time")
         if self.step_index == 0:
+            self.log.note("precision: parameters, projection and losses float64; steps rasterise in "
+                          + ("float32 (render.raster_float32, docs/method.md §8)" if self.config.render.raster_float32
+                             else "float64") + "; evaluation renders in float64")
             self.log.note(f"training {total} steps; stages: " + ", ".join(
                 f"{s.name} [{s.start}, {s.stop})" for s in self.stages))
         last_stage, info = None, {"loss": float("nan"), "train_psnr": float("nan")}

@@ -245,6 +245,9 @@ def test_model_render_is_float64_while_steps_rasterise_in_float32(dynamic_scene,
     cfg = _config(iters=2)
     tr = Trainer(dynamic_scene, cfg, tmp_path / "run")
     assert tr.config.render.raster_float32
+    tr.run()
+    notes = json.loads((tmp_path / "run" / "log.json").read_text())["notes"]
+    assert any("steps rasterise in float32" in n for n in notes), notes
     on = tr.model.render(1)
     off_model = tr.model.replace(config=cfg.replace(render=dataclasses.replace(cfg.render, raster_float32=False)))
     np.testing.assert_array_equal(on, off_model.render(1))
