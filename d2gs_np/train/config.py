@@ -251,8 +251,8 @@ class PoseSolverConfig:
 class ExperimentConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
     loss: LossConfig = field(default_factory=LossConfig)
-    # training steps rasterise in float32 (RenderConfig.raster_float32; docs/method.md §8): ~1.2x the
-    # steps; evaluation and Model.render stay float64
+    # training steps rasterise in float32 (RenderConfig.raster_float32; docs/method.md §8): a step
+    # ~1.2x faster on a trained scene; evaluation and Model.render stay float64
     render: RenderConfig = field(default_factory=lambda: RenderConfig(raster_float32=True))
     deform: DeformConfig = field(default_factory=DeformConfig)
     blur: BlurConfig = field(default_factory=BlurConfig)
