@@ -25,13 +25,18 @@ repetition; the table then gives new/old time ratios (timings on a shared machin
 compare ratios, not absolute times). The outputs of old and new are compared too (max |diff|
 over the image and every gradient).
 
+Every scene is rendered in float64 unless ``--raster-float32`` (the mixed precision of training
+steps, ``RenderConfig.raster_float32``: binning and compositing in float32). A baseline revision
+without that option renders in float64 then.
+
 Usage:
     NUMBA_NUM_THREADS=1 python examples/profile_step.py [--scene /tmp/sc] [--run /tmp/run]
-        [--baseline b861d9c] [--reps 7] [--threads 1] [--out profile.json]
+        [--baseline b861d9c] [--reps 7] [--threads 1] [--raster-float32] [--out profile.json]
 """
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import importlib
 import json
 import os
@@ -220,9 +225,10 @@ def run_once(api, call, cot):
     config = call.get("config")
     if config is None:
         config = api.RenderConfig()
-    else:  # the same settings in this package's RenderConfig class
+    else:  # the same settings in this package's RenderConfig class (an older one may lack some)
         import dataclasses
-        config = api.RenderConfig(**dataclasses.asdict(config))
+        known = {f.name for f in dataclasses.fields(api.RenderConfig)}
+        config = api.RenderConfig(**{k: v for k, v in dataclasses.asdict(config).items() if k in known})
     t0 = time.perf_counter()
     out, saved = api._render(inputs, call["width"], call["height"], config, call["means"].dtype)
     grads = api._render_bwd(saved, cot["v_image"], cot["v_alpha"])
@@ -306,6 +312,9 @@ def main(argv=None):
     parser.add_argument("--reps", type=int, default=7)
     parser.add_argument("--threads", type=int, default=1)
     parser.add_argument("--out", default="profile_step.json")
+    parser.add_argument("--raster-float32", action="store_true",
+                        help="profile the new renderer with RenderConfig(raster_float32=True), the precision of "
+                             "training steps (a baseline without the option runs float64); default: float64")
     args = parser.parse_args(argv)
 
     import numba
@@ -321,7 +330,12 @@ def main(argv=None):
         print(f"loaded the renderer of {sha} in {time.perf_counter() - t0:.1f}s")
     results = {"threads": numba.get_num_threads(), "reps": args.reps, "load_average_start": list(os.getloadavg()),
                "scenes": {}}
+    from d2gs_np.render import RenderConfig
+
+    results["raster_float32"] = args.raster_float32
     for name, call in scenes(args).items():
+        base = call.get("config") or RenderConfig()
+        call = dict(call, config=dataclasses.replace(base, raster_float32=args.raster_float32))
         results["scenes"][name] = profile(apis, call, args.reps)
         print(f"{name} done", flush=True)
     results["load_average_end"] = list(os.getloadavg())
