@@ -201,22 +201,22 @@ def _render_fwd(means, quats, scales, opacities, colors, cam_T_world, K, width, 
 _RASTER_PROJ = ("means2d", "conics", "opac_eff", "depths", "radii_f", "cov2d")
 
 
-def _raster_inputs(proj, colors, background, config, width, height, dtype):
-    """(proj, colors, background, consts) for the rasteriser: the render's own, or their float32
-    casts with ``RenderConfig.raster_float32`` on float64 inputs (second item: whether cast).
-    A render whose values do not all fit float32 (a 2D covariance or conic beyond 3.4e38, from
-    absurd scales) keeps float64: the cast never turns a finite render into inf or NaN."""
-    own = (proj, colors, background, make_consts(config, width, height, dtype)), False
+def _raster_inputs(proj, colors, config, width, height, dtype):
+    """(proj, colors, background, consts) cast to float32 for the rasteriser with
+    ``RenderConfig.raster_float32`` on float64 inputs; None when the rasteriser runs on the
+    render's own arrays. A render whose values do not all fit float32 (a 2D covariance or conic
+    beyond 3.4e38, from absurd scales) keeps float64: the cast never turns a finite render into
+    inf or NaN."""
     if not (config.raster_float32 and dtype == np.float64):
-        return own
+        return None
     f32 = np.float32
     with np.errstate(over="ignore"):
         rproj = {k: np.ascontiguousarray(proj[k], f32) for k in _RASTER_PROJ}
         rcolors = np.ascontiguousarray(colors, f32)
     if not all(np.isfinite(a).all() for a in (*rproj.values(), rcolors)):
-        return own
+        return None
     # background zero: the float64 background is added to the float32 colour sum afterwards
-    return (rproj, rcolors, np.zeros(3, f32), make_consts(config, width, height, f32)), True
+    return rproj, rcolors, np.zeros(3, f32), make_consts(config, width, height, f32)
 
 
 def _render(inputs, width, height, config, dtype):
@@ -224,21 +224,21 @@ def _render(inputs, width, height, config, dtype):
     consts = make_consts(config, width, height, dtype)
     proj = project_fwd(inputs["means"], inputs["quats"], inputs["scales"], inputs["opacities"],
                        inputs["cam_T_world"], inputs["K"], consts, config.antialiased)
-    rast, cast = _raster_inputs(proj, inputs["colors"], inputs["background"], config, width, height, dtype)
-    rproj, rcolors, rbackground, rconsts = rast
+    rast = _raster_inputs(proj, inputs["colors"], config, width, height, dtype)
+    rproj, rcolors, rbackground, rconsts = rast or (proj, inputs["colors"], inputs["background"], consts)
     isect = build_intersections(rproj, rconsts, width, height, ts)
     raster = rasterize_fwd(rproj, rcolors, rbackground, rconsts, isect, width, height, ts)
     image, depth, T_final = raster["image"], raster["depth"], raster["T_final"]
-    if cast:
+    if rast is not None:
         depth, T_final = depth.astype(dtype), T_final.astype(dtype)
-        image = raster["image"].astype(dtype) + T_final[..., None] * inputs["background"]
+        image = image.astype(dtype) + T_final[..., None] * inputs["background"]
     alpha = 1 - T_final
     expected_depth = depth / np.maximum(alpha, dtype.type(C.EXPECTED_DEPTH_ALPHA_MIN))
     radii = np.minimum(proj["radii_f"], _INT32_MAX).astype(np.int32)
     out = dict(image=image, alpha=alpha, depth=depth, expected_depth=expected_depth,
                radii=radii, means2d=proj["means2d"], depths=proj["depths"], conics=proj["conics"],
                num_intersections=isect["n_box_isect"])
-    saved = RenderSaved(inputs, width, height, config, dtype, consts, proj, isect, raster, rast if cast else None)
+    saved = RenderSaved(inputs, width, height, config, dtype, consts, proj, isect, raster, rast)
     return out, saved
 
 
@@ -291,14 +291,12 @@ def _render_grads(saved, v_image, v_alpha, v_depth, v_ed):
     v_background = np.array([np.sum(T_final * v_image[..., c]) for c in range(3)], dtype=dtype)
 
     ts = int(cfg.tile_size)
-    if saved.rast is None:
-        g = rasterize_bwd(proj, inp["colors"], saved.consts, saved.isect, raster, ts, v_image,
-                          np.ascontiguousarray(v_depth_tot), np.ascontiguousarray(v_T))
-    else:  # RenderConfig.raster_float32: the compositing backward in float32, the rest in dtype
-        rproj, rcolors, _, rconsts = saved.rast
-        f32 = np.float32
-        g = rasterize_bwd(rproj, rcolors, rconsts, saved.isect, raster, ts, np.ascontiguousarray(v_image, f32),
-                          np.ascontiguousarray(v_depth_tot, f32), np.ascontiguousarray(v_T, f32))
+    # the compositing backward in the rasteriser's dtype (float32 with RenderConfig.raster_float32)
+    rproj, rcolors, _, rconsts = saved.rast or (proj, inp["colors"], None, saved.consts)
+    rdtype = rconsts.dtype
+    g = rasterize_bwd(rproj, rcolors, rconsts, saved.isect, raster, ts, np.ascontiguousarray(v_image, rdtype),
+                      np.ascontiguousarray(v_depth_tot, rdtype), np.ascontiguousarray(v_T, rdtype))
+    if saved.rast is not None:
         g = {k: v.astype(dtype) for k, v in g.items()}
     v_means, v_quats, v_scales, v_opacities, v_view = project_bwd(
         inp["means"], inp["quats"], inp["scales"], inp["opacities"], inp["cam_T_world"], inp["K"],

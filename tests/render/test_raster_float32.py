@@ -90,9 +90,8 @@ def test_mixed_equals_float32_rasteriser_on_the_float64_projection():
     # the background is added in float64, to the float32 colour sum
     np.testing.assert_array_equal(outm["image"], raster["image"].astype(np.float64) + T[..., None] * scene["background"])
     np.testing.assert_array_equal(outm["alpha"], 1 - T)
-    (rproj, _, _, _), cast = _raster_inputs(proj, scene["colors"], scene["background"], MIXED, 31, 23,
-                                            np.dtype(np.float64))
-    assert cast and set(rproj) <= set(proj32)
+    rast = _raster_inputs(proj, scene["colors"], MIXED, 31, 23, np.dtype(np.float64))
+    assert rast is not None and set(rast[0]) <= set(proj32)
 
 
 @pytest.mark.parametrize("make", [extreme_scales_scene, near_plane_scene, extreme_anisotropy_scene],
