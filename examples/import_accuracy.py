@@ -53,13 +53,24 @@ def measure(preset, out, frames=None, subframes=None, source=None, seed=0):
     gt = np.stack([f.gt_cam_T_world for f in scene.frames])
     est = np.stack([f.cam_T_world for f in imp.frames])
     row.update(ate_rel=float("nan") if rep["rotation_only"] else ate(est, gt) / depth, focal_err=rep["focal_px"] / scene.frames[0].K[0, 0] - 1.0,
-               seconds=sec, points=rep["num_points"], weak=rep["weak_frames"], rotation_only=rep["rotation_only"])
+               seconds=sec, points=rep["num_points"], weak=rep["weak_frames"], rotation_only=rep["rotation_only"],
+               static_motion=rep["static_motion"])
     g = np.stack([f.mask for f in scene.frames])
     p = np.stack([f.mask for f in imp.frames])
     row["movers"] = bool(g.any())
     row["mask_iou"] = float((g & p).sum() / (g | p).sum()) if (g | p).any() else 1.0
     row["mask_fraction_true"], row["mask_fraction_est"] = float(g.mean()), float(p.mean())
     return row
+
+
+def _motion(info):
+    """One phrase for import_report.json's static_motion check (importer.static_motion)."""
+    if not info.get("checked"):
+        return "not checked" + (f" (groups {info['groups']})" if "groups" in info else "")
+    if not info.get("registered"):
+        return f"groups {info['groups']}, static group {info['static_group']} not registrable alone: kept"
+    return (f"groups {info['groups']}, static group {info['static_group']} (border {100 * info['border_share']:.0f}%) "
+            f"differs by {100 * info['disagreement']:.2f}%: " + ("switched" if info["switched"] else "kept"))
 
 
 def main():
@@ -82,7 +93,8 @@ def main():
         else:
             print(f"{preset:11s} ATE/depth {100 * r['ate_rel']:5.2f}%  focal err {100 * r['focal_err']:+5.1f}%  "
                   f"mask IoU {r['mask_iou']:.2f} (true {100 * r['mask_fraction_true']:.1f}% / est "
-                  f"{100 * r['mask_fraction_est']:.1f}% of pixels)  {r['seconds']:.1f}s  weak {r['weak']}", flush=True)
+                  f"{100 * r['mask_fraction_est']:.1f}% of pixels)  {r['seconds']:.1f}s  weak {r['weak']}  "
+                  f"static motion {_motion(r['static_motion'])}", flush=True)
     (out / "results.json").write_text(json.dumps(rows, indent=2))
     print(f"wrote {out / 'results.json'}")
 

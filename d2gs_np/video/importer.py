@@ -32,6 +32,7 @@ from d2gs_np.geometry.camera import make_intrinsics
 from d2gs_np.video.decode import check_decode_args, read_frames
 from d2gs_np.video.masks import MaskConfig, static_motion_masks
 from d2gs_np.video.sfm import SfmConfig, register_video
+from d2gs_np.video.tracks import klt_tracks
 
 __all__ = ["ImportConfig", "import_video", "guess_focal", "REPORT_FILE", "GUESS_FOV_X_DEG"]
 
@@ -57,6 +58,12 @@ class ImportConfig:
     # (suite, seeds 0 / 1): ATE/depth cube_sign 2.40 / 1.58 % with none, 0.91 / 0.19 % with 1; 2 passes
     # help big_mover seed 1 (2.73 -> 1.81 %) but hurt cube_sign seed 0 (0.91 -> 1.76 %)
     mask_rounds: int = 1
+    # which rigid motion is the static world (``static_motion``): when the smaller of two groups of
+    # tracks that move together holds at least this share of them (0: never checked), the group
+    # owning more of the frame border is registered alone, and replaces the registration when their
+    # trajectories differ by more than other_motion_ate (median point depths)
+    other_motion_share: float = 0.25
+    other_motion_ate: float = 0.01
     sfm: SfmConfig = field(default_factory=SfmConfig)
     mask: MaskConfig = field(default_factory=MaskConfig)
 
@@ -64,6 +71,12 @@ class ImportConfig:
         if self.focal is not None and (isinstance(self.focal, bool) or not isinstance(self.focal, numbers.Real)
                                        or not np.isfinite(self.focal) or self.focal <= 0):
             raise ValueError(f"focal must be a positive number of pixels; got {self.focal!r}")
+        if isinstance(self.other_motion_share, bool) or not isinstance(self.other_motion_share, numbers.Real) \
+                or not 0 <= self.other_motion_share <= 1:
+            raise ValueError(f"other_motion_share must be a number in [0, 1]; got {self.other_motion_share!r}")
+        if isinstance(self.other_motion_ate, bool) or not isinstance(self.other_motion_ate, numbers.Real) \
+                or not np.isfinite(self.other_motion_ate) or self.other_motion_ate < 0:
+            raise ValueError(f"other_motion_ate must be a finite number >= 0; got {self.other_motion_ate!r}")
         if isinstance(self.mask_rounds, bool) or not isinstance(self.mask_rounds, numbers.Integral) \
                 or self.mask_rounds < 0:
             raise ValueError(f"mask_rounds must be an int >= 0; got {self.mask_rounds!r}")
@@ -78,6 +91,67 @@ def _drop_points(res, keep):
     o = keep[res.obs_point]
     return dataclasses.replace(res, points=res.points[keep], colors=res.colors[keep], obs_frame=res.obs_frame[o],
                                obs_point=new_id[res.obs_point[o]], obs_uv=res.obs_uv[o])
+
+
+def _subset(tracks, keep):
+    """The tracks where keep (num_tracks,) is True, renumbered, in klt_tracks' layout. The points per
+    frame stay those of all tracks: register_video's texture check is about the frames, and a frame
+    with few of the group's points fails its PnP with its own error."""
+    obs_f, obs_t, obs_uv, _, nkp = tracks
+    sel = keep[obs_t]
+    _, sub_t = np.unique(obs_t[sel], return_inverse=True)
+    return obs_f[sel], sub_t.astype(np.int64), obs_uv[sel], int(sub_t.max()) + 1 if sel.any() else 0, nkp
+
+
+def static_motion(imgs, K, cfg, tracks, res, log=None):
+    """The registration of the static world: ``res``, or that of one group of tracks (``segment``).
+
+    The tracks are split into two groups that move together (``segment.track_groups``). When the
+    smaller holds at least ``cfg.other_motion_share`` of the grouped tracks, the group whose points
+    own more of the frame border (``segment.border_share``) is taken for the static world and
+    registered on its own. If its trajectory disagrees with ``res`` by more than
+    ``cfg.other_motion_ate`` (ATE after a similarity alignment, in units of the median point depth),
+    ``res`` followed a compromise with a mover and the group's registration replaces it (the
+    importer's masks and second pass then bring the rest of the static tracks back); otherwise, as
+    in a static scene whose planes split into groups, ``res`` is kept. Returns (registration, info
+    for the report).
+    """
+    from d2gs_np.metrics import ate
+    from d2gs_np.video.segment import border_share, track_groups
+
+    obs_f, obs_t, obs_uv, T, _ = tracks
+    N, (H, W) = len(imgs), imgs[0].shape[:2]
+    info = {"checked": False}
+    if cfg.other_motion_share <= 0 or res.rotation_only or T == 0:
+        return res, info
+    lab = track_groups(obs_f, obs_t, obs_uv, T)
+    n0, n1 = int(np.sum(lab == 0)), int(np.sum(lab == 1))
+    share = min(n0, n1) / max(n0 + n1, 1)
+    info.update(groups=[n0, n1], smaller_share=share)
+    if share < cfg.other_motion_share:
+        return res, info
+    info["checked"] = True
+    on = lab[obs_t]
+    own0 = border_share(obs_uv[on == 0], obs_f[on == 0], obs_uv[on == 1], obs_f[on == 1], N, W, H)
+    static = 0 if not own0 < 0.5 else 1
+    info.update(border_share=own0 if static == 0 else 1.0 - own0, static_group=static)
+    try:
+        alt = register_video(imgs, K, cfg.sfm, refine_focal=cfg.focal is None, log=None,
+                             tracks=_subset(tracks, lab == static))
+    except ValueError as e:
+        if log:
+            log(f"tracks in two groups ({n0}, {n1}); group {static} (owns {100 * info['border_share']:.0f}% of the "
+                f"frame border) cannot be registered on its own ({str(e)[:120]}): keeping the registration")
+        info.update(registered=False)
+        return res, info
+    dis = float(ate(res.cam_T_world, alt.cam_T_world))
+    switch = dis > cfg.other_motion_ate
+    info.update(registered=True, disagreement=dis, switched=switch)
+    if log:
+        log(f"tracks in two groups ({n0}, {n1}); group {static} owns {100 * info['border_share']:.0f}% of the frame "
+            f"border and, registered alone, differs from the registration by {100 * dis:.2f}% of the median depth: "
+            + ("the registration followed a mover; using the group's" if switch else "keeping the registration"))
+    return (alt if switch else res), info
 
 
 def _check_out(out, overwrite):
@@ -105,7 +179,13 @@ def import_video(source, out, config: ImportConfig = None, overwrite=False, log=
     if log:
         log(f"intrinsics: focal {f0:.1f} px ({'given' if cfg.focal is not None else 'guessed, refined below'}), "
             f"principal point at the centre")
-    res = register_video(imgs, K, cfg.sfm, refine_focal=cfg.focal is None, log=log)
+    tracks = None
+    if cfg.sfm.tracker == "klt":
+        tracks = klt_tracks(imgs, cfg.sfm.tracks, None, seed=cfg.sfm.features.seed)
+    res = register_video(imgs, K, cfg.sfm, refine_focal=cfg.focal is None, log=log, tracks=tracks)
+    motion_info = {"checked": False}
+    if tracks is not None:
+        res, motion_info = static_motion(imgs, K, cfg, tracks, res, log)
     masks = [np.zeros((H, W), dtype=bool) for _ in range(N)]
     mask_info = {}
     if cfg.masks:
@@ -152,6 +232,7 @@ def import_video(source, out, config: ImportConfig = None, overwrite=False, log=
         "reprojection_rms_px": res.reprojection_rms_px, "num_points": int(len(res.points)),
         "keypoints_per_frame": res.num_keypoints.tolist(), "observations_per_frame": res.num_observations.tolist(),
         "weak_frames": res.weak_frames, "moving_fraction": mask_info.get("moving_fraction"),
+        "static_motion": motion_info,
         "seconds": time.perf_counter() - t0, "log": res.log,
         "config": {k: v for k, v in asdict(cfg).items() if k not in ("sfm", "mask")},
     }

@@ -14,8 +14,9 @@ Optionally (``geometric``, off by default: MaskConfig says why) a pixel must fir
 with the static flow: e_j = |observed - expected| > ``threshold_px + relative * |t_j|``, t_j the
 depth-dependent part of the expected flow; farther than ``support_fraction`` x max(W, H) pixels
 from a sparse point seen in frame k, the distance of the observed flow from the epipolar line
-instead. The raw mask is opened (radius ``open_px``: speckle), closed (``close_px``: holes), and
-components smaller than ``min_area_fraction`` of the frame are dropped. No moving object gives
+instead. The raw mask is opened (radius ``open_px``: speckle), closed (``close_px``: holes), components
+smaller than ``min_area_fraction`` of the frame are dropped, and the holes the rest enclose are
+filled (``fill_holes``). No moving object gives
 empty masks.
 
 ``static_motion_masks``: sparse points on movers get depths that make the static warp nearly
@@ -35,7 +36,8 @@ from d2gs_np.features import to_gray_u8
 from d2gs_np.geometry.camera import project_points
 from d2gs_np.scene.initialize import interpolate_inverse_depth
 
-__all__ = ["MaskConfig", "motion_masks", "expected_flow", "observed_flow", "points_off_masks", "static_motion_masks"]
+__all__ = ["MaskConfig", "motion_masks", "expected_flow", "observed_flow", "points_off_masks", "static_motion_masks",
+           "fill_holes"]
 
 
 @dataclass(frozen=True)
@@ -79,14 +81,21 @@ class MaskConfig:
     # more but grow false positives on the static photo_room (0.4 -> 1.4-2.3 % of pixels, seed 1)
     prune_rounds: int = 1
     prune_share: float = 0.3
+    # fill holes (background pixels enclosed by a mask component): a blurred mover's flat interior
+    # has no flow to observe (the crossing card's centre). Measured on the masks the importer wrote
+    # (suite, seeds 0 / 1), pooled IoU without -> with: cube_sign 0.61 -> 0.64 / 0.65 -> 0.69,
+    # crossing 0.42 -> 0.47 / 0.27 -> 0.26, big_mover 0.27 -> 0.27 / 0.57 -> 0.61, wall_disk +0.004
+    # / +0.006; the static photo_room's marked share unchanged
+    fill_holes: bool = True
 
     def __post_init__(self):
         for name in ("gap", "open_px", "close_px", "grow_px"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < (1 if name == "gap" else 0):
                 raise ValueError(f"MaskConfig.{name} must be an int >= {1 if name == 'gap' else 0}; got {v!r}")
-        if not isinstance(self.geometric, bool):
-            raise TypeError(f"MaskConfig.geometric must be a bool; got {self.geometric!r}")
+        for name in ("geometric", "fill_holes"):
+            if not isinstance(getattr(self, name), bool):
+                raise TypeError(f"MaskConfig.{name} must be a bool; got {getattr(self, name)!r}")
         if isinstance(self.prune_share, bool) or not isinstance(self.prune_share, numbers.Real) \
                 or not 0 <= self.prune_share <= 1:
             raise ValueError(f"MaskConfig.prune_share must be a number in [0, 1]; got {self.prune_share!r}")
@@ -192,6 +201,16 @@ def photometric_residual(img_k, img_j, flow, sigma):
     return np.where(inside, r, 0.0)
 
 
+def fill_holes(mask):
+    """(H, W) bool mask with every background region that does not reach the frame edge set."""
+    m = np.asarray(mask, dtype=bool)
+    H, W = m.shape
+    pad = np.zeros((H + 2, W + 2), np.uint8)
+    pad[1:-1, 1:-1] = m
+    cv2.floodFill(pad, np.zeros((H + 4, W + 4), np.uint8), (0, 0), 2)  # the background reached from outside
+    return pad[1:-1, 1:-1] != 2
+
+
 def _clean(mask, cfg):
     m = mask.astype(np.uint8)
     if cfg.open_px > 0:
@@ -205,6 +224,8 @@ def _clean(mask, cfg):
     keep = np.zeros(n, dtype=bool)
     keep[1:] = stats[1:, cv2.CC_STAT_AREA] >= min_area
     out = keep[lab]
+    if cfg.fill_holes and out.any():
+        out = fill_holes(out)
     if cfg.grow_px > 0 and out.any():
         out = cv2.dilate(out.astype(np.uint8), cv2.getStructuringElement(
             cv2.MORPH_ELLIPSE, (2 * cfg.grow_px + 1, 2 * cfg.grow_px + 1))) > 0

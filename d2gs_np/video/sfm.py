@@ -125,6 +125,7 @@ class SfmResult:
     init_parallax_deg: float
     reprojection_rms_px: float
     log: list = field(default_factory=list)
+    point_track: np.ndarray = None  # (P,) the track each sparse point was triangulated from (KLT tracks)
 
 
 def build_tracks(keypoints, matches):
@@ -267,11 +268,37 @@ def _sample_colors(images, frames, uv):
     return cols
 
 
-def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks=None, log=print) -> SfmResult:
+def _check_tracks(tracks, N):
+    """Validated (obs_frame, obs_track, obs_uv, num_tracks, points per frame) for N frames."""
+    try:
+        obs_frame, obs_track, obs_uv, T, nkp = tracks
+    except (TypeError, ValueError):
+        raise ValueError("tracks must be (obs_frame, obs_track, obs_uv, num_tracks, points_per_frame) as "
+                         "klt_tracks returns them") from None
+    obs_frame = np.asarray(obs_frame, dtype=np.int64)
+    obs_track = np.asarray(obs_track, dtype=np.int64)
+    obs_uv = np.asarray(obs_uv, dtype=np.float64)
+    nkp = np.asarray(nkp, dtype=np.int64)
+    O = len(obs_frame)
+    if obs_track.shape != (O,) or obs_uv.shape != (O, 2) or nkp.shape != (N,):
+        raise ValueError(f"tracks: obs_frame, obs_track (O,), obs_uv (O, 2) and points_per_frame ({N},) needed; got "
+                         f"{obs_frame.shape}, {obs_track.shape}, {obs_uv.shape}, {nkp.shape}")
+    if O and (obs_frame.min() < 0 or obs_frame.max() >= N or obs_track.min() < 0 or obs_track.max() >= T):
+        raise ValueError(f"tracks: frames must lie in [0, {N}) and track ids in [0, {T})")
+    if not np.all(np.isfinite(obs_uv)):
+        raise ValueError("tracks: obs_uv has non-finite pixels")
+    return obs_frame, obs_track, obs_uv, int(T), nkp
+
+
+def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks=None, log=print,
+                   tracks=None) -> SfmResult:
     """Camera poses, refined intrinsics and sparse points of a frame sequence (module docstring).
 
     images: list of (H, W, 3) float RGB in [0, 1] (or uint8); K: (3, 3) starting intrinsics (our
     pixel convention). masks: optional list of (H, W) bool, True = moving (no features there).
+    tracks: optional KLT tracks as ``klt_tracks`` returns them (obs_frame, obs_track, obs_uv,
+    num_tracks, points per frame), used instead of tracking again (the importer registers a subset
+    of one set of tracks: ``d2gs_np.video.importer``); only with the "klt" tracker and no masks.
     Raises ValueError naming the frames when the video cannot be registered; NoParallaxError is
     never raised: a pure rotation falls back (``SfmResult.rotation_only``).
     """
@@ -292,7 +319,12 @@ def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks
     if masks is not None and (len(masks) != N or any(np.shape(m) != np.shape(images[0])[:2] for m in masks)):
         raise ValueError(f"masks must be one (H, W) bool array per frame ({N} frames of "
                          f"{np.shape(images[0])[:2]}); got {len(masks)}")
-    if cfg.tracker == "klt":
+    if tracks is not None:
+        if cfg.tracker != "klt" or masks is not None:
+            raise ValueError("register_video: precomputed tracks need the 'klt' tracker and no masks")
+        obs_frame, obs_track, obs_uv, T, nkp = _check_tracks(tracks, N)
+        frame_pts = [obs_uv[obs_frame == k] for k in range(N)]
+    elif cfg.tracker == "klt":
         obs_frame, obs_track, obs_uv, T, nkp = klt_tracks(images, cfg.tracks, masks, seed=cfg.features.seed)
         frame_pts = [obs_uv[obs_frame == k] for k in range(N)]
     else:
@@ -492,7 +524,7 @@ def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks
         say(f"registered all {N} frames: {len(pts)} points, reprojection rms {rms:.2f} px; "
             f"observations per frame {nobs.min()}-{nobs.max()}" + (f"; weakly constrained frames {weak}" if weak else ""))
         return SfmResult(poses, K, pts, np.clip(cols, 0, 1), o_f, o_p, o_uv, nkp, nobs, weak, False, (a, b), par0, rms,
-                         msgs)
+                         msgs, point_track=np.flatnonzero(pt_ok))
 
     for best, refine in plan:
         try:
