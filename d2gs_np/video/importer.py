@@ -1,13 +1,15 @@
 """``d2gs import-video``: a video (or image folder) -> a scene folder with poses, masks, sparse points.
 
 Pipeline (docs/dataset_format.md §8): ``decode.read_frames`` -> intrinsics guess ->
-``sfm.register_video`` (KLT tracks, two-view start, PnP, bundle adjustment with the focal
-length) -> ``masks.static_motion_masks`` -> a second registration that leaves out features
+``tracks.klt_tracks`` -> ``sfm.register_video`` (two-view start, PnP, bundle adjustment with the
+focal length) -> ``static_motion`` (two groups of tracks that move together, ``segment``: the
+group that owns the frame border, registered alone, replaces a registration that followed a
+mover) -> ``masks.static_motion_masks`` -> a second registration that leaves out features
 inside the masks, and new masks (``ImportConfig.mask_rounds``; if that registration fails, or
 leaves frames weakly constrained that were not, the first one is kept) -> sparse points on the
 masks dropped -> ``write_scene`` with ``points3d.ply``
 and ``import_report.json`` (per-frame keypoints and inlier observations, weakly constrained
-frames, the focal length, the reprojection error).
+frames, the focal length, the reprojection error, the static-world check).
 
 Intrinsics: ``focal`` (pixels, at the output size) if given and then kept fixed; otherwise the
 guess of a 65 degree horizontal field of view, f = 0.5 max(W, H) / tan(32.5 deg) = 0.785
