@@ -208,3 +208,36 @@ def test_a_large_mover_does_not_take_the_place_of_the_static_world(tmp_path, che
         assert rep["static_motion"]["switched"] and err < 0.02 and iou > 0.5, (err, iou, rep["static_motion"])
     else:
         assert not rep["static_motion"]["checked"] and err > 0.02 and iou < 0.5, (err, iou)
+
+
+def test_register_video_with_given_tracks_is_the_same_registration():
+    """register_video(tracks=klt_tracks(...)) reproduces the registration that tracks by itself (the
+    importer tracks once and registers subsets), and names malformed tracks before any work."""
+    from d2gs_np.video.tracks import klt_tracks
+
+    sc = make_suite_scene("wall_disk", 0, subframes=4, num_test_views=0, num_frames=10)
+    imgs = [f.image for f in sc.frames]
+    K = make_intrinsics(190.0, 190.0, W / 2, H / 2)
+    a = register_video(imgs, K, log=None)
+    tracks = klt_tracks(imgs)
+    b = register_video(imgs, K, log=None, tracks=tracks)
+    assert np.array_equal(a.cam_T_world, b.cam_T_world) and np.array_equal(a.points, b.points)
+    # point_track: each sparse point's track, whose observations in the result are the track's
+    f, t, uv, T, _ = tracks
+    assert len(b.point_track) == len(b.points) and np.all(np.diff(b.point_track) > 0)
+    for p in (0, len(b.points) // 2, len(b.points) - 1):
+        o = b.obs_point == p
+        src = t == b.point_track[p]
+        assert set(map(tuple, b.obs_uv[o])) <= set(map(tuple, uv[src]))
+    with pytest.raises(ValueError, match="tracks must be"):
+        register_video(imgs, K, log=None, tracks=(f, t, uv))
+    with pytest.raises(ValueError, match="points_per_frame"):
+        register_video(imgs, K, log=None, tracks=(f, t, uv[:, :1], T, tracks[4]))
+    with pytest.raises(ValueError, match="track ids"):
+        register_video(imgs, K, log=None, tracks=(f, t, uv, 3, tracks[4]))
+    bad = uv.copy()
+    bad[5] = np.nan
+    with pytest.raises(ValueError, match="non-finite"):
+        register_video(imgs, K, log=None, tracks=(f, t, bad, T, tracks[4]))
+    with pytest.raises(ValueError, match="no masks"):
+        register_video(imgs, K, log=None, tracks=tracks, masks=[np.zeros((H, W), bool)] * len(imgs))
