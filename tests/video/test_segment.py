@@ -139,3 +139,17 @@ def test_static_motion_never_leaves_a_worse_trajectory(panel):
     else:
         assert out is res or not info.get("switched", False)
         assert e_out < 0.01
+
+
+@pytest.mark.parametrize("layout", ["still", "one point", "collinear"])
+def test_degenerate_tracks_give_valid_labels(layout):
+    """No motion at all, every track on one pixel, tracks on a line (homographies degenerate): labels in
+    {-1, 0, 1}, no error; the degenerate RANSAC fits leave the tracks out rather than guess."""
+    N, P = 6, 40
+    base = np.random.default_rng(0).uniform(0, 200, (P, 2))
+    uv = {"still": base, "one point": np.full((P, 2), 5.0), "collinear": np.c_[base[:, 0], base[:, 0]]}[layout]
+    f, t = np.repeat(np.arange(N), P), np.tile(np.arange(P), N)
+    lab = track_groups(f, t, np.tile(uv, (N, 1)), P)
+    assert lab.shape == (P,) and set(np.unique(lab)) <= {-1, 0, 1}
+    if layout != "still":
+        assert (lab == -1).all()
