@@ -31,8 +31,10 @@ import numpy as np
 from d2gs_np.data.io import write_scene
 from d2gs_np.data.scene import Frame, Scene
 from d2gs_np.geometry.camera import make_intrinsics
+from d2gs_np.metrics import ate
 from d2gs_np.video.decode import check_decode_args, read_frames
 from d2gs_np.video.masks import MaskConfig, static_motion_masks
+from d2gs_np.video.segment import border_share, track_groups
 from d2gs_np.video.sfm import SfmConfig, register_video
 from d2gs_np.video.tracks import klt_tracks
 
@@ -118,9 +120,6 @@ def static_motion(imgs, K, cfg, tracks, res, log=None):
     in a static scene whose planes split into groups, ``res`` is kept. Returns (registration, info
     for the report).
     """
-    from d2gs_np.metrics import ate
-    from d2gs_np.video.segment import border_share, track_groups
-
     obs_f, obs_t, obs_uv, T, _ = tracks
     N, (H, W) = len(imgs), imgs[0].shape[:2]
     info = {"checked": False}
@@ -135,7 +134,10 @@ def static_motion(imgs, K, cfg, tracks, res, log=None):
     info["checked"] = True
     on = lab[obs_t]
     own0 = border_share(obs_uv[on == 0], obs_f[on == 0], obs_uv[on == 1], obs_f[on == 1], N, W, H)
-    static = 0 if not own0 < 0.5 else 1
+    if not np.isfinite(own0):  # the groups never share a frame: nothing to compare
+        info["checked"] = False
+        return res, info
+    static = 0 if own0 >= 0.5 else 1
     info.update(border_share=own0 if static == 0 else 1.0 - own0, static_group=static)
     try:
         alt = register_video(imgs, K, cfg.sfm, refine_focal=cfg.focal is None, log=None,
