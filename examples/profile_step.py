@@ -226,7 +226,6 @@ def run_once(api, call, cot):
     if config is None:
         config = api.RenderConfig()
     else:  # the same settings in this package's RenderConfig class (an older one may lack some)
-        import dataclasses
         known = {f.name for f in dataclasses.fields(api.RenderConfig)}
         config = api.RenderConfig(**{k: v for k, v in dataclasses.asdict(config).items() if k in known})
     t0 = time.perf_counter()

@@ -131,12 +131,11 @@ def static_motion(imgs, K, cfg, tracks, res, log=None):
     info.update(groups=[n0, n1], smaller_share=share)
     if share < cfg.other_motion_share:
         return res, info
-    info["checked"] = True
     on = lab[obs_t]
     own0 = border_share(obs_uv[on == 0], obs_f[on == 0], obs_uv[on == 1], obs_f[on == 1], N, W, H)
     if not np.isfinite(own0):  # the groups never share a frame: nothing to compare
-        info["checked"] = False
         return res, info
+    info["checked"] = True
     static = 0 if own0 >= 0.5 else 1
     info.update(border_share=own0 if static == 0 else 1.0 - own0, static_group=static)
     try:

@@ -125,7 +125,6 @@ class SfmResult:
     init_parallax_deg: float
     reprojection_rms_px: float
     log: list = field(default_factory=list)
-    point_track: np.ndarray = None  # (P,) the track each sparse point was triangulated from (KLT tracks)
 
 
 def build_tracks(keypoints, matches):
@@ -319,13 +318,11 @@ def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks
     if masks is not None and (len(masks) != N or any(np.shape(m) != np.shape(images[0])[:2] for m in masks)):
         raise ValueError(f"masks must be one (H, W) bool array per frame ({N} frames of "
                          f"{np.shape(images[0])[:2]}); got {len(masks)}")
-    if tracks is not None:
-        if cfg.tracker != "klt" or masks is not None:
-            raise ValueError("register_video: precomputed tracks need the 'klt' tracker and no masks")
-        obs_frame, obs_track, obs_uv, T, nkp = _check_tracks(tracks, N)
-        frame_pts = [obs_uv[obs_frame == k] for k in range(N)]
-    elif cfg.tracker == "klt":
-        obs_frame, obs_track, obs_uv, T, nkp = klt_tracks(images, cfg.tracks, masks, seed=cfg.features.seed)
+    if tracks is not None and (cfg.tracker != "klt" or masks is not None):
+        raise ValueError("register_video: precomputed tracks need the 'klt' tracker and no masks")
+    if cfg.tracker == "klt":
+        obs_frame, obs_track, obs_uv, T, nkp = (_check_tracks(tracks, N) if tracks is not None else
+                                                klt_tracks(images, cfg.tracks, masks, seed=cfg.features.seed))
         frame_pts = [obs_uv[obs_frame == k] for k in range(N)]
     else:
         fc = cfg.features
@@ -524,7 +521,7 @@ def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks
         say(f"registered all {N} frames: {len(pts)} points, reprojection rms {rms:.2f} px; "
             f"observations per frame {nobs.min()}-{nobs.max()}" + (f"; weakly constrained frames {weak}" if weak else ""))
         return SfmResult(poses, K, pts, np.clip(cols, 0, 1), o_f, o_p, o_uv, nkp, nobs, weak, False, (a, b), par0, rms,
-                         msgs, point_track=np.flatnonzero(pt_ok))
+                         msgs)
 
     for best, refine in plan:
         try:

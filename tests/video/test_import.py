@@ -219,13 +219,7 @@ def test_register_video_with_given_tracks_is_the_same_registration():
     tracks = klt_tracks(imgs)
     b = register_video(imgs, K, log=None, tracks=tracks)
     assert np.array_equal(a.cam_T_world, b.cam_T_world) and np.array_equal(a.points, b.points)
-    # point_track: each sparse point's track, whose observations in the result are the track's
     f, t, uv, T, _ = tracks
-    assert len(b.point_track) == len(b.points) and np.all(np.diff(b.point_track) > 0)
-    for p in (0, len(b.points) // 2, len(b.points) - 1):
-        o = b.obs_point == p
-        src = t == b.point_track[p]
-        assert set(map(tuple, b.obs_uv[o])) <= set(map(tuple, uv[src]))
     with pytest.raises(ValueError, match="tracks must be"):
         register_video(imgs, K, log=None, tracks=(f, t, uv))
     with pytest.raises(ValueError, match="points_per_frame"):
