@@ -153,3 +153,22 @@ def test_degenerate_tracks_give_valid_labels(layout):
     assert lab.shape == (P,) and set(np.unique(lab)) <= {-1, 0, 1}
     if layout != "still":
         assert (lab == -1).all()
+
+
+def test_groups_that_never_share_a_frame_leave_the_registration_alone(monkeypatch):
+    """Stiff case: the border comparison has no frame with both groups (border_share NaN): nothing is
+    decided, nothing registered again; the first registration is returned unchanged."""
+    import d2gs_np.video.importer as importer
+
+    f, t, uv, T, truth, poses = _two_layers(return_poses=True)
+    N = len(poses)
+    imgs = [np.zeros((H, W, 3), np.uint8)] * N
+    res = register_video(imgs, K, refine_focal=False, log=None, tracks=(f, t, uv, T, np.bincount(f, minlength=N)))
+    keep = np.where(truth[t] == 1, f < N // 2, f >= N // 2)  # the panel early, the room late
+    tracks = (f[keep], t[keep], uv[keep], T, np.bincount(f[keep], minlength=N))
+    monkeypatch.setattr(importer, "track_groups", lambda *a, **k: truth.copy())
+    calls = []
+    monkeypatch.setattr(importer, "register_video", lambda *a, **k: calls.append(1))
+    out, info = static_motion(imgs, K, ImportConfig(focal=float(K[0, 0])), tracks, res)
+    assert out is res and not info["checked"] and not calls
+    assert info["groups"] == [int(np.sum(truth == 0)), int(np.sum(truth == 1))]
