@@ -23,7 +23,7 @@ def _blur(img, angle_deg, length):
     return cv2.filter2D(img, -1, k / k.sum(), borderType=cv2.BORDER_REFLECT)
 
 
-def _shaky_pan(mover=False):
+def _shaky_pan(mover=False, blur_px=5):
     """Brick photograph panned by known shifts; each frame motion-blurred along its own direction (hand
     shake). With ``mover``, a gravel square moves the other way over the middle. Returns frames (uint8),
     shifts (N, 2) (content at x in frame 0 is at x + shift_k in frame k) and the mover's masks."""
@@ -40,9 +40,17 @@ def _shaky_pan(mover=False):
             x0, y0 = int(60 + 3 * k), 28
             img[y0:y0 + 40, x0:x0 + 40] = gravel
             m[y0:y0 + 40, x0:x0 + 40] = True
-        frames.append(np.clip(_blur(img, rng.uniform(0, 180), 5), 0, 255).astype(np.uint8))
+        frames.append(np.clip(_blur(img, rng.uniform(0, 180), blur_px), 0, 255).astype(np.uint8))
         masks.append(m)
     return frames, shifts, masks
+
+
+def _track_errors(f, t, uv, T, shifts):
+    """Distance (O,) of every observation from its track's first one moved by the known shift."""
+    first = np.full(T, -1)
+    order = np.argsort(f, kind="stable")
+    first[t[order[::-1]]] = order[::-1]  # the earliest observation of each track
+    return np.linalg.norm(uv - (uv[first[t]] + shifts[f] - shifts[f[first[t]]]), axis=1)
 
 
 def test_klt_tracks_are_long_and_follow_the_blurred_content():
@@ -50,12 +58,12 @@ def test_klt_tracks_are_long_and_follow_the_blurred_content():
     f, t, uv, T, corners = klt_tracks(frames)
     assert T > 100 and corners.min() >= 100
     # every observation of a track agrees with its first one moved by the known shift
-    first = np.full(T, -1)
-    order = np.argsort(f, kind="stable")
-    first[t[order[::-1]]] = order[::-1]  # the earliest observation of each track
-    pred = uv[first[t]] + shifts[f] - shifts[f[first[t]]]
-    err = np.linalg.norm(uv - pred, axis=1)
-    assert np.median(err) < 0.3 and np.percentile(err, 95) < 1.0, (np.median(err), np.percentile(err, 95))
+    err = _track_errors(f, t, uv, T, shifts)
+    # the default retries failed points with a 21 px window: measured median 0.17 px, 95th percentile
+    # 1.18 px, against 0.12 / 0.93 px with the 15 px window alone (checked below)
+    assert np.median(err) < 0.3 and np.percentile(err, 95) < 1.5, (np.median(err), np.percentile(err, 95))
+    err1 = _track_errors(*klt_tracks(frames, TrackConfig(retry_window_px=0))[:4], shifts)
+    assert np.median(err1) < 0.2 and np.percentile(err1, 95) < 1.0, (np.median(err1), np.percentile(err1, 95))
     long = int(np.sum(np.bincount(t) >= 8))
     assert long >= 40, np.bincount(np.bincount(t))
     # SIFT matches of the same frames (the former default) give far fewer observations and long
@@ -65,6 +73,27 @@ def test_klt_tracks_are_long_and_follow_the_blurred_content():
     matches = {(a, b): match_keypoints(kps[a], kps[b], fc) for a in range(N) for b in range(a + 1, min(N, a + 5))}
     _, st, _, Ts = build_tracks(kps, {k: m for k, m in matches.items() if m.num_inliers})
     assert len(f) > 2 * len(st) and long > 2 * np.sum(np.bincount(st) >= 8), (len(f), len(st))
+
+
+def test_retry_window_extends_tracks_through_stronger_blur():
+    """Points that fail the forward-backward check with the 15 px window are tracked again with a 21 px
+    one: through 9 px blur turning from frame to frame, measured 673 -> 991 links between neighbouring
+    frames, tracks as accurate (median error 0.38 -> 0.47 px, 95th percentile 1.81 -> 1.76 px against
+    the known shifts). The bounds leave a margin of about 2x on the gain and 1.3x on the errors."""
+    frames, shifts, _ = _shaky_pan(blur_px=9)
+
+    def run(retry):
+        f, t, uv, T, _ = klt_tracks(frames, TrackConfig(retry_window_px=retry))
+        err = _track_errors(f, t, uv, T, shifts)
+        links = sum(int(np.isin(t[f == k], t[f == k + 1]).sum()) for k in range(N - 1))
+        return links, err
+
+    links0, err0 = run(0)
+    links1, err1 = run(21)
+    assert links1 >= 1.2 * links0, (links0, links1)
+    assert np.median(err1) < 0.65 and np.percentile(err1, 95) < 2.4, (np.median(err1), np.percentile(err1, 95))
+    with pytest.raises(ValueError, match="retry_window_px"):
+        TrackConfig(retry_window_px=2)
 
 
 def test_klt_tracks_keep_off_the_masks():
