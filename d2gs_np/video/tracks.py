@@ -50,8 +50,8 @@ class TrackConfig:
     # registered across them, and the registration bridged them on the crossing card (relative
     # rotation errors of 4.7 deg per frame in frames 12-16). Retrying at 21 px keeps 50-60 there.
     # Import accuracy (examples/import_accuracy.py, seeds 0 / 1), ATE/depth and mask IoU, 0 -> 21:
-    # crossing 0.99 / 1.91 % -> 0.91 / 0.38 %, IoU 0.47 / 0.27 -> 0.58 / 0.67; cube_sign ATE 0.40 /
-    # 0.18 % -> 1.71 / 0.16 %; the rest within 0.14 % ATE and 0.02 IoU; the static photo_room marks
+    # crossing 0.99 / 1.91 % -> 0.91 / 1.57 %, IoU 0.47 / 0.27 -> 0.58 / 0.60; cube_sign ATE 0.40 /
+    # 0.18 % -> 1.49 / 0.19 %; the rest within 0.14 % ATE and 0.02 IoU; the static photo_room marks
     # 0.5 / 1.1 -> 0.5 / 2.2 % of its pixels. A 21 px window for every point instead: big_mover seed 1
     # fails (ATE 3.9 %), photo_room marks 2.4 / 4.0 %
     retry_window_px: int = 21
