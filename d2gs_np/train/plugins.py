@@ -177,7 +177,9 @@ class Densify(Plugin):
         params, adam_state, rows, info = densify(state.params, state.adam, state.rows, dc, self.extent, self.width, rng)
         state = state.replace(model=state.model.replace(params=params), adam=adam_state, rows=rows)
         if info["cloned"] or info["split"]:
-            self.note(f"step {state.step}: densified (cloned {info['cloned']}, split {info['split']}) -> "
+            dyn = (f"; dynamic set: cloned {info['dynamic_cloned']}, split {info['dynamic_split']}"
+                   if info["dynamic_cloned"] or info["dynamic_split"] else "")
+            self.note(f"step {state.step}: densified (cloned {info['cloned']}, split {info['split']}{dyn}) -> "
                       f"{state.model.num_gaussians()} Gaussians")
         return state
 

@@ -58,6 +58,30 @@ def test_budget_caps_growth():
     assert info["cloned"] + info["split"] == 1
 
 
+def test_the_budget_goes_to_the_highest_gradients_of_both_sets():
+    # Room for 2 more rows; 6 static candidates just above the threshold and 2 dynamic ones far
+    # above it: both rows go to the dynamic set (the static set used to take the room first).
+    rng = np.random.default_rng(4)
+    p = _params(rng)
+    width = 100
+    thr = DensifyConfig().grad_threshold_ndc * 2 / width
+    g = np.zeros((9, 2))
+    g[:6, 0] = 1.5 * thr
+    g[[6, 8], 0] = 10 * thr
+    stats = add_grad_stats(init_grad_stats(p), g, np.ones(9), num_static=6)
+    cfg = DensifyConfig(enabled=True, max_gaussians=11)
+    out, _, _, info = densify(p, adam.adam_init(p), stats, cfg, extent=1.0, width=width, rng=rng)
+    assert info["static_cloned"] + info["static_split"] == 0
+    assert info["dynamic_cloned"] + info["dynamic_split"] == 2
+    assert out["static.means"].shape[0] == 6 and out["dynamic.means"].shape[0] == 5
+    # static gradients above the dynamic ones: the room goes to the static set
+    g[:6, 0], g[[6, 8], 0] = 10 * thr, 1.5 * thr
+    stats = add_grad_stats(init_grad_stats(p), g, np.ones(9), num_static=6)
+    out, _, _, info = densify(p, adam.adam_init(p), stats, cfg, extent=1.0, width=width, rng=rng)
+    assert info["static_cloned"] + info["static_split"] == 2 and info["dynamic_cloned"] + info["dynamic_split"] == 0
+    assert out["static.means"].shape[0] == 8 and out["dynamic.means"].shape[0] == 3
+
+
 def test_config_validation():
     with pytest.raises(ValueError, match="start_fraction"):
         DensifyConfig(start_fraction=0.8, stop_fraction=0.5)
