@@ -208,20 +208,21 @@ def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = N
     if ok.sum() < cfg.min_points:
         info["reason"] = f"too few triangulated tracks ({int(ok.sum())} of {nt}; min_points {cfg.min_points})"
         return T0.copy(), info
-    cams = poses_to_params(T0)
+    given = poses_to_params(T0)
+    cams = given.copy()
     keep_pts = np.flatnonzero(ok)
     slot = np.full(nt, -1)
     slot[keep_pts] = np.arange(len(keep_pts))
     o_cam, o_pt, o_uv = of[sel], slot[ot[sel]], ouv[sel]
     pts = X[keep_pts]
     depth = float(np.median(_depths(T0, pts)))
-    prior = (poses_to_params(T0), cfg.prior_trans_rel * depth, np.deg2rad(cfg.prior_rot_deg))
+    prior = (given, cfg.prior_trans_rel * depth, np.deg2rad(cfg.prior_rot_deg))
     rounds = []
     held = np.zeros(N, dtype=bool)
     for r in range(2):
         # weakly observed frames: back to the given pose and held there
         held |= np.bincount(o_cam, minlength=N) < cfg.min_frame_observations
-        cams[held] = prior[0][held]
+        cams[held] = given[held]
         if held.all():
             info["reason"] = (f"no frame has {cfg.min_frame_observations} observations of triangulated tracks "
                               f"(min_frame_observations)")

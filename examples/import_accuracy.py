@@ -56,7 +56,8 @@ def measure(preset, out, frames=None, subframes=None, source=None, seed=0):
     gt = np.stack([f.gt_cam_T_world for f in scene.frames])
     est = np.stack([f.cam_T_world for f in imp.frames])
     row.update(ate_rel=float("nan") if rep["rotation_only"] else ate(est, gt) / depth,
-               rpe_rot_deg=rpe(est, gt, align=not rep["rotation_only"])[1], focal_err=rep["focal_px"] / scene.frames[0].K[0, 0] - 1.0,
+               rpe_rot_deg=rpe(est, gt, align=not rep["rotation_only"])[1],
+               focal_err=rep["focal_px"] / scene.frames[0].K[0, 0] - 1.0,
                seconds=sec, points=rep["num_points"], weak=rep["weak_frames"], rotation_only=rep["rotation_only"],
                static_motion=rep["static_motion"])
     g = np.stack([f.mask for f in scene.frames])
@@ -95,7 +96,8 @@ def main():
         if "error" in r:
             print(f"{preset:11s} FAILED in {r['seconds']:.1f}s: {r['error']}")
         else:
-            print(f"{preset:11s} ATE/depth {100 * r['ate_rel']:5.2f}%  RPE rot {r['rpe_rot_deg']:.2f} deg  focal err {100 * r['focal_err']:+5.1f}%  "
+            print(f"{preset:11s} ATE/depth {100 * r['ate_rel']:5.2f}%  RPE rot {r['rpe_rot_deg']:.2f} deg  "
+                  f"focal err {100 * r['focal_err']:+5.1f}%  "
                   f"mask IoU {r['mask_iou']:.2f} (true {100 * r['mask_fraction_true']:.1f}% / est "
                   f"{100 * r['mask_fraction_est']:.1f}% of pixels)  {r['seconds']:.1f}s  weak {r['weak']}  "
                   f"static motion {_motion(r['static_motion'])}", flush=True)

