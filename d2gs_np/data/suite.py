@@ -467,8 +467,9 @@ def _sample(tex, p, a, b):
     return out
 
 
-def _cast(world: SuiteWorld, origin, dirs, t):
-    """rgb (3, R), depth (R,) (camera z for d = R^T (x, y, 1)), moving (R,) bool."""
+def _hits(world: SuiteWorld, origin, dirs, t):
+    """Nearest hits of rays: depth (R,), patch id (R,) (-1: none; static patches first, then each
+    mover's in order), local patch coordinates (2, R) and each patch's world normal at time t."""
     R = len(dirs[0])
     depth = np.full(R, np.inf)
     pid = np.full(R, -1, dtype=np.int64)
@@ -484,6 +485,13 @@ def _cast(world: SuiteWorld, origin, dirs, t):
         for j, p in enumerate(m.patches):
             normals[first + j] = Rm @ np.cross(p.u, p.v)
         first += len(m.patches)
+    return depth, pid, local, normals
+
+
+def _cast(world: SuiteWorld, origin, dirs, t):
+    """rgb (3, R), depth (R,) (camera z for d = R^T (x, y, 1)), moving (R,) bool."""
+    R = len(dirs[0])
+    depth, pid, local, normals = _hits(world, origin, dirs, t)
     rgb = np.zeros((3, R))
     all_patches = list(world.patches) + [p for m in world.movers for p in m.patches]
     for i in np.flatnonzero(np.bincount(pid[pid >= 0], minlength=len(all_patches))):
@@ -510,6 +518,47 @@ def suite_depth_map(world: SuiteWorld, cam_T_world, t, K, width, height):
     origin, dirs = _pixel_rays(T, K, width, height, 1)
     _, depth, _ = _cast(world, origin, dirs, float(t))
     return depth.reshape(height, width)
+
+
+def mover_point_tracks(world: SuiteWorld, cam_T_world, K, t, pixels, poses, Ks, times):
+    """Where the moving surface points seen at ``pixels`` (P, 2) (continuous, our convention) of a
+    view (cam_T_world, K) at time t are in other views (poses (M, 4, 4), Ks (M, 3, 3), times (M,)):
+    (M, P, 2) pixels, NaN where the pixel sees no mover or the point is behind that camera. The
+    ground truth against which a dynamic object's tracked or initialised motion is measured
+    (``examples/motion_init_accuracy.py``); occlusion in the other views is not checked."""
+    T = np.asarray(cam_T_world, dtype=np.float64)
+    K = np.asarray(K, dtype=np.float64)
+    px = np.asarray(pixels, dtype=np.float64).reshape(-1, 2)
+    Rc = T[:3, :3]
+    d_cam = np.stack([(px[:, 0] - K[0, 2]) / K[0, 0], (px[:, 1] - K[1, 2]) / K[1, 1], np.ones(len(px))])
+    dirs = tuple(Rc[0, a] * d_cam[0] + Rc[1, a] * d_cam[1] + Rc[2, a] * d_cam[2] for a in range(3))
+    origin = -Rc.T @ T[:3, 3]
+    depth, pid, _, _ = _hits(world, origin, dirs, float(t))
+    X = origin[:, None] + depth[None] * np.stack(dirs)  # (3, P); inf where nothing is hit
+    body = np.full((3, len(px)), np.nan)
+    owner = np.full(len(px), -1)
+    first = len(world.patches)
+    for j, m in enumerate(world.movers):
+        on = (pid >= first) & (pid < first + len(m.patches))
+        Rm, c = mover_pose(m, float(t))
+        body[:, on] = Rm.T @ (X[:, on] - c[:, None])
+        owner[on] = j
+        first += len(m.patches)
+    out = np.full((len(times), len(px), 2), np.nan)
+    for q, (P, Kq, tq) in enumerate(zip(np.asarray(poses, dtype=np.float64), np.asarray(Ks, dtype=np.float64),
+                                        np.asarray(times, dtype=np.float64))):
+        for j, m in enumerate(world.movers):
+            on = owner == j
+            if not on.any():
+                continue
+            Rm, c = mover_pose(m, float(tq))
+            pc = P[:3, :3] @ (Rm @ body[:, on] + c[:, None]) + P[:3, 3:4]
+            front = pc[2] > 1e-9
+            uv = np.full((on.sum(), 2), np.nan)
+            uv[front] = np.stack([Kq[0, 0] * pc[0, front] / pc[2, front] + Kq[0, 2],
+                                  Kq[1, 1] * pc[1, front] / pc[2, front] + Kq[1, 2]], axis=1)
+            out[q, on] = uv
+    return out
 
 
 def pose_errors(num_frames, rot_rms_deg, trans_rms, drift, rng):

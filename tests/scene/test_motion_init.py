@@ -7,7 +7,8 @@ from d2gs_np.data.synthetic import make_scene
 from d2gs_np.geometry.camera import project_points
 from d2gs_np.scene.deformation import DeformConfig, deform_fwd
 from d2gs_np.scene.initialize import InitConfig, initialize_points
-from d2gs_np.scene.motion_init import MotionInitConfig, initialize_deformation, mask_components, track_components
+from d2gs_np.scene.motion_init import (WARPS, MotionInitConfig, initialize_deformation, mask_components,
+                                       track_components)
 
 
 def _inside_fraction(scene, means, coefs, cfg):
@@ -27,13 +28,14 @@ def _inside_fraction(scene, means, coefs, cfg):
     return float(np.mean(hits))
 
 
-def test_tracked_deformation_follows_the_masks():
+@pytest.mark.parametrize("warp", WARPS)
+def test_tracked_deformation_follows_the_masks(warp):
     scene = make_scene("sharp", 0, width=96, height=54, num_frames=10)
     rng = np.random.default_rng(0)
     _, _, d_pts, _, info = initialize_points(scene, InitConfig(dynamic_points=300), rng)
     cfg = DeformConfig()
     means, coefs, minfo = initialize_deformation(scene, d_pts, info["dynamic_source_frames"],
-                                                 info["dynamic_source_pixels"], cfg, MotionInitConfig())
+                                                 info["dynamic_source_pixels"], cfg, MotionInitConfig(warp=warp))
     assert minfo["num_tracks"] >= 1 and minfo["num_tracked_seeds"] > 0.8 * len(d_pts)
     zero = np.zeros_like(coefs)
     before = _inside_fraction(scene, d_pts, zero, cfg)
@@ -77,7 +79,8 @@ def test_components_and_tracking():
     assert track_components(cents, gate=0.1)[1].min() >= 2  # gated: all new tracks
 
 
-@pytest.mark.parametrize("bad", [dict(min_area_fraction=1.5), dict(max_jump_fraction=0.0), dict(ridge=-1.0), dict(ridge=0.0)])
+@pytest.mark.parametrize("bad", [dict(min_area_fraction=1.5), dict(max_jump_fraction=0.0), dict(ridge=-1.0), dict(ridge=0.0),
+                                 dict(warp="affine")])
 def test_config_validation(bad):
     with pytest.raises(ValueError, match="MotionInitConfig"):
         MotionInitConfig(**bad)
@@ -131,3 +134,94 @@ def test_track_turns_accumulate_and_untextured_regions_give_no_turn():
     flat = np.full((64, 64, 3), 0.5)
     region = np.ones((64, 64), dtype=bool)
     assert relative_similarity(flat, region, flat, region) == (0.0, 1.0, 0)
+
+
+# ------------------------------------------------------------- warps of a track
+# The disk below is 92 px wide with photo texture: SIFT locates its keypoints to ~0.1-0.3 px and
+# RANSAC keeps consistent matches, so a fitted warp maps points of the disk to ~0.3 px; chained over
+# a few frames the error adds up (WARP_TOL_PX allows for 4 links).
+WARP_TOL_PX = 1.0
+
+
+def _moving_disk(shifts, angles_deg, size=(160, 128), radius=46):
+    """Frames of a photo-textured disk turned by angles_deg about its centre and moved by shifts
+    (px) over a plain background, cut by the image border where it leaves; their masks (the visible
+    disk); and the true maps (3 x 3, our pixel convention) from frame 0 to each frame."""
+    from types import SimpleNamespace
+
+    import skimage.data
+
+    W, H = size
+    tex = skimage.data.astronaut()[100:356, 150:406].astype(np.float64) / 255.0
+    tex = cv2.resize(tex, (2 * radius + 4, 2 * radius + 4), interpolation=cv2.INTER_AREA)
+    canvas = np.full((H, W, 3), 0.5)
+    c0 = np.array([W / 2 - 10, H / 2])  # disk centre in frame 0 (our convention)
+    y0, x0 = int(c0[1] - radius - 2), int(c0[0] - radius - 2)
+    canvas[y0:y0 + tex.shape[0], x0:x0 + tex.shape[1]] = tex
+    yy, xx = np.mgrid[0:H, 0:W]
+    inside0 = (xx + 0.5 - c0[0]) ** 2 + (yy + 0.5 - c0[1]) ** 2 <= radius ** 2
+    base = np.where(inside0[..., None], canvas, 0.5)
+    frames, maps = [], []
+    for (dx, dy), a in zip(shifts, angles_deg):
+        th = np.radians(a)
+        R = np.array([[np.cos(th), -np.sin(th)], [np.sin(th), np.cos(th)]])  # turns +x towards +y (y down)
+        M = np.eye(3)
+        M[:2, :2] = R
+        M[:2, 2] = c0 + np.array([dx, dy]) - R @ c0  # our convention: p -> R (p - c0) + c0 + d
+        S = np.array([[1.0, 0, -0.5], [0, 1.0, -0.5], [0, 0, 1.0]])  # ours -> OpenCV's pixel centres
+        Mcv = S @ M @ np.linalg.inv(S)
+        img = cv2.warpAffine(base, Mcv[:2], (W, H), flags=cv2.INTER_CUBIC, borderValue=(0.5, 0.5, 0.5))
+        c = c0 + np.array([dx, dy])
+        mask = (xx + 0.5 - c[0]) ** 2 + (yy + 0.5 - c[1]) ** 2 <= radius ** 2
+        frames.append(SimpleNamespace(image=np.clip(img, 0, 1), mask=mask, width=W, height=H))
+        maps.append(M)
+    return frames, maps
+
+
+@pytest.mark.parametrize("kind", ["similarity", "homography"])
+def test_relative_warp_maps_pixels_in_our_convention(kind):
+    from d2gs_np.scene.motion_init import relative_warp
+
+    frames, maps = _moving_disk([(0.0, 0.0), (3.0, 2.0)], [0.0, 30.0])
+    H, n = relative_warp(frames[0].image, frames[0].mask, frames[1].image, frames[1].mask, kind)
+    assert H is not None and n >= 10
+    pts = np.array([[70.0, 64.0], [50.0, 40.0], [95.0, 90.0], [72.5, 30.5]])  # inside the disk
+    hom = np.c_[pts, np.ones(len(pts))]
+    got = hom @ H.T
+    want = hom @ maps[1].T
+    # measured 0.18 px (similarity) and 0.21 px (homography); OpenCV's pixel centres taken for ours
+    # would add |(R - I) (0.5, 0.5)| = 0.37 px at this turn of 30 degrees
+    np.testing.assert_allclose(got[:, :2] / got[:, 2:3], want[:, :2], atol=0.3)
+
+
+def test_track_warps_follow_an_object_that_leaves_the_frame():
+    """A disk moving right and out of the image: the chained warps carry a point of the disk to
+    its true place, where the centroid of the visible part lags behind it."""
+    from d2gs_np.scene.motion_init import _track_warps
+
+    shifts = [(0.0, 0.0), (20.0, 1.0), (40.0, 2.0), (60.0, 3.0), (80.0, 4.0)]  # the last cuts 36 px of 92
+    frames, maps = _moving_disk(shifts, [0.0, 4.0, 8.0, 12.0, 16.0])
+    labels = [np.where(f.mask, 0, -1) for f in frames]
+    cents = [mask_components(f.mask, 10)[1][0] for f in frames]
+    mem = [(k, cents[k], 0) for k in range(len(frames))]
+    W = _track_warps(frames, labels, mem, "similarity", 6)
+    p = np.array([45.0, 64.0, 1.0])  # on the disk's left half: in view throughout
+    for k in range(len(frames)):
+        got = W[k] @ p
+        want = maps[k] @ p
+        assert np.linalg.norm(got[:2] / got[2] - want[:2]) < WARP_TOL_PX
+    # the centroid of the visible part fails here (so this scene can tell the two rules apart)
+    lag = np.linalg.norm((cents[-1] - cents[0]) - np.array(shifts[-1]))
+    assert lag > 5.0
+
+
+def test_warp_pixel_drops_maps_that_send_the_pixel_to_infinity():
+    from d2gs_np.scene.motion_init import warp_pixel
+
+    ident = np.eye(3)
+    horizon = np.array([[1.0, 0, 0], [0, 1.0, 0], [-0.1, 0, 1.0]])  # w = 1 - 0.1 x: zero at x = 10
+    pix, ok = warp_pixel(np.stack([ident, horizon, 2 * ident]), np.array([10.0, 3.0]))
+    np.testing.assert_array_equal(ok, [True, False, True])
+    np.testing.assert_allclose(pix[0], [10.0, 3.0])
+    np.testing.assert_allclose(pix[2], [10.0, 3.0])  # homogeneous scale does not move it
+    assert np.isnan(pix[1]).all()
