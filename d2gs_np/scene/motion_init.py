@@ -53,7 +53,7 @@ from d2gs_np.geometry.camera import unproject_points
 from d2gs_np.scene.deformation import DeformConfig, deform_basis
 
 
-WARPS = ("centroid", "similarity", "homography")
+WARPS = ("centroid", "similarity", "homography", "flow")
 WARP_W_MIN = 1e-6  # a homogeneous pixel with w below this is at or behind infinity
 
 
@@ -178,6 +178,61 @@ def _track_warps(frames, labels, mem, kind, min_inliers):
     return np.stack(W)
 
 
+def _pair_map(frames, labels, a, b, min_inliers):
+    """The map of pixels of track member a = (k0, centroid, component) to member b's frame k1,
+    as a function of (P, 2) pixels: the pair's RANSAC similarity (``relative_warp``; the centroids'
+    difference when it has too few inliers) refined by dense optical flow (OpenCV's DIS, medium
+    preset) between image k0 and image k1 pulled back by that similarity, so that the flow only
+    has to find what the similarity misses (a tumbling object's faces, perspective, parallax)."""
+    from d2gs_np.features import to_gray_u8
+    from d2gs_np.scene.initialize import sample_image_bilinear
+
+    (k0, c0p, c0), (k1, c1p, c1) = a, b
+    img0, img1 = frames[k0].image, frames[k1].image
+    H, _ = relative_warp(img0, labels[k0] == c0, img1, labels[k1] == c1, "similarity", min_inliers)
+    if H is None:
+        H = np.eye(3)
+        H[:2, 2] = np.asarray(c1p) - np.asarray(c0p)
+    S = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])  # ours -> OpenCV's pixel centres
+    Hcv = S @ H @ np.linalg.inv(S)
+    h, w = img0.shape[:2]
+    # The flow sees the object only: outside its (dilated) region each image is its region's mean
+    # colour, so the background's motion cannot drag the object's flow along.
+    kernel = np.ones((5, 5), np.uint8)
+    only = []
+    for img, k, c in ((img0, k0, c0), (img1, k1, c1)):
+        region = cv2.dilate((labels[k] == c).astype(np.uint8), kernel).astype(bool)
+        only.append(np.where(region[..., None], img, img[region].mean(axis=0)).astype(np.float32))
+    pulled = cv2.warpPerspective(only[1], Hcv, (w, h), flags=cv2.INTER_LINEAR | cv2.WARP_INVERSE_MAP,
+                                 borderMode=cv2.BORDER_REPLICATE)
+    dis = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM)
+    flow = dis.calc(to_gray_u8(only[0]), to_gray_u8(pulled), None).astype(np.float64)
+
+    def apply(p):
+        q = p + sample_image_bilinear(flow, p)
+        q = np.c_[q, np.ones(len(q))] @ H.T
+        return q[:, :2] / q[:, 2:3]
+    return apply
+
+
+def _track_flow_pixels(frames, labels, mem, here, px, min_inliers):
+    """Pixels (S, M, 2) of seeds px (S, 2), each seen at track position here (S,), carried through
+    the track's members mem (M,) by the chained maps of ``_pair_map`` (forward after its frame,
+    backward before)."""
+    S, M = len(px), len(mem)
+    pos = np.full((S, M, 2), np.nan)
+    pos[np.arange(S), here] = px
+    for q in range(M - 1):  # forward: seeds seen at or before q
+        on = np.flatnonzero(here <= q)
+        if len(on):
+            pos[on, q + 1] = _pair_map(frames, labels, mem[q], mem[q + 1], min_inliers)(pos[on, q])
+    for q in range(M - 1, 0, -1):  # backward: seeds seen at or after q
+        on = np.flatnonzero(here >= q)
+        if len(on):
+            pos[on, q - 1] = _pair_map(frames, labels, mem[q], mem[q - 1], min_inliers)(pos[on, q])
+    return pos
+
+
 def warp_pixel(W, px):
     """Pixel px (2,) carried by the maps W (M, 3, 3): (pixels (M, 2), ok (M,) bool). A map that sends
     it to or behind infinity (a chained homography can) is not ok; its pixel is NaN."""
@@ -231,9 +286,25 @@ def initialize_deformation(scene, seed_points, seed_frames, seed_pixels, deform_
     if config.warp == "centroid":
         turns = {j: _track_turns(frames, labels, mem, config.min_rotation_inliers) if config.rotation and len(mem) > 1
                  else (np.zeros(len(mem)), np.ones(len(mem))) for j, mem in members.items()}
-    else:
+    elif config.warp != "flow":
         warps = {j: _track_warps(frames, labels, mem, config.warp, config.min_rotation_inliers)
                  for j, mem in members.items() if len(mem) > 1}
+    else:  # every seed of a track carried at once; filled in below
+        flow_pix = {}
+        seed_track = np.full(Nd, -1)
+        seed_here = np.zeros(Nd, dtype=np.int64)
+        for i in range(Nd):
+            k, px = int(seed_frames[i]), seed_pixels[i]
+            comp = labels[k][min(max(int(px[1]), 0), frames[k].height - 1), min(max(int(px[0]), 0), frames[k].width - 1)]
+            if comp >= 0 and len(members[int(track_ids[k][comp])]) > 1:
+                seed_track[i] = int(track_ids[k][comp])
+                seed_here[i] = [m for m, _, _ in members[seed_track[i]]].index(k)
+        for j in np.unique(seed_track[seed_track >= 0]):
+            sel = np.flatnonzero(seed_track == j)
+            pos = _track_flow_pixels(frames, labels, members[int(j)], seed_here[sel], seed_pixels[sel],
+                                     config.min_rotation_inliers)
+            for n, i in enumerate(sel):
+                flow_pix[int(i)] = pos[n]
 
     times = np.array([f.time for f in frames])
     basis = np.stack([np.concatenate([[1.0], deform_basis(t, deform_config)[0]]) for t in times])  # (N, 1 + K)
@@ -259,6 +330,8 @@ def initialize_deformation(scene, seed_points, seed_frames, seed_pixels, deform_
             pix = np.stack([cent for _, cent, _ in mem]) + ds[:, None] * np.stack(
                 [np.cos(da) * offset[0] - np.sin(da) * offset[1], np.sin(da) * offset[0] + np.cos(da) * offset[1]],
                 axis=1)
+        elif config.warp == "flow":
+            pix = flow_pix[i]
         else:
             pix, ok = warp_pixel(warps[j] @ np.linalg.inv(warps[j][here]), px)  # seed frame -> the track's
             if ok.sum() < 2:
