@@ -377,3 +377,33 @@ def rpe(est_cam_T_world, gt_cam_T_world, align=True):
     ang = _rotation_angle(np.swapaxes(R_g, -1, -2) @ R_e)
     rpe_r = float(np.degrees(np.sqrt(np.mean(ang * ang))))
     return rpe_t, rpe_r
+
+
+def trajectory_reprojection_error(means, coefs, deform_config, frames, truth):
+    """How far dynamic Gaussians' trajectories (base ``means`` (P, 3) plus deformation ``coefs``
+    (P, K, 3) of ``deform_config``) project from where their points truly are: ``truth`` (M, P, 2)
+    pixels in each of the M ``frames`` (objects with cam_T_world, K, time, width, height), NaN
+    where unknown (e.g. ``d2gs_np.data.suite.mover_point_tracks``). Returns (M,): per frame the
+    median error in pixels over the points whose true pixel is inside that image (a trajectory
+    behind the camera counts as infinitely far); NaN in a frame with none."""
+    from d2gs_np.geometry.camera import project_points
+    from d2gs_np.scene.deformation import deform_basis
+
+    means = np.asarray(means, dtype=np.float64)
+    coefs = np.asarray(coefs, dtype=np.float64)
+    truth = np.asarray(truth, dtype=np.float64)
+    if truth.shape != (len(frames), len(means), 2) or coefs.shape[::2] != (len(means), 3):
+        raise ValueError(f"trajectory_reprojection_error: truth must have shape ({len(frames)}, {len(means)}, 2) "
+                         f"and coefs ({len(means)}, K, 3); got {truth.shape} and {coefs.shape}")
+    out = np.full(len(frames), np.nan)
+    for m, f in enumerate(frames):
+        b = deform_basis(float(f.time), deform_config)[0]
+        uv, z = project_points(means + np.einsum("k,nkd->nd", b, coefs), f.cam_T_world, f.K)
+        t = truth[m]
+        inview = np.isfinite(t).all(axis=1) & (t[:, 0] >= 0) & (t[:, 0] < f.width) & (t[:, 1] >= 0) \
+            & (t[:, 1] < f.height)
+        if inview.any():
+            err = np.linalg.norm(uv[inview] - t[inview], axis=1)
+            err[z[inview] <= 0] = np.inf
+            out[m] = float(np.median(err))
+    return out

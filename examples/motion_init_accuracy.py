@@ -3,7 +3,7 @@ motion of the suite's movers, for each way a seed follows its mask track (``Moti
 and ridge weight, with the seconds each takes.
 
 For every dynamic seed of the default initialisation (d2gs_np/scene/initialize.py) the true surface
-point it was seeded on is followed through the clip (``d2gs_np.data.suite.mover_point_tracks``);
+point it was seeded on is followed through the clip (``d2gs_np.data.suite.mover_tracks_of_seeds``);
 the seed's initial trajectory (base mean plus deformation) is projected into each frame and
 compared with it. Reported per scene and rule: the median over frames of the median reprojection
 error (px) over the seeds whose true point is in that frame's image, its worst frame, and the
@@ -28,40 +28,14 @@ from pathlib import Path
 import numpy as np
 
 from d2gs_np.data.io import load_scene
-from d2gs_np.data.suite import SUITE, SuiteConfig, build_suite_world, make_suite_scene, mover_point_tracks
-from d2gs_np.geometry.camera import project_points
-from d2gs_np.scene.deformation import deform_basis
+from d2gs_np.data.suite import (SUITE, SuiteConfig, build_suite_world, make_suite_scene,
+                               mover_tracks_of_seeds)
+from d2gs_np.metrics import trajectory_reprojection_error
 from d2gs_np.scene.initialize import initialize_points
 from d2gs_np.scene.motion_init import WARPS, MotionInitConfig, initialize_deformation
 from d2gs_np.train.config import ExperimentConfig
 
 MOVER_SCENES = [name for name in SUITE if name != "photo_room"]  # photo_room has no mover
-
-
-def seed_errors(scene, world, d_pts, frames_of, pixels_of, means, coefs, deform):
-    """(num_frames,) median reprojection error (px) of the seeds' trajectories in each frame (NaN
-    where no seed's true point is in view)."""
-    F = scene.frames
-    poses = np.stack([f.cam_T_world for f in F])
-    Ks = np.stack([f.K for f in F])
-    times = np.array([f.time for f in F])
-    truth = np.full((len(F), len(d_pts), 2), np.nan)
-    for k in np.unique(frames_of):
-        sel = np.flatnonzero(frames_of == k)
-        truth[:, sel] = mover_point_tracks(world, F[k].cam_T_world, F[k].K, F[k].time, pixels_of[sel], poses, Ks,
-                                           times)
-    out = np.full(len(F), np.nan)
-    for m, f in enumerate(F):
-        b = deform_basis(f.time, deform)[0]
-        uv, z = project_points(means + np.einsum("k,nkd->nd", b, coefs), f.cam_T_world, f.K)
-        t = truth[m]
-        inview = np.isfinite(t).all(axis=1) & (t[:, 0] >= 0) & (t[:, 0] < f.width) & (t[:, 1] >= 0) \
-            & (t[:, 1] < f.height)
-        if inview.any():
-            err = np.linalg.norm(uv[inview] - t[inview], axis=1)
-            err[z[inview] <= 0] = np.inf  # a seed behind the camera is as wrong as can be
-            out[m] = float(np.median(err))
-    return out
 
 
 def main(argv=None):
@@ -87,13 +61,14 @@ def main(argv=None):
         world = build_suite_world(cfg)
         _, _, d_pts, _, info = initialize_points(scene, exp.init, np.random.default_rng(exp.train.seed))
         frames_of, pixels_of = info["dynamic_source_frames"], info["dynamic_source_pixels"]
+        truth = mover_tracks_of_seeds(world, scene.frames, frames_of, pixels_of)
         for warp in WARPS:
             for ridge in args.ridge:
                 config = dataclasses.replace(exp.motion_init, warp=warp, ridge=ridge)
                 t0 = time.perf_counter()
                 means, coefs, minfo = initialize_deformation(scene, d_pts, frames_of, pixels_of, exp.deform, config)
                 seconds = time.perf_counter() - t0
-                err = seed_errors(scene, world, d_pts, frames_of, pixels_of, means, coefs, exp.deform)
+                err = trajectory_reprojection_error(means, coefs, exp.deform, scene.frames, truth)
                 row = {"scene": name, "warp": warp, "ridge": ridge, "median_px": float(np.nanmedian(err)),
                        "worst_frame_px": float(np.nanmax(err)), "seconds": seconds,
                        "tracked_seeds": int(minfo["num_tracked_seeds"]), "seeds": int(len(d_pts)),

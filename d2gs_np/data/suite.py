@@ -561,6 +561,22 @@ def mover_point_tracks(world: SuiteWorld, cam_T_world, K, t, pixels, poses, Ks, 
     return out
 
 
+def mover_tracks_of_seeds(world: SuiteWorld, frames, seed_frames, seed_pixels):
+    """``mover_point_tracks`` for points seen at pixels seed_pixels (P, 2) of frames seed_frames (P,)
+    of a scene's ``frames``: (M, P, 2) pixels in every frame, NaN where unknown."""
+    poses = np.stack([f.cam_T_world for f in frames])
+    Ks = np.stack([f.K for f in frames])
+    times = np.array([f.time for f in frames])
+    seed_frames = np.asarray(seed_frames)
+    out = np.full((len(frames), len(seed_frames), 2), np.nan)
+    for k in np.unique(seed_frames):
+        sel = np.flatnonzero(seed_frames == k)
+        f = frames[int(k)]
+        out[:, sel] = mover_point_tracks(world, f.cam_T_world, f.K, f.time, np.asarray(seed_pixels)[sel], poses, Ks,
+                                         times)
+    return out
+
+
 def pose_errors(num_frames, rot_rms_deg, trans_rms, drift, rng):
     """Pose-error tangents delta (N, 6) = (rho, phi): RMS |phi| = rot_rms_deg (as radians), RMS |rho| =
     trans_rms, a share ``drift`` of each variance from a normalised random walk, the rest i.i.d."""

@@ -13,30 +13,39 @@ rather than moving it. We use the masks once more:
    diagonal);
 3. each track's image motion from frame to frame (a tumbling, rolling or
    swinging object turns, not only travels): SIFT features inside the
-   component in both frames, ratio-test matches and a RANSAC warp (2 px), a
-   similarity (``cv2.estimateAffinePartial2D``) or a homography
-   (``cv2.findHomography``) by ``warp``; a pair with fewer than
-   ``min_rotation_inliers`` inliers is carried by the difference of the
-   centroids alone. Chained along the track: W_j(m), the map from its first
-   frame to frame m;
-4. a seed at pixel p of frame k in track j has the target pixel
-   W_j(m) W_j(k)^-1 p at every frame m of the track (``warp="centroid"``, the
-   earlier rule: it keeps its offset o = p - c_j(k) to the component's
-   centroid, turned and scaled with the similarity's angle a_j and scale s_j:
-   c_j(m) + (s_j(m) / s_j(k)) R(a_j(m) - a_j(k)) o). The target is lifted to
-   3D at the seed's own camera depth with the given pose of frame m (the
-   object is assumed to stay at a similar distance; the in-image warp is the
-   part of a 3D motion the masks and features can show);
+   component in both frames, ratio-test matches and a RANSAC similarity
+   (``cv2.estimateAffinePartial2D``, 2 px; a pair with fewer than
+   ``min_rotation_inliers`` inliers moves by the difference of the centroids
+   alone). With ``warp="flow"`` (the default) the similarity is refined by
+   dense optical flow (OpenCV's DIS) between the first image and the second
+   pulled back by the similarity, each reduced to the object (outside its
+   dilated region: the region's mean colour), so the flow finds only what one
+   similarity misses: a tumbling object's faces, perspective, parallax;
+4. a seed at pixel p of frame k in track j is carried by these maps, pair by
+   pair, forwards to the later frames of its track and backwards to the
+   earlier ones: its target pixel in each frame m. ``warp="similarity"`` or
+   ``"homography"`` chain RANSAC similarities or homographies alone (W_j(m)
+   W_j(k)^-1 p); ``warp="centroid"``, the earlier rule, keeps the seed's
+   offset o = p - c_j(k) to the component's centroid, turned and scaled with
+   the similarity's angle a_j and scale s_j: c_j(m) + (s_j(m) / s_j(k))
+   R(a_j(m) - a_j(k)) o. The target is lifted to 3D at the seed's own camera
+   depth with the given pose of frame m (the depth of a moving object is not
+   observable from one moving camera without a prior; the fitted motion is
+   the one that reprojects right at that depth);
 5. base position and polynomial + Fourier coefficients are fitted to those
-   targets by ridge-regularised least squares (ridge on the coefficients only).
+   targets by ridge-regularised least squares (ridge on the coefficients only,
+   ``ridge`` x the track's frames; 1e-2 shrank a sweep of 0.35 scene units by
+   2 %, about 1 px on big_mover, so it is 1e-4: enough to pose a track shorter
+   than the 1 + K coefficients).
 
-The warps follow the object's texture, not its mask: where the object is cut
+The maps follow the object's texture, not its mask: where the object is cut
 by the image border, blurred into the background or partly occluded, the
 centroid of what is visible moves differently from the object. Measured
-against the true motion of the suite's movers (blurry input, true poses,
-median reprojection error of the seeds' initial trajectories over the frames
-where the object is in view): big_mover 6.1 px with the centroid rule, 1.4 px
-with similarities; the rest in docs/method.md §8.
+against the true motion of the suite's movers (true poses, median over
+frames of the seeds' median reprojection error where the object is in view;
+``examples/motion_init_accuracy.py``), centroid / similarity / flow at ridge
+1e-4: big_mover 5.74 / 1.41 / 0.55 px, cube_sign 7.04 / 4.59 / 1.62,
+wall_disk 0.84 / 0.90 / 0.68, crossing 2.33 / 3.02 / 1.37.
 
 Seeds whose pixel lies in no tracked component keep zero coefficients. Only
 the means are initialised; rotations and colours start with zero residuals.
@@ -62,12 +71,13 @@ class MotionInitConfig:
     enabled: bool = True
     min_area_fraction: float = 5e-4  # components below this share of the image are noise
     max_jump_fraction: float = 0.25  # centroid jump gate between consecutive frames, x image diagonal
-    ridge: float = 1e-2  # Tikhonov weight on the coefficients relative to the number of frames
+    ridge: float = 1e-4  # Tikhonov weight on the coefficients relative to the number of frames (step 5)
     rotation: bool = True  # follow each track's in-image rotation (step 3); False: translation only
     min_rotation_inliers: int = 6  # fewer RANSAC inliers between two frames: no rotation measured
-    # how a seed's pixel follows its track (step 3): "centroid" (the component's centroid plus the
-    # similarity's turn and scale about it), "similarity" or "homography" (the warps themselves)
-    warp: str = "centroid"
+    # how a seed's pixel follows its track (steps 3-4): "flow" (similarity refined by optical flow),
+    # "similarity" or "homography" (the chained warps alone), "centroid" (the component's centroid
+    # plus the similarity's turn and scale about it; ``rotation`` applies to this rule only)
+    warp: str = "flow"
 
     def __post_init__(self):
         if not 0.0 <= self.min_area_fraction < 1.0:
