@@ -50,9 +50,10 @@ from __future__ import annotations
 import numpy as np
 
 from d2gs_np.constants import TRAJECTORY_SPREAD_MIN_REL
-from d2gs_np.geometry.camera import camera_center, check_rigid
+from d2gs_np.geometry.camera import camera_center, check_rigid, project_points
 from d2gs_np.geometry.so3 import so3_log
 from d2gs_np.losses.ssim import SSIM_WINDOW, ssim_map
+from d2gs_np.scene.deformation import deform_basis
 
 __all__ = [
     "psnr",
@@ -386,9 +387,6 @@ def trajectory_reprojection_error(means, coefs, deform_config, frames, truth):
     where unknown (e.g. ``d2gs_np.data.suite.mover_point_tracks``). Returns (M,): per frame the
     median error in pixels over the points whose true pixel is inside that image (a trajectory
     behind the camera counts as infinitely far); NaN in a frame with none."""
-    from d2gs_np.geometry.camera import project_points
-    from d2gs_np.scene.deformation import deform_basis
-
     means = np.asarray(means, dtype=np.float64)
     coefs = np.asarray(coefs, dtype=np.float64)
     truth = np.asarray(truth, dtype=np.float64)

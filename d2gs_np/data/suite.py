@@ -56,7 +56,7 @@ import numpy as np
 from d2gs_np.data.scene import Scene
 from d2gs_np.data.synthetic import (_as_times, _check_view, _eval_sines, _pixel_rays, _sines, preset_overrides,
                                      render_clip)
-from d2gs_np.geometry.camera import look_at
+from d2gs_np.geometry.camera import look_at, project_points
 from d2gs_np.geometry.se3 import se3_exp
 from d2gs_np.geometry.so3 import so3_exp
 
@@ -552,11 +552,8 @@ def mover_point_tracks(world: SuiteWorld, cam_T_world, K, t, pixels, poses, Ks, 
             if not on.any():
                 continue
             Rm, c = mover_pose(m, float(tq))
-            pc = P[:3, :3] @ (Rm @ body[:, on] + c[:, None]) + P[:3, 3:4]
-            front = pc[2] > 1e-9
-            uv = np.full((on.sum(), 2), np.nan)
-            uv[front] = np.stack([Kq[0, 0] * pc[0, front] / pc[2, front] + Kq[0, 2],
-                                  Kq[1, 1] * pc[1, front] / pc[2, front] + Kq[1, 2]], axis=1)
+            uv, z = project_points((Rm @ body[:, on] + c[:, None]).T, P, Kq)
+            uv[~(z > 1e-9)] = np.nan
             out[q, on] = uv
     return out
 

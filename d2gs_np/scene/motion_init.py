@@ -58,6 +58,7 @@ import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
+from d2gs_np.constants import PIXEL_CENTER_OFFSET
 from d2gs_np.geometry.camera import unproject_points
 from d2gs_np.scene.deformation import DeformConfig, deform_basis
 
@@ -149,8 +150,8 @@ def relative_warp(image0, region0, image1, region1, kind="similarity", min_inlie
     good = [m for m, n in (p for p in pairs if len(p) == 2) if m.distance < 0.75 * n.distance]
     if len(good) < max(min_inliers, 4):  # a homography needs 4 matches
         return None, len(good)
-    p0 = np.float32([kp0[m.queryIdx].pt for m in good]) + 0.5  # OpenCV's pixel centres are at j
-    p1 = np.float32([kp1[m.trainIdx].pt for m in good]) + 0.5
+    p0 = np.float32([kp0[m.queryIdx].pt for m in good]) + PIXEL_CENTER_OFFSET  # OpenCV's pixel centres are at j
+    p1 = np.float32([kp1[m.trainIdx].pt for m in good]) + PIXEL_CENTER_OFFSET
     cv2.setRNGSeed(0)
     if kind == "homography":
         H, inl = cv2.findHomography(p0, p1, cv2.RANSAC, 2.0)
@@ -174,36 +175,40 @@ def relative_similarity(image0, region0, image1, region1, min_inliers=6):
     return float(np.arctan2(H[1, 0], H[0, 0])), float(np.hypot(H[0, 0], H[1, 0])), n
 
 
+def _pair_warp(frames, labels, a, b, kind, min_inliers):
+    """3 x 3 map of pixels from track member a = (frame, centroid, component) to member b: the
+    ``relative_warp`` of their regions, or the centroids' difference when it has too few inliers."""
+    (k0, c0p, c0), (k1, c1p, c1) = a, b
+    H, _ = relative_warp(frames[k0].image, labels[k0] == c0, frames[k1].image, labels[k1] == c1, kind, min_inliers)
+    if H is None:
+        H = np.eye(3)
+        H[:2, 2] = np.asarray(c1p) - np.asarray(c0p)
+    return H
+
+
 def _track_warps(frames, labels, mem, kind, min_inliers):
-    """(M, 3, 3) maps of a track's first-frame pixels to each of its frames, chained from pairs of
-    consecutive frames; a pair without a supported warp moves by the centroids' difference."""
+    """(M, 3, 3) maps of a track's first-frame pixels to each of its frames, chained from the
+    ``_pair_warp`` of consecutive frames."""
     W = [np.eye(3)]
-    for (k0, c0p, c0), (k1, c1p, c1) in zip(mem[:-1], mem[1:]):
-        H, _ = relative_warp(frames[k0].image, labels[k0] == c0, frames[k1].image, labels[k1] == c1, kind,
-                             min_inliers)
-        if H is None:
-            H = np.eye(3)
-            H[:2, 2] = np.asarray(c1p) - np.asarray(c0p)
-        W.append(H @ W[-1])
+    for a, b in zip(mem[:-1], mem[1:]):
+        W.append(_pair_warp(frames, labels, a, b, kind, min_inliers) @ W[-1])
     return np.stack(W)
 
 
 def _pair_map(frames, labels, a, b, min_inliers):
     """The map of pixels of track member a = (k0, centroid, component) to member b's frame k1,
-    as a function of (P, 2) pixels: the pair's RANSAC similarity (``relative_warp``; the centroids'
-    difference when it has too few inliers) refined by dense optical flow (OpenCV's DIS, medium
+    as a function of (P, 2) pixels: the pair's similarity (``_pair_warp``) refined by dense optical
+    flow (OpenCV's DIS, medium
     preset) between image k0 and image k1 pulled back by that similarity, so that the flow only
     has to find what the similarity misses (a tumbling object's faces, perspective, parallax)."""
     from d2gs_np.features import to_gray_u8
     from d2gs_np.scene.initialize import sample_image_bilinear
 
-    (k0, c0p, c0), (k1, c1p, c1) = a, b
+    (k0, _, c0), (k1, _, c1) = a, b
     img0, img1 = frames[k0].image, frames[k1].image
-    H, _ = relative_warp(img0, labels[k0] == c0, img1, labels[k1] == c1, "similarity", min_inliers)
-    if H is None:
-        H = np.eye(3)
-        H[:2, 2] = np.asarray(c1p) - np.asarray(c0p)
-    S = np.array([[1.0, 0.0, -0.5], [0.0, 1.0, -0.5], [0.0, 0.0, 1.0]])  # ours -> OpenCV's pixel centres
+    H = _pair_warp(frames, labels, a, b, "similarity", min_inliers)
+    S = np.eye(3)
+    S[:2, 2] = -PIXEL_CENTER_OFFSET  # ours -> OpenCV's pixel centres
     Hcv = S @ H @ np.linalg.inv(S)
     h, w = img0.shape[:2]
     # The flow sees the object only: outside its (dilated) region each image is its region's mean
@@ -296,19 +301,20 @@ def initialize_deformation(scene, seed_points, seed_frames, seed_pixels, deform_
     if config.warp == "centroid":
         turns = {j: _track_turns(frames, labels, mem, config.min_rotation_inliers) if config.rotation and len(mem) > 1
                  else (np.zeros(len(mem)), np.ones(len(mem))) for j, mem in members.items()}
-    elif config.warp != "flow":
+    elif config.warp in ("similarity", "homography"):
         warps = {j: _track_warps(frames, labels, mem, config.warp, config.min_rotation_inliers)
                  for j, mem in members.items() if len(mem) > 1}
-    else:  # every seed of a track carried at once; filled in below
+    # Each seed's track (-1: in no component, or in a track of one frame) and its place in the track.
+    seed_track = np.full(Nd, -1)
+    seed_here = np.zeros(Nd, dtype=np.int64)
+    for i in range(Nd):
+        k, px = int(seed_frames[i]), seed_pixels[i]
+        comp = labels[k][min(max(int(px[1]), 0), frames[k].height - 1), min(max(int(px[0]), 0), frames[k].width - 1)]
+        if comp >= 0 and len(members[int(track_ids[k][comp])]) > 1:
+            seed_track[i] = int(track_ids[k][comp])
+            seed_here[i] = [m for m, _, _ in members[seed_track[i]]].index(k)
+    if config.warp == "flow":  # every seed of a track carried at once
         flow_pix = {}
-        seed_track = np.full(Nd, -1)
-        seed_here = np.zeros(Nd, dtype=np.int64)
-        for i in range(Nd):
-            k, px = int(seed_frames[i]), seed_pixels[i]
-            comp = labels[k][min(max(int(px[1]), 0), frames[k].height - 1), min(max(int(px[0]), 0), frames[k].width - 1)]
-            if comp >= 0 and len(members[int(track_ids[k][comp])]) > 1:
-                seed_track[i] = int(track_ids[k][comp])
-                seed_here[i] = [m for m, _, _ in members[seed_track[i]]].index(k)
         for j in np.unique(seed_track[seed_track >= 0]):
             sel = np.flatnonzero(seed_track == j)
             pos = _track_flow_pixels(frames, labels, members[int(j)], seed_here[sel], seed_pixels[sel],
@@ -319,24 +325,14 @@ def initialize_deformation(scene, seed_points, seed_frames, seed_pixels, deform_
     times = np.array([f.time for f in frames])
     basis = np.stack([np.concatenate([[1.0], deform_basis(t, deform_config)[0]]) for t in times])  # (N, 1 + K)
     tracked = 0
-    for i in range(Nd):
-        k = int(seed_frames[i])
-        px = seed_pixels[i]
-        r = min(max(int(px[1]), 0), frames[k].height - 1)
-        c = min(max(int(px[0]), 0), frames[k].width - 1)
-        comp = labels[k][r, c]
-        if comp < 0:
-            continue
-        j = int(track_ids[k][comp])
+    for i in np.flatnonzero(seed_track >= 0):
+        k, px, j, here = int(seed_frames[i]), seed_pixels[i], int(seed_track[i]), int(seed_here[i])
         mem = members[j]
-        if len(mem) < 2:
-            continue
         fidx = np.array([m for m, _, _ in mem])
-        here = int(np.flatnonzero(fidx == k)[0])
         if config.warp == "centroid":
             ang, sc = turns[j]
             da, ds = ang - ang[here], sc / sc[here]
-            offset = px - cents[k][comp]
+            offset = px - mem[here][1]
             pix = np.stack([cent for _, cent, _ in mem]) + ds[:, None] * np.stack(
                 [np.cos(da) * offset[0] - np.sin(da) * offset[1], np.sin(da) * offset[0] + np.cos(da) * offset[1]],
                 axis=1)
