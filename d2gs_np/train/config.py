@@ -101,8 +101,14 @@ class LearningRates:
     camera_spread: float = 1e-4
     camera_spread_final: float = 1e-6
     exposure: float = 1e-2
+    # The constant-rate Gaussian blocks (log_scales, quats, opacity_logits, colors, deform_other)
+    # decay log-linearly to final_ratio x their rate over the run; 1 keeps them constant (3DGS).
+    final_ratio: float = 1.0
 
     def __post_init__(self):
+        if not (isinstance(self.final_ratio, (int, float)) and not isinstance(self.final_ratio, bool)
+                and 0.0 < self.final_ratio <= 1.0):
+            raise ValueError(f"LearningRates.final_ratio must be in (0, 1] (1: constant rates); got {self.final_ratio!r}")
         for f in dataclasses.fields(self):
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (v >= 0.0 and v < float("inf")):

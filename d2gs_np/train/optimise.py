@@ -34,7 +34,7 @@ __all__ = ["PER_FRAME_BLOCKS", "scene_extent", "size_extent", "block_learning_ra
            "optimiser_step"]
 
 PER_FRAME_BLOCKS = (XI_START, XI_END)  # one row per frame: row-sparse Adam
-_RATE_FIELDS = {f.name for f in dataclasses.fields(LearningRates)}
+_RATE_FIELDS = {f.name for f in dataclasses.fields(LearningRates)} - {"final_ratio"}
 
 
 def scene_extent(poses, scene_scale=None) -> float:
@@ -86,11 +86,18 @@ def block_learning_rate(name: str, lr: LearningRates, extent: float, iters: int,
     if kind == "deform_means":
         return adam.exponential_decay(lr.deform * extent, lr.means_final * extent, iters)
     if kind.startswith("deform_"):
-        return lr.deform_other
+        return _constant_or_decay(lr.deform_other, lr.final_ratio, iters)
     if kind in _RATE_FIELDS:
-        return getattr(lr, kind)
+        return _constant_or_decay(getattr(lr, kind), lr.final_ratio, iters)
     raise ValueError(f"no learning rate for block {name!r}: add a field {kind!r} to LearningRates "
                      "(train/config.py), or a rule for the block to block_learning_rate (train/optimise.py)")
+
+
+def _constant_or_decay(rate: float, final_ratio: float, iters: int):
+    """A block's constant ``rate``, or its log-linear decay to ``final_ratio x rate`` over ``iters``."""
+    if final_ratio == 1.0 or rate == 0.0:
+        return rate
+    return adam.exponential_decay(rate, rate * final_ratio, iters)
 
 
 def learning_rates(block_names, lr: LearningRates, extent: float, iters: int, num_frames: int,

@@ -90,6 +90,24 @@ def test_a_new_block_kind_gets_an_error_that_says_where_its_learning_rate_goes()
         block_learning_rate("static.sh_rest", lr, 2.0, 100, 5)
 
 
+def test_final_ratio_decays_the_constant_rate_blocks_only():
+    lr = LearningRates(final_ratio=0.1)
+    for name, rate in (("static.colors", lr.colors), ("dynamic.log_scales", lr.log_scales),
+                       ("static.opacity_logits", lr.opacity_logits), ("dynamic.deform_quats", lr.deform_other)):
+        sched = block_learning_rate(name, lr, 2.0, 100, 5)
+        assert sched(0) == pytest.approx(rate, rel=1e-12)
+        assert sched(50) == pytest.approx(rate * 0.1 ** 0.5, rel=1e-12)  # log-linear: the geometric mean halfway
+        assert sched(100) == pytest.approx(rate * 0.1, rel=1e-12) and sched(10_000) == sched(100)
+    # positions keep their own decay, unchanged by the ratio
+    assert block_learning_rate("static.means", lr, 2.0, 100, 5)(100) == pytest.approx(lr.means_final * 2.0)
+    # the camera's rates are not Gaussian blocks
+    assert block_learning_rate("camera.exposure_logit", lr, 2.0, 100, 5) == lr.exposure
+    with pytest.raises(ValueError, match="final_ratio must be in"):
+        LearningRates(final_ratio=0.0)
+    with pytest.raises(ValueError, match="final_ratio must be in"):
+        LearningRates(final_ratio=1.5)
+
+
 def test_left_out_follows_what_the_run_has():
     c = Components(dynamic=True, blur=True, learn_exposure=False, exposure_fraction=0.5)
     assert c.left_out() == ["pose_refinement", "loss_ts", "loss_gs", "loss_reproj", "loss_freq"]
