@@ -104,12 +104,22 @@ class LearningRates:
     # The constant-rate Gaussian blocks (log_scales, quats, opacity_logits, colors, deform_other)
     # decay log-linearly to final_ratio x their rate over the run; 1 keeps them constant (3DGS).
     final_ratio: float = 1.0
+    # The length that scales the position rates (means, deform): "camera", 3DGS's camera extent
+    # (train.optimise.scene_extent), or "scene", the scene's size (train.optimise.size_extent: the
+    # larger of that and 1.1 x the 90th percentile distance of the initial points from the cameras'
+    # mean). A hand-held camera moves little against the depth it sees (the suite: camera extents
+    # 0.3-0.8 against walls 5-6 away), so in camera units a Gaussian moved ~0.003 px a step.
+    means_unit: str = "camera"
 
     def __post_init__(self):
+        if self.means_unit not in ("camera", "scene"):
+            raise ValueError(f"LearningRates.means_unit must be 'camera' or 'scene'; got {self.means_unit!r}")
         if not (isinstance(self.final_ratio, (int, float)) and not isinstance(self.final_ratio, bool)
                 and 0.0 < self.final_ratio <= 1.0):
             raise ValueError(f"LearningRates.final_ratio must be in (0, 1] (1: constant rates); got {self.final_ratio!r}")
         for f in dataclasses.fields(self):
+            if f.name == "means_unit":
+                continue
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (v >= 0.0 and v < float("inf")):
                 raise ValueError(f"LearningRates.{f.name} must be a finite number >= 0; got {v!r}")

@@ -30,11 +30,11 @@ from d2gs_np.optim import adam
 from d2gs_np.trajectory import CAMERA, POSENET, XI_END, XI_START
 from d2gs_np.train.config import LearningRates
 
-__all__ = ["PER_FRAME_BLOCKS", "scene_extent", "size_extent", "block_learning_rate", "learning_rates", "centre_endpoint_grads",
+__all__ = ["PER_FRAME_BLOCKS", "scene_extent", "size_extent", "position_extent", "block_learning_rate", "learning_rates", "centre_endpoint_grads",
            "optimiser_step"]
 
 PER_FRAME_BLOCKS = (XI_START, XI_END)  # one row per frame: row-sparse Adam
-_RATE_FIELDS = {f.name for f in dataclasses.fields(LearningRates)} - {"final_ratio"}
+_RATE_FIELDS = {f.name for f in dataclasses.fields(LearningRates)} - {"final_ratio", "means_unit"}
 
 
 def scene_extent(poses, scene_scale=None) -> float:
@@ -71,7 +71,9 @@ def size_extent(poses, points, camera_extent) -> float:
 def block_learning_rate(name: str, lr: LearningRates, extent: float, iters: int, num_frames: int,
                         centred: bool = False):
     """The learning rate (a number or an ``adam`` schedule) of block ``name`` (module docstring);
-    ``centred``: the endpoints are a centred exposure (only the spread is trained)."""
+    ``extent``: the length the position rates are scaled by (``lr.means_unit``: the camera extent
+    or the scene's size, ``position_extent``); ``centred``: the endpoints are a centred exposure
+    (only the spread is trained)."""
     kind = name.split(".", 1)[1] if "." in name else name
     if name.startswith((f"{CAMERA}.xi", f"{POSENET}.")):
         # Per-frame rows are visited once per epoch: decay over the visits a row gets.
@@ -98,6 +100,14 @@ def _constant_or_decay(rate: float, final_ratio: float, iters: int):
     if final_ratio == 1.0 or rate == 0.0:
         return rate
     return adam.exponential_decay(rate, rate * final_ratio, iters)
+
+
+def position_extent(lr: LearningRates, camera_extent: float, poses, points) -> float:
+    """The length the position rates are scaled by: the camera extent (``lr.means_unit =
+    "camera"``, 3DGS) or the scene's size (``"scene"``: ``size_extent`` of the initial points)."""
+    if lr.means_unit == "scene":
+        return size_extent(poses, points, camera_extent)
+    return float(camera_extent)
 
 
 def learning_rates(block_names, lr: LearningRates, extent: float, iters: int, num_frames: int,

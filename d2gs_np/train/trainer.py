@@ -36,7 +36,8 @@ from d2gs_np.train.components import Components, composition_notes, decide_compo
 from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.log import RunLog, Stopwatch, psnr_from_mse
 from d2gs_np.train.model import Model, frame_render_bwd, frame_render_fwd
-from d2gs_np.train.optimise import centre_endpoint_grads, learning_rates, optimiser_step, scene_extent
+from d2gs_np.train.optimise import (centre_endpoint_grads, learning_rates, optimiser_step, position_extent,
+                                    scene_extent)
 from d2gs_np.train.plugins import DepthMemory, default_plugins
 from d2gs_np.train.schedule import TargetCache, schedule_step, training_progress
 from d2gs_np.train.stages import Planner, make_stages
@@ -126,9 +127,15 @@ class Trainer:
             for p in self.plugins:
                 p.on_init(model)
             self.state = TrainState(model, adam.adam_init(model.params), self._initial_rows(model.params))
+            # the position rates' length, from the initial points (kept in the checkpoints for a resume)
+            self.position_extent = position_extent(config.train.lr, self.extent, model.poses_est,
+                                                   model.params[f"{STATIC}.means"])
+            if config.train.lr.means_unit != "camera":
+                self.log.note(f"position learning rates in units of the scene's size {self.position_extent:.3g} "
+                              f"(camera extent {self.extent:.3g}; train.lr.means_unit)")
         self.planner = Planner(config, [(f.width, f.height) for f in self.frames],
                                make_stages(config.train, self.components.dynamic))
-        self.adam_config = learning_rates(self.params, config.train.lr, self.extent, config.train.iters,
+        self.adam_config = learning_rates(self.params, config.train.lr, self.position_extent, config.train.iters,
                                           len(self.frames), centred=self.components.centred)
 
     # ------------------------------------------------------------------ views of the state
@@ -291,6 +298,7 @@ class Trainer:
                 else:
                     meta["plugins"].setdefault(p.name, {})[key] = v
         meta.update(step=self.step_index, seconds=self.stopwatch.seconds(), final=final, left_out=self.left_out(),
+                    position_extent=self.position_extent,
                     scene_root=str(Path(self.scene.root).resolve()) if self.scene.root is not None else None)
         save_checkpoint(self.run_dir / (FINAL_NAME if final else CHECKPOINT_NAME), arrays, meta)
         self.log.save()
@@ -315,6 +323,7 @@ class Trainer:
             prefix = f"{PLUGINS_KEY}{p.name}/"
             p.load_state_dict({**meta.get("plugins", {}).get(p.name, {}),
                                **{k[len(prefix):]: v for k, v in arrays.items() if k.startswith(prefix)}})
+        self.position_extent = float(meta.get("position_extent", self.extent))
         self.step_index = int(meta["step"])
         self.stopwatch = Stopwatch(meta["seconds"])
         self.log.truncate(self.step_index)

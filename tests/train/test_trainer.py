@@ -11,7 +11,7 @@ import pytest
 from d2gs_np import blur as blur_model
 from d2gs_np.data.synthetic import make_scene
 from d2gs_np.scene import deformation
-from d2gs_np.train.config import ExperimentConfig, TrainConfig
+from d2gs_np.train.config import ExperimentConfig, LearningRates, TrainConfig
 from d2gs_np.render import RenderConfig
 from d2gs_np.train.trainer import Trainer
 from run_fixtures import copy_run_for_resume
@@ -93,8 +93,11 @@ def test_dynamic_blurry_scene_uses_everything(dynamic_scene, tmp_path):
     assert meta["blur"]["num_virtual"] == 8
 
 
-def test_resume_reproduces_an_uninterrupted_run(dynamic_scene, tmp_path):
-    cfg = _config(iters=10)
+@pytest.mark.parametrize("means_unit", ["camera", "scene"])
+def test_resume_reproduces_an_uninterrupted_run(dynamic_scene, tmp_path, means_unit):
+    # "scene": the position rates' length comes from the initial points, which a resume no longer
+    # has; it is read back from the checkpoint
+    cfg = _config(iters=10, lr=LearningRates(means_unit=means_unit))
     full = Trainer(dynamic_scene, cfg, tmp_path / "full")
     full.run()
     # Interrupted: stop after 6 steps (checkpoint), then resume in a new trainer.
@@ -468,6 +471,28 @@ def test_prune_removes_oversized_and_escaped_gaussians_and_keeps_state_in_step(d
     for name, v in tr.params.items():
         if name.startswith(("static.", "dynamic.")):
             assert tr.adam_state["m"][name].shape == v.shape, name
+
+
+def test_position_rates_take_the_scene_size_as_their_unit(sharp_scene, tmp_path):
+    from d2gs_np.train.optimise import scene_extent, size_extent
+
+    camera = Trainer(sharp_scene, _config(iters=2), tmp_path / "camera")
+    scene = Trainer(sharp_scene, _config(iters=2, lr=LearningRates(means_unit="scene")), tmp_path / "scene")
+    poses = np.stack([f.cam_T_world for f in sharp_scene.frames])
+    cam = scene_extent(poses, sharp_scene.scene_scale)
+    size = size_extent(poses, scene.params["static.means"], cam)
+    assert camera.position_extent == cam and scene.position_extent == size
+    assert size > 2 * cam  # the fixture's camera moves little against its depth, as a hand-held one does
+    lr = LearningRates()
+    for name, rate in (("static.means", lr.means), ("dynamic.deform_means", lr.deform)):
+        if name in scene.params:
+            assert scene.adam_config.lr(name, 0) == pytest.approx(rate * size, rel=1e-12)
+            assert camera.adam_config.lr(name, 0) == pytest.approx(rate * cam, rel=1e-12)
+    # other blocks do not depend on the unit
+    assert scene.adam_config.lr("static.colors", 0) == camera.adam_config.lr("static.colors", 0)
+    assert any("units of the scene's size" in n for n in scene.log.notes)
+    with pytest.raises(ValueError, match="means_unit must be 'camera' or 'scene'"):
+        LearningRates(means_unit="extent")
 
 
 def test_size_extent_follows_the_scene_when_the_camera_barely_moves():
