@@ -3,8 +3,8 @@
 Learning-rate policy (3DGS's, docs/method.md §8), decided per block from its name:
 
 - positions (``*.means``) and position coefficients (``dynamic.deform_means``): exponential
-  decay over the run, scaled by the scene extent (``scene_extent``: a scene twice as large moves
-  its Gaussians twice as far per step);
+  decay over the run, scaled by a length (``position_extent``: the scene's size by default, or
+  the camera extent as in 3DGS; a scene twice as large moves its Gaussians twice as far per step);
 - other deformation coefficients, scales, rotations, opacities, colours: constants of
   ``LearningRates``;
 - camera endpoints (``camera.xi_*``) and PoseNet weights: exponential decay; the per-frame
@@ -30,8 +30,8 @@ from d2gs_np.optim import adam
 from d2gs_np.trajectory import CAMERA, POSENET, XI_END, XI_START
 from d2gs_np.train.config import LearningRates
 
-__all__ = ["PER_FRAME_BLOCKS", "scene_extent", "size_extent", "position_extent", "block_learning_rate", "learning_rates", "centre_endpoint_grads",
-           "optimiser_step"]
+__all__ = ["PER_FRAME_BLOCKS", "scene_extent", "size_extent", "position_extent", "block_learning_rate",
+           "learning_rates", "centre_endpoint_grads", "optimiser_step"]
 
 PER_FRAME_BLOCKS = (XI_START, XI_END)  # one row per frame: row-sparse Adam
 _RATE_FIELDS = {f.name for f in dataclasses.fields(LearningRates)} - {"final_ratio", "means_unit"}

@@ -476,8 +476,8 @@ def test_prune_removes_oversized_and_escaped_gaussians_and_keeps_state_in_step(d
 def test_position_rates_take_the_scene_size_as_their_unit(sharp_scene, tmp_path):
     from d2gs_np.train.optimise import scene_extent, size_extent
 
-    camera = Trainer(sharp_scene, _config(iters=2), tmp_path / "camera")
-    scene = Trainer(sharp_scene, _config(iters=2, lr=LearningRates(means_unit="scene")), tmp_path / "scene")
+    camera = Trainer(sharp_scene, _config(iters=2, lr=LearningRates(means_unit="camera")), tmp_path / "camera")
+    scene = Trainer(sharp_scene, _config(iters=2), tmp_path / "scene")  # the default
     poses = np.stack([f.cam_T_world for f in sharp_scene.frames])
     cam = scene_extent(poses, sharp_scene.scene_scale)
     size = size_extent(poses, scene.params["static.means"], cam)
