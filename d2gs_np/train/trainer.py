@@ -130,7 +130,7 @@ class Trainer:
             # the position rates' length, from the initial points (kept in the checkpoints for a resume)
             self.position_extent = position_extent(config.train.lr, self.extent, model.poses_est,
                                                    model.params[f"{STATIC}.means"])
-            if config.train.lr.means_unit != "camera":
+            if config.train.lr.means_unit == "scene":
                 self.log.note(f"position learning rates in units of the scene's size {self.position_extent:.3g} "
                               f"(camera extent {self.extent:.3g}; train.lr.means_unit)")
         self.planner = Planner(config, [(f.width, f.height) for f in self.frames],

@@ -473,21 +473,20 @@ def test_prune_removes_oversized_and_escaped_gaussians_and_keeps_state_in_step(d
             assert tr.adam_state["m"][name].shape == v.shape, name
 
 
-def test_position_rates_take_the_scene_size_as_their_unit(sharp_scene, tmp_path):
+def test_position_rates_take_the_scene_size_as_their_unit(dynamic_scene, tmp_path):
     from d2gs_np.train.optimise import scene_extent, size_extent
 
-    camera = Trainer(sharp_scene, _config(iters=2, lr=LearningRates(means_unit="camera")), tmp_path / "camera")
-    scene = Trainer(sharp_scene, _config(iters=2), tmp_path / "scene")  # the default
-    poses = np.stack([f.cam_T_world for f in sharp_scene.frames])
-    cam = scene_extent(poses, sharp_scene.scene_scale)
+    camera = Trainer(dynamic_scene, _config(iters=2, lr=LearningRates(means_unit="camera")), tmp_path / "camera")
+    scene = Trainer(dynamic_scene, _config(iters=2), tmp_path / "scene")  # the default
+    poses = np.stack([f.cam_T_world for f in dynamic_scene.frames])
+    cam = scene_extent(poses, dynamic_scene.scene_scale)
     size = size_extent(poses, scene.params["static.means"], cam)
     assert camera.position_extent == cam and scene.position_extent == size
     assert size > 2 * cam  # the fixture's camera moves little against its depth, as a hand-held one does
     lr = LearningRates()
     for name, rate in (("static.means", lr.means), ("dynamic.deform_means", lr.deform)):
-        if name in scene.params:
-            assert scene.adam_config.lr(name, 0) == pytest.approx(rate * size, rel=1e-12)
-            assert camera.adam_config.lr(name, 0) == pytest.approx(rate * cam, rel=1e-12)
+        assert scene.adam_config.lr(name, 0) == pytest.approx(rate * size, rel=1e-12)
+        assert camera.adam_config.lr(name, 0) == pytest.approx(rate * cam, rel=1e-12)
     # other blocks do not depend on the unit
     assert scene.adam_config.lr("static.colors", 0) == camera.adam_config.lr("static.colors", 0)
     assert any("units of the scene's size" in n for n in scene.log.notes)
