@@ -20,6 +20,7 @@ from d2gs_np import reference
 from d2gs_np.blur import (
     EXPOSURE_BLOCK,
     BlurConfig,
+    backward_subset,
     blur_render_bwd,
     blur_render_fwd,
     exposure_bwd,
@@ -429,6 +430,105 @@ def test_unvalidated_fast_path_is_bitwise_the_public_one():
     for x, y in zip(a[1:4], b[1:4]):
         np.testing.assert_array_equal(y, x)
     np.testing.assert_array_equal(b[4]["v_means2d"], a[4]["v_means2d"])
+
+
+# ---------------------------------------------------------------------------------------------
+# Backward through a subset of the views (BlurConfig.backward_views)
+# ---------------------------------------------------------------------------------------------
+
+# Averaging the subset estimates over every draw, each weighted by its probability, must give the
+# exact gradient: the same sums of the same per-view gradients in another order and grouping, so
+# they agree to float64 round-off (~1e-16 relative per term, a few dozen terms): 1e-12 relative
+# to the block's scale leaves a wide margin, and a wrong run weight is off by O(1).
+SUBSET_RTOL = 1e-12
+
+
+@pytest.mark.parametrize("n, m", [(8, 2), (8, 3), (7, 3), (5, 2), (2, 1), (9, 4)])
+def test_backward_subset_draws_one_view_per_run_weighted_by_the_run(n, m):
+    rng = np.random.default_rng(0)
+    edges = (np.arange(m + 1) * n) // m
+    counts = np.zeros(n)
+    for _ in range(400):
+        idx, w = backward_subset(n, m, rng)
+        assert idx.shape == w.shape == (m,)
+        for j in range(m):  # one view from each run of neighbours, weighted by the run's share
+            assert edges[j] <= idx[j] < edges[j + 1]
+            assert w[j] == pytest.approx((edges[j + 1] - edges[j]) / n, rel=1e-15)
+        assert w.sum() == pytest.approx(1.0, rel=1e-15)
+        counts[idx] += 1
+    assert np.all(counts > 0)  # every view is drawn sometimes
+    assert set(np.diff(edges)) <= {n // m, -(-n // m)}  # runs as equal as they can be
+
+
+@pytest.mark.parametrize("m", [0, 8, 11])
+def test_backward_subset_of_all_views_is_the_exact_backward(m):
+    idx, w = backward_subset(8, m, np.random.default_rng(0))
+    np.testing.assert_array_equal(idx, np.arange(8))
+    np.testing.assert_array_equal(w, np.full(8, 1 / 8))
+
+
+def test_backward_subset_and_config_refuse_bad_counts():
+    rng = np.random.default_rng(0)
+    for bad in (-1, 1.5, True, "2"):
+        with pytest.raises(ValueError, match="views in the backward"):
+            backward_subset(8, bad, rng)
+        with pytest.raises(ValueError, match="backward_views"):
+            BlurConfig(backward_views=bad)
+
+
+def test_views_of_every_view_with_equal_weights_reproduce_the_exact_backward():
+    case = make_case(34, n=5, margin=0.0)
+    _, saved = blur_render_fwd(**case)
+    v = np.random.default_rng(1).normal(size=(H, W, 3))
+    exact = blur_render_bwd(saved, v, return_aux=True)
+    every = blur_render_bwd(saved, v, return_aux=True, views=backward_subset(5, 0, None))
+    for name in exact[0]:
+        np.testing.assert_allclose(every[0][name], exact[0][name], rtol=1e-14, atol=1e-14 * np.abs(exact[0][name]).max(),
+                                   err_msg=name)
+    np.testing.assert_allclose(every[4]["v_pose_tangents"], exact[4]["v_pose_tangents"], rtol=1e-14, atol=1e-16)
+
+
+@pytest.mark.parametrize("n, m", [(5, 2), (6, 3), (4, 1)])
+def test_subset_backward_is_unbiased_over_every_draw(n, m):
+    # Enumerate every draw of backward_subset (one view per run, each with probability 1/|run|)
+    # and average the subset gradients with those probabilities: the exact gradient, for every
+    # block (static, dynamic, deformation), the endpoints and the exposure length.
+    import itertools
+
+    case = make_case(35, n=n, margin=0.0)
+    _, saved = blur_render_fwd(**case)
+    rng = np.random.default_rng(2)
+    v_img, v_alpha = rng.normal(size=(H, W, 3)), rng.normal(size=(H, W))
+    exact = blur_render_bwd(saved, v_img, v_alpha, return_aux=True)
+    edges = (np.arange(m + 1) * n) // m
+    runs = [range(edges[j], edges[j + 1]) for j in range(m)]
+    weights = np.diff(edges) / n
+    mean = None
+    for draw in itertools.product(*runs):
+        p = np.prod([1.0 / len(r) for r in runs])
+        g = blur_render_bwd(saved, v_img, v_alpha, return_aux=True, views=(np.array(draw), weights))
+        flat = [*g[0].values(), g[1], g[2], np.array([g[3]]), g[4]["v_means2d"].sum(axis=0)]
+        mean = [p * x for x in flat] if mean is None else [a + p * x for a, x in zip(mean, flat)]
+        assert g[4]["v_means2d"].shape[0] == m
+    want = [*exact[0].values(), exact[1], exact[2], np.array([exact[3]]), exact[4]["v_means2d"].sum(axis=0)]
+    names = [*exact[0], "xi_start", "xi_end", "tau", "means2d"]
+    for name, a, b in zip(names, mean, want):
+        scale = max(np.abs(b).max(), 1e-300)
+        np.testing.assert_allclose(a, b, rtol=0, atol=SUBSET_RTOL * scale, err_msg=name)
+    # ...while a single draw is not the exact gradient (the test can tell them apart)
+    g = blur_render_bwd(saved, v_img, v_alpha, views=(np.array([e for e in edges[:-1]]), weights))
+    assert not np.allclose(g[0]["static.means"], exact[0]["static.means"], rtol=1e-3)
+
+
+def test_subset_backward_refuses_bad_views():
+    case = make_case(36, n=4, margin=0.0)
+    _, saved = blur_render_fwd(**case)
+    v = np.ones((H, W, 3))
+    for bad in ((np.array([0, 4]), np.array([0.5, 0.5])), (np.array([1, 1]), np.array([0.5, 0.5])),
+                (np.array([0, 2]), np.array([0.5])), (np.array([0.0, 2.0]), np.array([0.5, 0.5])),
+                (np.array([0, 2]), np.array([np.nan, 0.5])), "views"):
+        with pytest.raises(ValueError, match="views must be"):
+            blur_render_bwd(saved, v, views=bad)
 
 
 # ---------------------------------------------------------------------------------------------

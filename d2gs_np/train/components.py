@@ -123,6 +123,9 @@ def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Cal
         elif config.blur.n_schedule == "length":
             say(f"virtual views follow each frame's blur length: 1 + ceil(L / {config.blur.view_spacing_px:g} px), "
                 f"2 to n = {config.blur.num_virtual} (blur.n_schedule = length)")
+        if config.blur.backward_views > 0:
+            say(f"backward through {config.blur.backward_views} of each step's virtual views, drawn one per run of "
+                "neighbours and weighted by the run (blur.backward_views; the forward averages every view)")
         say(f"trajectory model: {config.trajectory.kind}")
     centred = False
     if blur:

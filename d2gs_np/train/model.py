@@ -302,6 +302,7 @@ def frame_render_fwd(model: Model, k: int, K, width: int, height: int, static_on
         out, saved["render"] = _blur_render_fwd(
             scene, t, tau, model.poses_ref[k], xs[0], xe[0], K, width, height, model.background, n,
             cfg.deform, cfg.render, (_render_fwd, _render_bwd), (_evaluate_fwd, _evaluate_bwd))
+        saved["backward_views"] = cfg.blur.backward_views
     else:
         ri, saved["scene"] = _evaluate_fwd(scene, t, cfg.deform)
         out, saved["render"] = _render_fwd(ri["means"], ri["quats"], ri["scales"], ri["opacities"], ri["colors"],
@@ -333,13 +334,24 @@ def frame_views(model: Model, k: int, scene, xi_start, xi_end, tau, K, width, he
     return blur_model.views_for_length(bc.num_virtual, length, bc.view_spacing_px)
 
 
-def frame_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth=None):
+def frame_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth=None, rng=None):
     """Backward of ``frame_render_fwd``: (v_params, aux). v_params is keyed by block (every block
     the forward used, dense); aux["v_means2d"] (M, 2) is the screen-space gradient of each rendered
-    Gaussian's mean in full-resolution pixels (summed over sub-frames), for densification."""
+    Gaussian's mean in full-resolution pixels (summed over sub-frames), for densification.
+
+    With ``blur.backward_views = m`` (0 < m < the forward's n views) the backward runs through m
+    views drawn by ``blur.backward_subset`` from ``rng`` (a numpy Generator; required then): an
+    unbiased estimate of the gradient at about m / n of the backward's cost."""
     cot = (v_image, v_alpha, v_depth, v_expected_depth)
     if saved["blur"]:
-        v_p, v_xs, v_xe, v_tau, aux = blur_render_bwd(saved["render"], *cot, return_aux=True)
+        n, m = saved["render"]["n"], saved["backward_views"]
+        views = None
+        if 0 < m < n:
+            if rng is None:
+                raise ValueError(f"blur.backward_views = {m} of n = {n} views: frame_render_bwd needs rng, a numpy "
+                                 "Generator that draws the views (the trainer seeds one per step)")
+            views = blur_model.backward_subset(n, m, rng)
+        v_p, v_xs, v_xe, v_tau, aux = blur_render_bwd(saved["render"], *cot, return_aux=True, views=views)
         v_means2d = aux["v_means2d"].sum(axis=0) * saved["ratio"]
         v_p = dict(v_p)
         v_p.update(traj_model.endpoints_bwd(saved["trajectory"], v_xs[None], v_xe[None]))

@@ -47,6 +47,7 @@ from d2gs_np.train.terms import TermInputs, loss_terms, terms_fwd_bwd
 CHECKPOINT_NAME = "checkpoint.npz"
 FINAL_NAME = "final.npz"
 PLUGINS_KEY = "plugins/"
+_BACKWARD_VIEWS_STREAM = 0xB1  # the seed stream of blur.backward_views' draws (apart from the frame order's)
 
 
 def latest_checkpoint(run_dir):
@@ -199,7 +200,10 @@ class Trainer:
         record["views"] = int(out["poses"].shape[0]) if "poses" in out else 1
         inputs = TermInputs(out, tgt.image, loss_mask, state.model, k, plan.stage)
         loss, values, v_render, v_terms = terms_fwd_bwd(self.terms, inputs)
-        grads, aux = frame_render_bwd(saved, **{f"v_{n}": v for n, v in v_render.items()})
+        # The views a subset backward runs through (blur.backward_views) depend only on (seed, step),
+        # so a resumed run draws the same ones.
+        rng = np.random.default_rng((self.config.train.seed, step, _BACKWARD_VIEWS_STREAM))
+        grads, aux = frame_render_bwd(saved, **{f"v_{n}": v for n, v in v_render.items()}, rng=rng)
         for n, g in v_terms.items():
             grads[n] = grads[n] + g if n in grads else g
         if self.components.centred:

@@ -93,11 +93,13 @@ def test_dynamic_blurry_scene_uses_everything(dynamic_scene, tmp_path):
     assert meta["blur"]["num_virtual"] == 8
 
 
-@pytest.mark.parametrize("means_unit", ["camera", "scene"])
-def test_resume_reproduces_an_uninterrupted_run(dynamic_scene, tmp_path, means_unit):
+@pytest.mark.parametrize("means_unit, backward_views", [("camera", 0), ("scene", 0), ("scene", 2)])
+def test_resume_reproduces_an_uninterrupted_run(dynamic_scene, tmp_path, means_unit, backward_views):
     # "scene": the position rates' length comes from the initial points, which a resume no longer
-    # has; it is read back from the checkpoint
+    # has; it is read back from the checkpoint. backward_views = 2: the views each step's backward
+    # runs through are drawn from (seed, step), so a resumed run draws the same ones.
     cfg = _config(iters=10, lr=LearningRates(means_unit=means_unit))
+    cfg = cfg.replace(blur=dataclasses.replace(cfg.blur, backward_views=backward_views))
     full = Trainer(dynamic_scene, cfg, tmp_path / "full")
     full.run()
     # Interrupted: stop after 6 steps (checkpoint), then resume in a new trainer.
@@ -568,3 +570,21 @@ def test_length_schedule_gives_each_frame_the_views_its_blur_length_needs(dynami
     with open(run / "log.csv") as fh:
         logged = {int(r["step"]): int(r["views"]) for r in csv.DictReader(fh)}
     assert logged and all(calls[step] == v for step, v in logged.items())
+
+
+def test_backward_views_take_effect_only_below_the_forwards_views(dynamic_scene, tmp_path):
+    # blur.backward_views >= n runs the exact backward (bitwise the default); m = 2 of n = 8 views
+    # changes the gradients (a different estimate), and the trainer says it is on.
+    def run(m, name):
+        cfg = _config(iters=6, warmup_fraction=0.0, deform_fraction=0.0, progressive=False)
+        cfg = cfg.replace(blur=dataclasses.replace(cfg.blur, n_schedule="fixed", backward_views=m))
+        tr = Trainer(dynamic_scene, cfg, tmp_path / name)
+        tr.run()
+        return tr
+
+    exact, every, two = run(0, "exact"), run(8, "every"), run(2, "two")
+    for name in exact.params:
+        np.testing.assert_array_equal(every.params[name], exact.params[name], err_msg=name)
+    assert not np.array_equal(two.params["static.means"], exact.params["static.means"])
+    assert any("backward through 2 of each step's virtual views" in n for n in two.log.notes)
+    assert not any("backward through" in n for n in exact.log.notes)
