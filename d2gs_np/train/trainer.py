@@ -50,6 +50,12 @@ PLUGINS_KEY = "plugins/"
 _BACKWARD_VIEWS_STREAM = 0xB1  # the seed stream of blur.backward_views' draws (apart from the frame order's)
 
 
+def backward_views_rng(seed: int, step: int) -> np.random.Generator:
+    """The generator a training step draws its backward's views from (``blur.backward_views``):
+    a function of (seed, step) only, so a resumed run draws what the uninterrupted one drew."""
+    return np.random.default_rng((seed, step, _BACKWARD_VIEWS_STREAM))
+
+
 def latest_checkpoint(run_dir):
     """The checkpoint of a run with the most steps (final.npz or checkpoint.npz), or None."""
     best, best_step = None, -1
@@ -209,7 +215,7 @@ class Trainer:
         loss, values, v_render, v_terms = terms_fwd_bwd(self.terms, inputs)
         # The views a subset backward runs through (blur.backward_views) depend only on (seed, step),
         # so a resumed run draws the same ones.
-        rng = np.random.default_rng((self.config.train.seed, step, _BACKWARD_VIEWS_STREAM))
+        rng = backward_views_rng(self.config.train.seed, step)
         grads, aux = frame_render_bwd(saved, **{f"v_{n}": v for n, v in v_render.items()}, rng=rng)
         for n, g in v_terms.items():
             grads[n] = grads[n] + g if n in grads else g
