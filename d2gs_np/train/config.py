@@ -147,11 +147,6 @@ class TrainConfig:
     blur: str = "auto"
     learn_exposure: str = "auto"  # learned tau when the scene gives no exposure_fraction
     progressive: bool = True
-    # Frame order (train/stages.py): "uniform", each frame once per epoch in a seeded permutation;
-    # "sharpness", frames drawn with probability (1 - sharpness_share) / N + sharpness_share * s_k / sum(s),
-    # s_k the mean squared image gradient of frame k's input (a less blurred frame shows more detail).
-    frame_sampling: str = "uniform"
-    sharpness_share: float = 0.5
     # Housekeeping
     log_every: int = 10
     eval_every: int = 250
@@ -185,11 +180,6 @@ class TrainConfig:
         if not isinstance(self.progressive, bool) or not isinstance(self.quiet, bool):
             raise ValueError(f"TrainConfig.progressive and quiet must be true or false; got {self.progressive!r}, "
                              f"{self.quiet!r}")
-        if self.frame_sampling not in ("uniform", "sharpness"):
-            raise ValueError(f"TrainConfig.frame_sampling must be 'uniform' or 'sharpness'; got {self.frame_sampling!r}")
-        if isinstance(self.sharpness_share, bool) or not isinstance(self.sharpness_share, (int, float)) or \
-                not 0.0 <= self.sharpness_share <= 1.0:
-            raise ValueError(f"TrainConfig.sharpness_share must be a number in [0, 1]; got {self.sharpness_share!r}")
         if not 0.0 <= self.prune_opacity < 1.0:
             raise ValueError(f"TrainConfig.prune_opacity must be in [0, 1); got {self.prune_opacity}")
         if self.time_budget is not None and self.time_budget <= 0:

@@ -23,7 +23,7 @@ from d2gs_np.scene.gaussians import DYNAMIC, STATIC
 from d2gs_np.trajectory import CAMERA, POSENET
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 
-__all__ = ["Stage", "make_stages", "StepPlan", "Planner", "sharpness", "frame_probabilities"]
+__all__ = ["Stage", "make_stages", "StepPlan", "Planner"]
 
 
 @dataclass(frozen=True)
@@ -52,33 +52,6 @@ def make_stages(train: TrainConfig, dynamic: bool) -> list:
     return [s for s in stages if s.stop > s.start]
 
 
-def sharpness(image) -> float:
-    """Mean squared gradient of an (H, W, 3) image's luminance (forward differences, both axes):
-    a blurred copy of a view has less of it than a sharp one."""
-    img = np.asarray(image, dtype=np.float64)
-    if img.ndim != 3 or img.shape[2] != 3 or min(img.shape[:2]) < 2:
-        raise ValueError(f"sharpness needs an (H, W, 3) image with H, W >= 2; got shape {img.shape}")
-    y = img @ np.array([0.299, 0.587, 0.114])
-    return float(0.5 * (np.mean(np.diff(y, axis=0) ** 2) + np.mean(np.diff(y, axis=1) ** 2)))
-
-
-def frame_probabilities(images, share: float) -> np.ndarray:
-    """Probability of drawing each frame (``TrainConfig.frame_sampling = "sharpness"``):
-    (1 - share) / N + share * s_k / sum_j s_j with s_k = ``sharpness(images[k])``. share in
-    [0, 1]; a set of flat images (every s_k = 0) is drawn uniformly."""
-    s = np.array([sharpness(im) for im in images])
-    if not 0.0 <= share <= 1.0:
-        raise ValueError(f"share must be in [0, 1]; got {share}")
-    n = s.size
-    if n == 0:
-        raise ValueError("frame_probabilities needs at least one image")
-    uniform = np.full(n, 1.0 / n)
-    if s.sum() <= 0.0:
-        return uniform
-    p = (1.0 - share) * uniform + share * s / s.sum()
-    return p / p.sum()
-
-
 class StepPlan(NamedTuple):
     step: int
     sched: int  # the step the schedules are read at
@@ -92,20 +65,14 @@ class Planner:
     """Stage, frame and scale of every step of one run.
 
     config: the experiment config; sizes: (width, height) of each training frame; stages: from
-    ``make_stages`` (a list; replace it to change what a stage trains); frame_p: None (each frame
-    once per epoch) or each frame's probability (``frame_probabilities``).
+    ``make_stages`` (a list; replace it to change what a stage trains).
     """
 
-    def __init__(self, config: ExperimentConfig, sizes, stages, frame_p=None):
+    def __init__(self, config: ExperimentConfig, sizes, stages):
         self.config = config
         self.num_frames = len(sizes)
         self.min_side = min(min(w, h) for w, h in sizes)
         self.stages = list(stages)
-        if frame_p is not None:
-            frame_p = np.asarray(frame_p, dtype=np.float64)
-            if frame_p.shape != (self.num_frames,) or not np.all(frame_p >= 0) or not np.isclose(frame_p.sum(), 1.0):
-                raise ValueError(f"frame_p must be {self.num_frames} probabilities >= 0 summing to 1; got {frame_p}")
-        self.frame_p = frame_p
 
     def stage_at(self, sched: int) -> Stage:
         for s in self.stages:
@@ -124,13 +91,10 @@ class Planner:
         return r
 
     def frame_for_step(self, step: int) -> int:
-        """Seeded permutation per epoch (or, with ``frame_p``, N draws per epoch with those
-        probabilities); depends only on (seed, step), so resuming reproduces it."""
+        """Seeded permutation per epoch; depends only on (seed, step), so resuming reproduces it."""
         epoch, pos = divmod(step, self.num_frames)
-        rng = np.random.default_rng((self.config.train.seed, epoch))
-        if self.frame_p is None:
-            return int(rng.permutation(self.num_frames)[pos])
-        return int(rng.choice(self.num_frames, size=self.num_frames, p=self.frame_p)[pos])
+        perm = np.random.default_rng((self.config.train.seed, epoch)).permutation(self.num_frames)
+        return int(perm[pos])
 
     def plan(self, step: int, sched: int) -> StepPlan:
         lr_scale = sched / step if sched > step > 0 else 1.0

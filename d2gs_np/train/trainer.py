@@ -40,7 +40,7 @@ from d2gs_np.train.optimise import (centre_endpoint_grads, learning_rates, optim
                                     scene_extent)
 from d2gs_np.train.plugins import DepthMemory, default_plugins
 from d2gs_np.train.schedule import TargetCache, schedule_step, training_progress
-from d2gs_np.train.stages import Planner, frame_probabilities, make_stages
+from d2gs_np.train.stages import Planner, make_stages
 from d2gs_np.train.state import TrainState
 from d2gs_np.train.terms import TermInputs, loss_terms, terms_fwd_bwd
 
@@ -140,15 +140,8 @@ class Trainer:
             if config.train.lr.means_unit == "scene":
                 self.log.note(f"position learning rates in units of the scene's size {self.position_extent:.3g} "
                               f"(camera extent {self.extent:.3g}; train.lr.means_unit)")
-        frame_p = None
-        if config.train.frame_sampling == "sharpness":
-            frame_p = frame_probabilities([f.image for f in self.frames], config.train.sharpness_share)
-            if self.step_index == 0:
-                self.log.note(f"frames drawn by the sharpness of their input (train.frame_sampling, share "
-                              f"{config.train.sharpness_share:g}): probabilities x N from {frame_p.min() * len(frame_p):.2f} "
-                              f"to {frame_p.max() * len(frame_p):.2f}")
         self.planner = Planner(config, [(f.width, f.height) for f in self.frames],
-                               make_stages(config.train, self.components.dynamic), frame_p)
+                               make_stages(config.train, self.components.dynamic))
         self.adam_config = learning_rates(self.params, config.train.lr, self.position_extent, config.train.iters,
                                           len(self.frames), centred=self.components.centred)
 

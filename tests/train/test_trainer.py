@@ -93,15 +93,12 @@ def test_dynamic_blurry_scene_uses_everything(dynamic_scene, tmp_path):
     assert meta["blur"]["num_virtual"] == 8
 
 
-@pytest.mark.parametrize("means_unit, backward_views, frames",
-                         [("camera", 0, "uniform"), ("scene", 0, "uniform"), ("scene", 2, "uniform"),
-                          ("scene", 0, "sharpness")])
-def test_resume_reproduces_an_uninterrupted_run(dynamic_scene, tmp_path, means_unit, backward_views, frames):
+@pytest.mark.parametrize("means_unit, backward_views", [("camera", 0), ("scene", 0), ("scene", 2)])
+def test_resume_reproduces_an_uninterrupted_run(dynamic_scene, tmp_path, means_unit, backward_views):
     # "scene": the position rates' length comes from the initial points, which a resume no longer
     # has; it is read back from the checkpoint. backward_views = 2: the views each step's backward
-    # runs through are drawn from (seed, step), so a resumed run draws the same ones; so are the
-    # frames of frame_sampling = "sharpness".
-    cfg = _config(iters=10, lr=LearningRates(means_unit=means_unit), frame_sampling=frames)
+    # runs through are drawn from (seed, step), so a resumed run draws the same ones.
+    cfg = _config(iters=10, lr=LearningRates(means_unit=means_unit))
     cfg = cfg.replace(blur=dataclasses.replace(cfg.blur, backward_views=backward_views))
     full = Trainer(dynamic_scene, cfg, tmp_path / "full")
     full.run()
