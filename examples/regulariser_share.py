@@ -14,6 +14,7 @@ backward time as a ratio to the frame's render forward + backward, timed in the 
 from __future__ import annotations
 
 import argparse
+import dataclasses
 import sys
 import time
 
@@ -38,6 +39,8 @@ def main(argv=None):
     from d2gs_np.train.terms import TermInputs, loss_terms
 
     model = load_run(args.run).model
+    # the exact gradient of the render (every virtual view), not training's two-view estimate
+    model = model.replace(config=model.config.replace(blur=dataclasses.replace(model.config.blur, backward_views=0)))
     scene = load_scene(args.scene)
     terms = {t.name: t for t in loss_terms(LossConfig(**METHOD_REGULARISER_WEIGHTS), model.components)}
     for t in terms.values():
