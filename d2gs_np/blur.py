@@ -151,9 +151,7 @@ class BlurConfig:
         d = self.view_spacing_px
         if isinstance(d, bool) or not isinstance(d, numbers.Real) or not (0.0 < d < float("inf")):
             raise ValueError(f"BlurConfig.view_spacing_px must be a finite number of pixels > 0; got {d!r}")
-        m = self.backward_views
-        if isinstance(m, bool) or not isinstance(m, numbers.Integral) or m < 0:
-            raise ValueError(f"BlurConfig.backward_views must be an int >= 0 (0: every view); got {m!r}")
+        _check_backward_views(self.backward_views, "BlurConfig.backward_views")
 
 
 def views_at_scale(n, scale, schedule="fixed"):
@@ -226,6 +224,11 @@ def blur_length_px(means_start, means_end, pose_start, pose_end, K, width, heigh
 # ---------------------------------------------------------------------------------------------
 # Virtual poses and sub-frame times
 # ---------------------------------------------------------------------------------------------
+
+
+def _check_backward_views(m, what):
+    if isinstance(m, bool) or not isinstance(m, numbers.Integral) or m < 0:
+        raise ValueError(f"{what} must be an int >= 0 (0: every view); got {m!r}")
 
 
 def _check_n(n):
@@ -463,8 +466,7 @@ def backward_subset(n, m, rng):
     Returns (indices (k,) int64 increasing, weights (k,) float64 summing to 1).
     """
     n = _check_n(n)
-    if isinstance(m, bool) or not isinstance(m, numbers.Integral) or m < 0:
-        raise ValueError(f"m (views in the backward) must be an int >= 0 (0: every view); got {m!r}")
+    _check_backward_views(m, "m (views in the backward)")
     if m == 0 or m >= n:
         return np.arange(n, dtype=np.int64), np.full(n, 1.0 / n)
     edges = (np.arange(m + 1) * n) // m  # run j is [edges[j], edges[j + 1]), sizes floor or ceil of n / m
