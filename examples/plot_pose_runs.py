@@ -1,7 +1,8 @@
-"""Error against wall-clock time of runs on one scene with noisy poses: held-out PSNR of each run
+"""Error against wall-clock time of runs on one scene: held-out PSNR of each run
 (from RUN/log.csv) and the trajectory error after each pose-solver call of the first run (from
 RUN/pose_solver.json; its first point is the ATE the run started from, after the bundle adjustment
-of docs/method.md §5). The figure of README's noisy-pose table:
+of docs/method.md §5; that panel is left out when there is neither a solver log nor --given-ate).
+The figure of README's noisy-pose table:
 
     python examples/plot_pose_runs.py "refined=RUN_A" "Adam alone=RUN_B" "true poses=RUN_C" \\
         --given-ate 0.0767 --out docs/pose_refinement.png
@@ -50,10 +51,20 @@ def main(argv=None):
         if not sep or not (Path(run) / "log.csv").exists():
             ap.error(f"expected NAME=RUN_FOLDER with a log.csv; got {item!r}")
         pairs.append((name, run))
-    fig, ax = plt.subplots(1, 2, figsize=(11, 4))
+    curve = _ate_curve(pairs[0][1])
+    # without a pose solver and a given ATE there is no trajectory panel: held-out PSNR alone
+    panels = 2 if (curve is not None or a.given_ate is not None) else 1
+    fig, ax = plt.subplots(1, panels, figsize=(5.5 * panels, 4), squeeze=False)
+    ax = ax[0]
     for name, run in pairs:
         ax[0].plot(*_heldout(run), marker="o", label=name)
-    curve = _ate_curve(pairs[0][1])
+    if panels == 1:
+        ax[0].set(xlabel="training seconds", ylabel="held-out PSNR [dB]", title=a.title)
+        ax[0].legend()
+        fig.tight_layout()
+        fig.savefig(a.out, dpi=90)
+        print(f"wrote {a.out}")
+        return
     if curve is not None:
         ax[1].plot(*curve, marker="o", label=f"{pairs[0][0]}: ATE after each solver call")
     if a.given_ate is not None:
