@@ -16,6 +16,13 @@ translation in scene units (``_t``):
   end minus at its start. The error is |b - b*| against the true exposure's b*, median over pixels
   and frames, in pixels; ``blur_true_px`` is the median length of b* for scale. Unlike the angles,
   it weighs rotation and translation as the image sees them (translation by inverse depth).
+  ``blur_ratio_learned`` is the learned blur's length against the true one (the median over
+  frames of median |b| / median |b*|): below 1 the learned exposure is shorter than the truth.
+  Read it beside the comb of virtual views: n views at u_i = i / (n - 1) (Eq. 9) blur like a
+  box n / (n - 1) times the endpoints' spread, and the suite's blurry frames, 16 sub-frames
+  placed the same way, like a box 16 / 15 times the true one; so learned endpoints that blur
+  exactly as the frames do have a ratio of about (16 / 15) (n - 1) / n (0.8 for the 4 views
+  of a 3 px blur; docs/method.md §4).
 
     python examples/exposure_error.py runs/photo_room scenes/photo_room_s0_blurry_true \\
         runs/wall_disk scenes/wall_disk_s0_blurry_true --windows 1 3
@@ -98,11 +105,22 @@ def blur_error_px(points, K, starts, ends, true_starts, true_ends):
     return _median_distance(blur_vectors(points, K, starts, ends), blur_vectors(points, K, true_starts, true_ends))
 
 
+def blur_length_ratio(b, bt):
+    """Median over frames of median |b| / median |b*| (``blur_vectors`` of a run against the
+    truth); frames whose true blur is shorter than 1e-9 px are skipped (nan if all are)."""
+    r = []
+    for u, v in zip(b, bt):
+        true = float(np.median(np.linalg.norm(v, axis=1)))
+        if true > 1e-9:
+            r.append(float(np.median(np.linalg.norm(u, axis=1))) / true)
+    return float(np.median(r)) if r else float("nan")
+
+
 def exposure_errors(run_dir, scene_dir, windows=(1, 3)):
     """Medians over the frames: ``spread_true_deg`` / ``_t`` (the true exposures' own motion, for scale),
     ``spread_learned_deg`` / ``_t``, ``mid_learned_deg`` / ``_t`` and ``spread_start_h{h}_deg`` /
     ``_t`` (module docstring); ``_deg`` in degrees, ``_t`` in scene units; on suite scenes also
-    ``blur_true_px``, ``blur_learned_px`` and ``blur_start_h{h}_px``."""
+    ``blur_true_px``, ``blur_learned_px``, ``blur_ratio_learned`` and ``blur_start_h{h}_px``."""
     scene = load_scene(scene_dir)
     if any(f.gt_exposure_start is None or f.gt_exposure_end is None for f in scene.frames):
         raise SystemExit(f"{scene_dir}: no gt_exposure_start / gt_exposure_end; use a synthetic scene")
@@ -126,7 +144,9 @@ def exposure_errors(run_dir, scene_dir, windows=(1, 3)):
     Te = np.einsum("nij,njk->nik", se3_exp(model.params[XI_END]), model.poses_ref)
     put("spread_learned", *spread_error(Ts, Te, ts, te))
     if points is not None:
-        out["blur_learned_px"] = _median_distance(blur_vectors(points, K, Ts, Te), true_blur)
+        learned_blur = blur_vectors(points, K, Ts, Te)
+        out["blur_learned_px"] = _median_distance(learned_blur, true_blur)
+        out["blur_ratio_learned"] = blur_length_ratio(learned_blur, true_blur)
     mids = model.mid_poses()  # the geodesic midpoints of (Ts, Te)
     true_mids = np.stack([f.gt_cam_T_world for f in scene.frames])
     D = np.einsum("nij,njk->nik", mids, se3_inverse(true_mids))

@@ -94,5 +94,11 @@ def test_the_blur_vector_error_is_zero_for_the_truth_and_f_alpha_for_a_turn(tmp_
                           np.einsum("ij,njk->nik", turn(alpha / 2), te), ts, te)
     f_alpha = K[0, 0] * alpha
     assert f_alpha * 0.99 <= e <= f_alpha * 1.34, (e, f_alpha)
+    # the length ratio: 1 for the truth, 0.5 for blur vectors half as long
+    bt = mod.blur_vectors(pts, K, ts, te)
+    assert mod.blur_length_ratio(bt, bt) == pytest.approx(1.0, abs=1e-12)
+    assert mod.blur_length_ratio([0.5 * v for v in bt], bt) == pytest.approx(0.5, abs=1e-12)
+    zero = [np.zeros_like(v) for v in bt]
+    assert np.isnan(mod.blur_length_ratio(bt, zero))  # no true blur: no ratio, not a division by 0
     # a scene folder without a world has no pixel metric
     assert mod.mid_camera_points(tmp_path / "nowhere", ts, te) is None
