@@ -102,3 +102,27 @@ def test_the_blur_vector_error_is_zero_for_the_truth_and_f_alpha_for_a_turn(tmp_
     assert np.isnan(mod.blur_length_ratio(bt, zero))  # no true blur: no ratio, not a division by 0
     # a scene folder without a world has no pixel metric
     assert mod.mid_camera_points(tmp_path / "nowhere", ts, te) is None
+
+
+def test_a_run_with_the_true_endpoints_has_blur_ratio_one_and_half_the_spread_about_half(tmp_path):
+    """exposure_errors on a suite scene reports blur_ratio_learned: 1 (and no blur error) for a
+    run holding the true endpoints; endpoints at half their tangents blur about half as far (the
+    exposures are short, so halving the tangent halves the motion to first order)."""
+    from d2gs_np.data.suite import write_suite_scene
+
+    mod = _module()
+    scene_dir = write_suite_scene(tmp_path / "s", "cube_sign", 0, num_frames=4, width=48, height=27)
+    scene = load_scene(scene_dir)
+    run = tmp_path / "run"
+    tr = Trainer(scene, ExperimentConfig(train=TrainConfig(iters=1, quiet=True, eval_every=0, checkpoint_every=0)), run)
+    P = tr.model.poses_ref
+    xs = np.stack([se3_log(f.gt_exposure_start @ se3_inverse(p)) for f, p in zip(scene.frames, P)])
+    xe = np.stack([se3_log(f.gt_exposure_end @ se3_inverse(p)) for f, p in zip(scene.frames, P)])
+    tr.params = {**tr.params, XI_START: xs, XI_END: xe}
+    tr.checkpoint(final=True)
+    e = mod.exposure_errors(run, scene_dir, windows=(1,))
+    assert e["blur_ratio_learned"] == pytest.approx(1.0, abs=1e-9) and e["blur_learned_px"] < 1e-9
+    tr.params = {**tr.params, XI_START: 0.5 * xs, XI_END: 0.5 * xe}
+    tr.checkpoint(final=True)
+    e = mod.exposure_errors(run, scene_dir, windows=(1,))
+    assert 0.45 <= e["blur_ratio_learned"] <= 0.55, e["blur_ratio_learned"]
