@@ -17,25 +17,31 @@ def _module():
     return load_example("exposure_error.py")
 
 
+def _run_holding_the_true_endpoints(scene, run):
+    """A one-step run of ``scene`` in ``run`` whose final checkpoint holds the true exposure
+    endpoints, as left perturbations of the reference (= true mid) poses; (trainer, xs, xe)."""
+    tr = Trainer(scene, ExperimentConfig(train=TrainConfig(iters=1, quiet=True, eval_every=0, checkpoint_every=0)), run)
+    P = tr.model.poses_ref
+    xs = np.stack([se3_log(f.gt_exposure_start @ se3_inverse(p)) for f, p in zip(scene.frames, P)])
+    xe = np.stack([se3_log(f.gt_exposure_end @ se3_inverse(p)) for f, p in zip(scene.frames, P)])
+    tr.params = {**tr.params, XI_START: xs, XI_END: xe}
+    tr.checkpoint(final=True)
+    return tr, xs, xe
+
+
 def test_true_endpoints_score_zero_and_a_centred_exposure_has_no_mid_error(tmp_path):
     mod = _module()
     scene = make_scene("dynamic", 0, width=48, height=27, num_frames=5, rot_noise_deg=0.0, trans_noise_fraction=0.0)
     scene_dir = tmp_path / "scene"
     write_scene(scene, scene_dir)
     run = tmp_path / "run"
-    tr = Trainer(scene, ExperimentConfig(train=TrainConfig(iters=1, quiet=True, eval_every=0, checkpoint_every=0)), run)
-    # the true endpoints as left perturbations of the reference (= true mid) poses
-    P = tr.model.poses_ref
-    xs = np.stack([se3_log(f.gt_exposure_start @ se3_inverse(p)) for f, p in zip(scene.frames, P)])
-    xe = np.stack([se3_log(f.gt_exposure_end @ se3_inverse(p)) for f, p in zip(scene.frames, P)])
-    tr.params = {**tr.params, XI_START: xs, XI_END: xe}
-    tr.checkpoint(final=True)
+    tr, xs, xe = _run_holding_the_true_endpoints(scene, run)
     e = mod.exposure_errors(run, scene_dir, windows=(1,))
     assert e["spread_learned_deg"] < 1e-9 and e["spread_learned_t"] < 1e-12
     assert np.isfinite(e["spread_start_h1_deg"]) and np.isfinite(e["spread_start_h1_t"])
     # a centred exposure about the true mid pose (the reference here): no mid error, and a spread
     # error that is not zero (0.2 rad exposures are not the true ones)
-    d = np.tile([0.0, 0.0, 0.0, 0.1, 0.0, 0.0], (len(P), 1))
+    d = np.tile([0.0, 0.0, 0.0, 0.1, 0.0, 0.0], (len(xs), 1))
     tr.params = {**tr.params, XI_START: -d, XI_END: d}
     tr.checkpoint(final=True)
     e = mod.exposure_errors(run, scene_dir, windows=(1,))
@@ -114,12 +120,7 @@ def test_a_run_with_the_true_endpoints_has_blur_ratio_one_and_half_the_spread_ab
     scene_dir = write_suite_scene(tmp_path / "s", "cube_sign", 0, num_frames=4, width=48, height=27)
     scene = load_scene(scene_dir)
     run = tmp_path / "run"
-    tr = Trainer(scene, ExperimentConfig(train=TrainConfig(iters=1, quiet=True, eval_every=0, checkpoint_every=0)), run)
-    P = tr.model.poses_ref
-    xs = np.stack([se3_log(f.gt_exposure_start @ se3_inverse(p)) for f, p in zip(scene.frames, P)])
-    xe = np.stack([se3_log(f.gt_exposure_end @ se3_inverse(p)) for f, p in zip(scene.frames, P)])
-    tr.params = {**tr.params, XI_START: xs, XI_END: xe}
-    tr.checkpoint(final=True)
+    tr, xs, xe = _run_holding_the_true_endpoints(scene, run)
     e = mod.exposure_errors(run, scene_dir, windows=(1,))
     assert e["blur_ratio_learned"] == pytest.approx(1.0, abs=1e-9) and e["blur_learned_px"] < 1e-9
     tr.params = {**tr.params, XI_START: 0.5 * xs, XI_END: 0.5 * xe}
