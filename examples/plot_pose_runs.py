@@ -58,19 +58,14 @@ def main(argv=None):
     ax = ax[0]
     for name, run in pairs:
         ax[0].plot(*_heldout(run), marker="o", label=name)
-    if panels == 1:
-        ax[0].set(xlabel="training seconds", ylabel="held-out PSNR [dB]", title=a.title)
-        ax[0].legend()
-        fig.tight_layout()
-        fig.savefig(a.out, dpi=90)
-        print(f"wrote {a.out}")
-        return
+    ax[0].set(xlabel="training seconds", ylabel="held-out PSNR [dB]", title=a.title)
     if curve is not None:
         ax[1].plot(*curve, marker="o", label=f"{pairs[0][0]}: ATE after each solver call")
     if a.given_ate is not None:
         ax[1].axhline(a.given_ate, ls="--", c="gray", label="given poses")
-    ax[0].set(xlabel="training seconds", ylabel="held-out PSNR [dB]", title=a.title)
-    ax[1].set(xlabel="training seconds", ylabel="ATE", yscale="log", title="trajectory error (0 s: start of training)")
+    if panels == 2:
+        ax[1].set(xlabel="training seconds", ylabel="ATE", yscale="log",
+                  title="trajectory error (0 s: start of training)")
     for x in ax:
         x.legend()
     fig.tight_layout()

@@ -38,3 +38,16 @@ def test_refuses_a_run_without_a_log(tmp_path):
         _module().main([f"x={tmp_path}", "--out", str(tmp_path / "f.png")])
     with pytest.raises(SystemExit):
         _module().main(["no-equals-sign", "--out", str(tmp_path / "f.png")])
+
+
+def test_a_run_without_a_solver_or_a_given_ate_gets_the_psnr_panel_alone(tmp_path):
+    """No trajectory to draw: one panel, half the width of the two-panel figure (5.5 in a panel)."""
+    import matplotlib.image
+
+    mod = _module()
+    a, b = _run(tmp_path, "a", True), _run(tmp_path, "b", False)
+    one, two = tmp_path / "one.png", tmp_path / "two.png"
+    mod.main([f"y={b}", "--out", str(one)])
+    mod.main([f"x={a}", f"y={b}", "--out", str(two)])
+    w1, w2 = matplotlib.image.imread(one).shape[1], matplotlib.image.imread(two).shape[1]
+    assert w2 == 2 * w1, (w1, w2)
