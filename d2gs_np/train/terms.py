@@ -27,7 +27,7 @@ from typing import NamedTuple, Optional
 import numpy as np
 
 from d2gs_np.losses.entropy import _entropy_fwd, entropy_bwd
-from d2gs_np.losses.frequency import _frequency_fwd, frequency_bwd
+from d2gs_np.losses.frequency import _frequency_fwd, frequency_bwd, target_spectrum
 from d2gs_np.losses.photometric import photometric_bwd, photometric_fwd
 from d2gs_np.losses.reprojection import bilinear_bwd, bilinear_fwd, cycle_bwd, cycle_fwd
 from d2gs_np.losses.smoothness import _spatial_fwd, _time_fwd, spatial_bwd, time_bwd
@@ -135,15 +135,33 @@ class OpacityEntropy:
 class Frequency:
     """L_freq of the rendered image against the target (docs/method.md §6, Eq. 15;
     ``losses/frequency.py``); with a loss mask (warm-up) both images are multiplied by it before
-    the FFT, so pixels that carry no loss contribute nothing."""
+    the FFT, so pixels that carry no loss contribute nothing.
+
+    The target's half spectrum is kept per frame and reused while the frame's target and loss
+    mask are the same arrays' values (compared in full each step, ~0.1 ms; the progressive
+    schedule changes the size, the warm-up's end drops the mask): one FFT of the two a step.
+    The cache is not training state; a resumed run recomputes it to the same values."""
 
     name = "freq"
 
     def __init__(self, weight, cutoff):
         self.weight, self.cutoff = weight, cutoff
+        self._spectra = {}  # frame -> (target copy, loss mask copy or None, target_spectrum)
+
+    def _target_fft(self, x: TermInputs):
+        hit = self._spectra.get(x.frame)
+        if hit is not None:
+            t, m, spectrum = hit
+            same_mask = (m is None and x.loss_mask is None) or (
+                m is not None and x.loss_mask is not None and np.array_equal(m, x.loss_mask))
+            if same_mask and t.shape == x.target.shape and np.array_equal(t, x.target):
+                return spectrum
+        spectrum = target_spectrum(x.target, x.loss_mask)
+        self._spectra[x.frame] = (x.target.copy(), None if x.loss_mask is None else x.loss_mask.copy(), spectrum)
+        return spectrum
 
     def fwd(self, x: TermInputs):
-        return _frequency_fwd(x.out["image"], x.target, x.loss_mask, self.cutoff)
+        return _frequency_fwd(x.out["image"], x.target, x.loss_mask, self.cutoff, self._target_fft(x))
 
     def bwd(self, saved) -> TermGrads:
         return TermGrads(render={"image": frequency_bwd(saved, self.weight)}, params={})

@@ -103,6 +103,28 @@ def test_term_gradients_on_blocks_match_central_fd(dynamic_scene, tmp_path):
     assert n > 8  # the spatial term had a full K = 8 neighbours
 
 
+def test_l_freq_term_reuses_a_frames_target_spectrum_only_while_target_and_mask_are_the_same(
+        dynamic_scene, tmp_path):
+    from d2gs_np.losses.frequency import frequency_fwd
+
+    tr = Trainer(dynamic_scene, _config(iters=2, loss=LossConfig(lambda_freq=0.5)), tmp_path / "run")
+    term = next(t for t in tr.terms if t.name == "freq")
+    x = _joint_inputs(tr)
+    rng = np.random.default_rng(3)
+    render = rng.uniform(0.2, 0.8, x.target.shape)
+    x = x._replace(out={"image": render})
+    other = np.clip(x.target + 0.1 * rng.standard_normal(x.target.shape), 0.0, 1.0)
+    mask = (rng.uniform(size=x.target.shape[:2]) > 0.4).astype(np.float64)
+    # each call is the direct value of its own target and mask: a stale spectrum would give the
+    # first target's value for the second (they differ by far more than rounding)
+    for tgt, m in ((x.target, None), (x.target, None), (other, None), (other, mask), (other, mask * 0.5),
+                   (x.target, None)):
+        expected = frequency_fwd(render, tgt, m, term.cutoff)[0]
+        assert term.fwd(x._replace(target=tgt, loss_mask=m))[0] == pytest.approx(expected, rel=1e-13)
+    assert frequency_fwd(render, other)[0] != pytest.approx(frequency_fwd(render, x.target)[0], rel=1e-3)
+    assert list(term._spectra) == [1]  # one entry for the one frame, refreshed in place
+
+
 def test_l_ts_uses_the_frames_time_and_is_off_in_warmup(dynamic_scene, tmp_path):
     tr = Trainer(dynamic_scene, _config(iters=20, loss=LossConfig(lambda_ts=1.0)), tmp_path / "run")
     term = tr.terms[1]
