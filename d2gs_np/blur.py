@@ -484,7 +484,8 @@ def blur_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth
     scene blocks of the forward's params (every block, dense). v_tau = sum_i v_t_i (u_i - 1/2)
     (0 for n = 1). With return_aux=True a fifth element is returned: dict(v_means2d (k, N, 2),
     the renderer's screen-space mean gradients of each sub-frame the backward ran through (for
-    densification), and v_pose_tangents (n, 6), the left-perturbation gradients of the virtual
+    densification), v_means2d_abs (k, N, 2), their sums of absolute per-pixel terms (the
+    renderer's ``means2d_abs``), and v_pose_tangents (n, 6), the left-perturbation gradients of the virtual
     poses (zero for the views it skipped)).
     views: None (every view: the exact gradient) or (indices, weights) from ``backward_subset``:
         the backward runs only through those sub-frames, view i_j's output cotangent scaled by
@@ -514,7 +515,7 @@ def blur_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth
     v_params = None
     v_tau = 0.0
     g_pose = np.zeros((n, 6))
-    v_means2d = []
+    v_means2d, v_means2d_abs = [], []
     for j, i in enumerate(index):
         eval_saved, render_saved = saved["subs"][i]
         c = cot if weight is None else {name: (None if v is None else v * dtype.type(weight[j]))
@@ -531,11 +532,12 @@ def blur_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth
                                                 np.asarray(grads["cam_T_world"], np.float64))
         if return_aux:
             v_means2d.append(grads["means2d"])
+            v_means2d_abs.append(grads["means2d_abs"])
     v_xi_start, v_xi_end = virtual_poses_bwd(saved["pose_saved"], g_pose)
     if n == 1:
         v_tau = 0.0
     if return_aux:
-        aux = {"v_means2d": np.stack(v_means2d), "v_pose_tangents": g_pose}
+        aux = {"v_means2d": np.stack(v_means2d), "v_means2d_abs": np.stack(v_means2d_abs), "v_pose_tangents": g_pose}
         return v_params, v_xi_start, v_xi_end, v_tau, aux
     return v_params, v_xi_start, v_xi_end, v_tau
 

@@ -131,6 +131,7 @@ def rasterize_bwd(saved, v_image, v_alpha, v_depth, v_expected_depth):
     v_background = np.sum(v_image * T_f[:, :, None], axis=(0, 1))
 
     v_means2d = np.zeros((n, 2), dtype=dtype)
+    v_means2d_abs = np.zeros((n, 2), dtype=dtype)  # sums of |each pixel's term| (gsplat's absgrad)
     v_conics = np.zeros((n, 3), dtype=dtype)
     v_colors = np.zeros((n, 3), dtype=dtype)
     v_opac = np.zeros(n, dtype=dtype)
@@ -176,12 +177,15 @@ def rasterize_bwd(saved, v_image, v_alpha, v_depth, v_expected_depth):
         v_conics[g, 2] = np.sum(0.5 * dy * dy * v_sigma)
         v_means2d[g, 0] = np.sum(v_sigma * (a * dx + b * dy))
         v_means2d[g, 1] = np.sum(v_sigma * (b * dx + c * dy))
+        v_means2d_abs[g, 0] = np.sum(np.abs(v_sigma * (a * dx + b * dy)))
+        v_means2d_abs[g, 1] = np.sum(np.abs(v_sigma * (b * dx + c * dy)))
 
         S_C += colors[g] * w[:, :, None]
         S_D += depths[g] * w
 
     return {
         "means2d": v_means2d,
+        "means2d_abs": v_means2d_abs,
         "conics": v_conics,
         "colors": v_colors,
         "opacities": v_opac,

@@ -181,7 +181,8 @@ def render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth=None
     v_image (H,W,3); v_alpha, v_depth, v_expected_depth (H,W) or None (= zero), in the render's
     dtype. Returns dict: "means" (N,3), "quats" (N,4) (w.r.t. the raw quats: orthogonal to q),
     "scales" (N,3), "opacities" (N,), "colors" (N,3), "cam_T_world" (4,4) entrywise with the
-    bottom row zero, "background" (3,), "means2d" (N,2) dL/d(projected mean).
+    bottom row zero, "background" (3,), "means2d" (N,2) dL/d(projected mean), "means2d_abs" (N,2) the
+    per-axis sums over pixels of |each pixel's term of it| (gsplat's absgrad).
     The discrete choices (culling, order, 1/255 skip, 1e-4 stop) are held fixed; no gradient
     through the 0.999 clamp once o exp(-sigma) > 0.999, nor through the det clamp.
     """
@@ -204,6 +205,7 @@ def render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth=None
         "cam_T_world": g_proj["cam_T_world"],
         "background": g_ras["background"],
         "means2d": g_ras["means2d"],
+        "means2d_abs": g_ras["means2d_abs"],
     }
     for key, val in grads.items():  # internal invariant: float32 in, float32 out
         assert val.dtype == dtype, (key, val.dtype)

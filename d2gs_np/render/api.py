@@ -303,7 +303,7 @@ def _render_grads(saved, v_image, v_alpha, v_depth, v_ed):
         saved.consts, cfg.antialiased, proj["radii_f"], g["v_means2d"], g["v_depths"], g["v_conics"],
         g["v_opac_eff"])
     return dict(means=v_means, quats=v_quats, scales=v_scales, opacities=v_opacities, colors=g["v_colors"],
-                cam_T_world=v_view, background=v_background, means2d=g["v_means2d"])
+                cam_T_world=v_view, background=v_background, means2d=g["v_means2d"], means2d_abs=g["v_means2d_abs"])
 
 
 def warm_up(config=None):

@@ -35,8 +35,10 @@ Pipeline (docs/conventions.md §5-8, gsplat 1.5.3):
    do. A vectorised branch-free pass (``_backprop_band``) updates the per-pixel state and writes
    three per-lane terms; a second vectorised pass (``_sum_terms``, reassociation allowed: the
    order is fixed by the build, not left to right) sums the ten gradient terms of the
-   intersection over the band's lanes, strip by strip in order, and writes them once to its own
-   row of ``buf`` (n_isect, 10); a row belongs to one tile, so to one thread.
+   intersection over the band's lanes, strip by strip in order, and the absolute values of the
+   per-pixel terms of dL/d(mean2d) (gsplat's ``absgrad``, AbsGS: what densification reads), and
+   writes them once to its own row of ``buf`` (n_isect, 12); a row belongs to one tile, so to
+   one thread.
 5. ``_isect_reduce_kernel`` (prange over Gaussians): each Gaussian sums its own rows of ``buf``
    in its fixed slot order.
 
@@ -66,9 +68,11 @@ from d2gs_np.render.project import (
     K_ZERO,
 )
 
-# Columns of the tile-local packed parameters (all 16) and of the gradient buffer (first 10).
+# Columns of the tile-local packed parameters (all 16) and of the gradient buffer (the first 10,
+# then _AU, _AV: the sums of |per-pixel dL/du|, |per-pixel dL/dv|).
 _U, _V, _CA, _CB, _CC, _OP, _R, _G, _B, _Z, _RX, _RY, _CUT, _IC00, _IC11 = range(15)
-_NCOL = 10
+_AU, _AV = 10, 11
+_NCOL = 12
 _NLOC = 15
 # Tile-local pixel layout: the tile is cut into column strips _STRIP pixels wide, each stored
 # row-major, one after the other, so that the rows [ia, ib) of one strip are one contiguous run of
@@ -579,7 +583,8 @@ def _backprop_band(S, X, P, V, last, qa, qb, row, u, v, ca, cb, cc, o, cut, col0
 @njit(cache=True, fastmath={"reassoc", "contract"})
 def _sum_terms(X, V, P, qa, qb, u, v, ca, cb, cc, half, zero):
     """The ten gradient terms of one Gaussian summed over lanes [qa, qb) (``_backprop_band``'s
-    outputs; lanes that did not take part hold zeros and add nothing). Reassociation lets LLVM
+    outputs; lanes that did not take part hold zeros and add nothing), and the sums of the
+    absolute per-lane terms of dL/du and dL/dv. Reassociation lets LLVM
     vectorise the sums (per-lane partial sums combined at the end): a fixed order for a given
     build, the same for any thread count, but not the plain left-to-right order."""
     g_u = zero
@@ -592,6 +597,8 @@ def _sum_terms(X, V, P, qa, qb, u, v, ca, cb, cc, half, zero):
     g_g = zero
     g_bl = zero
     g_z = zero
+    g_au = zero
+    g_av = zero
     for q in range(qa, qb):
         fac = X[0, q]
         g_r += fac * V[0, q]
@@ -605,9 +612,13 @@ def _sum_terms(X, V, P, qa, qb, u, v, ca, cb, cc, half, zero):
         g_a += half * dx * dx * v_sigma
         g_b += dx * dy * v_sigma
         g_c += half * dy * dy * v_sigma
-        g_u += v_sigma * (ca * dx + cb * dy)
-        g_v += v_sigma * (cb * dx + cc * dy)
-    return g_u, g_v, g_a, g_b, g_c, g_o, g_r, g_g, g_bl, g_z
+        t_u = v_sigma * (ca * dx + cb * dy)
+        t_v = v_sigma * (cb * dx + cc * dy)
+        g_u += t_u
+        g_v += t_v
+        g_au += abs(t_u)
+        g_av += abs(t_v)
+    return g_u, g_v, g_a, g_b, g_c, g_o, g_r, g_g, g_bl, g_z, g_au, g_av
 
 
 @njit(cache=True, parallel=True)
@@ -624,7 +635,8 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
     safe), as 3DGS and gsplat do. The gradient of intersection ``start + k`` (dL/d(u, v, conic
     a, b, c, opacity_eff, r, g, b, z)) is summed over the band's lanes (``_sum_terms``; the lanes
     that do not take part hold zeros) and written once to row start + k of buf
-    (n_isect, 10); rows no pixel uses stay as given (zero).
+    (n_isect, 12), with the sums of |per-pixel dL/du| and |per-pixel dL/dv| in its last two
+    columns; rows no pixel uses stay as given (zero).
     """
     H = T_final.shape[0]
     W = T_final.shape[1]
@@ -698,12 +710,14 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
             g_g = zero
             g_bl = zero
             g_z = zero
+            g_au = zero
+            g_av = zero
             for s in range((ja - x0) // _STRIP, (jb - 1 - x0) // _STRIP + 1):
                 qa, qb = _strip_run(s, ia, ib, x0, x1, y0, th)
                 _backprop_band(S, X, P, V, last, np.uint64(qa), np.uint64(qb), row, u, v, ca, cb, cc,
                                loc[k, _OP], loc[k, _CUT], loc[k, _R], loc[k, _G], loc[k, _B], loc[k, _Z], amax,
                                athr, zero, one, half, ec)
-                (t_u, t_v, t_a, t_b, t_c, t_o, t_r, t_g, t_bl, t_z) = _sum_terms(
+                (t_u, t_v, t_a, t_b, t_c, t_o, t_r, t_g, t_bl, t_z, t_au, t_av) = _sum_terms(
                     X, V, P, np.uint64(qa), np.uint64(qb), u, v, ca, cb, cc, half, zero)
                 g_u += t_u
                 g_v += t_v
@@ -715,6 +729,8 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
                 g_g += t_g
                 g_bl += t_bl
                 g_z += t_z
+                g_au += t_au
+                g_av += t_av
             buf[row, _U] = g_u
             buf[row, _V] = g_v
             buf[row, _CA] = g_a
@@ -725,10 +741,13 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
             buf[row, _G] = g_g
             buf[row, _B] = g_bl
             buf[row, _Z] = g_z
+            buf[row, _AU] = g_au
+            buf[row, _AV] = g_av
 
 
 @njit(cache=True, parallel=True)
-def _isect_reduce_kernel(buf, slot_to_isect, goff, v_means2d, v_conics, v_opac_eff, v_colors, v_depths):
+def _isect_reduce_kernel(buf, slot_to_isect, goff, v_means2d, v_conics, v_opac_eff, v_colors, v_depths,
+                         v_means2d_abs):
     """Per-Gaussian sums of its intersection rows of buf, in its fixed slot order (prange over N)."""
     n = goff.shape[0] - 1
     for g in prange(n):
@@ -747,6 +766,8 @@ def _isect_reduce_kernel(buf, slot_to_isect, goff, v_means2d, v_conics, v_opac_e
         a_g = buf[row, _G]
         a_bl = buf[row, _B]
         a_z = buf[row, _Z]
+        a_au = buf[row, _AU]
+        a_av = buf[row, _AV]
         for s in range(s0 + 1, s1):
             row = slot_to_isect[s]
             a_u += buf[row, _U]
@@ -759,8 +780,12 @@ def _isect_reduce_kernel(buf, slot_to_isect, goff, v_means2d, v_conics, v_opac_e
             a_g += buf[row, _G]
             a_bl += buf[row, _B]
             a_z += buf[row, _Z]
+            a_au += buf[row, _AU]
+            a_av += buf[row, _AV]
         v_means2d[g, 0] = a_u
         v_means2d[g, 1] = a_v
+        v_means2d_abs[g, 0] = a_au
+        v_means2d_abs[g, 1] = a_av
         v_conics[g, 0] = a_a
         v_conics[g, 1] = a_b
         v_conics[g, 2] = a_c
@@ -851,7 +876,10 @@ def rasterize_fwd(proj, colors, background, consts, isect, width, height, tile_s
 
 def rasterize_bwd(proj, colors, consts, isect, raster, tile_size, v_color_img, v_depth_img, v_T_img):
     """Steps 4-5. Returns dict of per-Gaussian v_means2d (N,2), v_conics (N,3), v_opac_eff (N,),
-    v_colors (N,3), v_depths (N,)."""
+    v_colors (N,3), v_depths (N,), and v_means2d_abs (N,2): per axis, the sum over pixels of the
+    absolute value of each pixel's term of v_means2d (gsplat's ``absgrad``; AbsGS). Where a
+    Gaussian's pixels pull its mean different ways (fine texture it is too coarse for) their
+    terms cancel in v_means2d but not here; densification can read it (``DensifyConfig.absgrad``)."""
     n = colors.shape[0]
     dtype = colors.dtype
     height, width = raster["T_final"].shape
@@ -864,7 +892,7 @@ def rasterize_bwd(proj, colors, consts, isect, raster, tile_size, v_color_img, v
                           raster["T_final"], raster["last_idx"], v_color_img, v_depth_img, v_T_img, buf)
     out = dict(v_means2d=np.zeros((n, 2), dtype), v_conics=np.zeros((n, 3), dtype),
                v_opac_eff=np.zeros(n, dtype), v_colors=np.zeros((n, 3), dtype),
-               v_depths=np.zeros(n, dtype))
+               v_depths=np.zeros(n, dtype), v_means2d_abs=np.zeros((n, 2), dtype))
     _isect_reduce_kernel(buf, isect["slot_to_isect"], isect["goff"], out["v_means2d"], out["v_conics"],
-                         out["v_opac_eff"], out["v_colors"], out["v_depths"])
+                         out["v_opac_eff"], out["v_colors"], out["v_depths"], out["v_means2d_abs"])
     return out

@@ -11,6 +11,13 @@ new rows get zero Adam moments and statistics (``train.rows.resize_rows``) and d
 their deformation coefficients. The threshold is 3DGS's 2e-4 in NDC units, converted with
 d(ndc) = 2 d(px) / W.
 
+With ``absgrad`` the statistic is instead the norm of the per-axis sums of the absolute per-pixel
+terms of dL/d(mean2d) (the renderer's ``means2d_abs``; gsplat's ``absgrad``, after AbsGS, Ye et
+al. 2024): in fine texture a Gaussian too coarse for it is pulled different ways by its pixels,
+and those pulls cancel in the plain gradient, so the plain rule leaves it alone. The absolute
+sum is larger than the plain norm, so it has its own threshold, ``grad_threshold_abs_ndc``
+(gsplat's advice for absgrad: 4x 3DGS's, 8e-4).
+
 The statistics are per-row arrays in the training state's ``rows`` (``GRAD_SUM``,
 ``GRAD_COUNT``), accumulated after every step by the ``GradientStatistics`` plugin and used and
 reset by the ``Densify`` plugin (``train/plugins.py``).
@@ -38,6 +45,8 @@ class DensifyConfig:
     percent_dense: float = 0.01  # clone below this share of the scene extent, split above
     split_factor: float = 1.6
     max_gaussians: int = 40000
+    absgrad: bool = False  # densify on the absolute-sum statistic (module docstring)
+    grad_threshold_abs_ndc: float = 8e-4  # its threshold (gsplat's advice for absgrad)
 
     def __post_init__(self):
         if not 0.0 <= self.start_fraction <= self.stop_fraction <= 1.0:
@@ -45,8 +54,12 @@ class DensifyConfig:
                              f"{self.start_fraction}, {self.stop_fraction}")
         if self.every < 1 or self.max_gaussians < 1:
             raise ValueError("DensifyConfig.every and max_gaussians must be >= 1")
-        if self.grad_threshold_ndc <= 0 or self.percent_dense <= 0 or self.split_factor <= 1:
-            raise ValueError("DensifyConfig: grad_threshold_ndc and percent_dense must be > 0, split_factor > 1")
+        if self.grad_threshold_ndc <= 0 or self.grad_threshold_abs_ndc <= 0 or self.percent_dense <= 0 \
+                or self.split_factor <= 1:
+            raise ValueError("DensifyConfig: grad_threshold_ndc, grad_threshold_abs_ndc and percent_dense must be > 0, "
+                             "split_factor > 1")
+        if not isinstance(self.absgrad, bool):
+            raise ValueError(f"DensifyConfig.absgrad must be true or false; got {self.absgrad!r}")
 
 
 GRAD_SUM = "densify/sum"  # per-row statistics (train/rows.py), checkpointed as densify/sum/<set>
@@ -90,7 +103,7 @@ def densify(params, adam_state, rows, config: DensifyConfig, extent, width, rng)
     and ended with 16.6k Gaussians instead of 14.6k, but the deblurred views did
     not gain (big_mover 28.96 -> 28.86 dB, cube_sign 29.08 -> 29.05, wall_disk 29.70 -> 29.67;
     docs/method.md §8): the moving pixels are not short of Gaussians. Not adopted."""
-    threshold = config.grad_threshold_ndc * 2.0 / float(width)
+    threshold = (config.grad_threshold_abs_ndc if config.absgrad else config.grad_threshold_ndc) * 2.0 / float(width)
     info = {"cloned": 0, "split": 0}
     info.update({f"{p}_{kind}": 0 for p in SETS for kind in ("cloned", "split")})
     total = sum(num_rows(params, p) for p in SETS)

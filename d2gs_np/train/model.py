@@ -353,6 +353,7 @@ def frame_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_dept
             views = blur_model.backward_subset(n, m, rng)
         v_p, v_xs, v_xe, v_tau, aux = blur_render_bwd(saved["render"], *cot, return_aux=True, views=views)
         v_means2d = aux["v_means2d"].sum(axis=0) * saved["ratio"]
+        v_means2d_abs = aux["v_means2d_abs"].sum(axis=0) * saved["ratio"]
         v_p = dict(v_p)
         v_p.update(traj_model.endpoints_bwd(saved["trajectory"], v_xs[None], v_xe[None]))
         if saved["exposure"] is not None:
@@ -360,8 +361,9 @@ def frame_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_dept
     else:
         g = _render_bwd(saved["render"], *cot)
         v_means2d = g["means2d"] * saved["ratio"]
+        v_means2d_abs = g["means2d_abs"] * saved["ratio"]
         v_p, _ = _evaluate_bwd(saved["scene"], {n: g[n] for n in RENDER_FIELDS})
-    return v_p, {"v_means2d": v_means2d}
+    return v_p, {"v_means2d": v_means2d, "v_means2d_abs": v_means2d_abs}
 
 
 def _short(info: dict) -> str:

@@ -95,17 +95,21 @@ class Evaluate(Plugin):
 
 class GradientStatistics(Plugin):
     """Adds the step's screen-space mean gradients (full-resolution pixels) of the Gaussians
-    visible in every sub-frame to densification's statistics (``train/densify.py``)."""
+    visible in every sub-frame to densification's statistics (``train/densify.py``): the plain
+    gradients, or with ``DensifyConfig.absgrad`` their sums of absolute per-pixel terms."""
 
     name = "gradient_statistics"
 
     def rows(self, params):
         return init_grad_stats(params)
 
+    def __init__(self, absgrad: bool = False):
+        self.key = "v_means2d_abs" if absgrad else "v_means2d"  # DensifyConfig.absgrad
+
     def on_step(self, state):
-        if "v_means2d" not in state.aux:  # a step without loss
+        if self.key not in state.aux:  # a step without loss
             return state
-        v = state.aux["v_means2d"]
+        v = state.aux[self.key]
         visible = (np.asarray(state.aux["radii"]).reshape(len(v), -1) > 0).all(axis=1)
         return state.replace(rows=add_grad_stats(state.rows, v, visible.astype(np.float64), state.aux["num_static"]))
 
@@ -312,7 +316,7 @@ def default_plugins(scene, config: ExperimentConfig, extent: float, note=None, r
     if tc.eval_every:
         plugins.append(Evaluate(scene, tc.eval_every, tc.eval_frames))
     if config.densify.enabled:
-        plugins.append(GradientStatistics())
+        plugins.append(GradientStatistics(config.densify.absgrad))
     if tc.prune_every:
         plugins.append(Prune(config, extent, [f.mask for f in scene.frames]))
     if config.densify.enabled:

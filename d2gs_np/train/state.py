@@ -11,7 +11,7 @@ The step's part, set by the loop before the plugins run: ``step``, ``sched`` (th
 schedules were read at), ``prev_sched`` (the one the periods compare against), ``stage``,
 ``record`` (the step's record: loss, loss terms, train PSNR, ...; plugins add to it, e.g.
 ``heldout_psnr``), ``aux`` (what the step's backward exposes: the screen-space mean gradients
-``v_means2d`` (M, 2) in full-resolution pixels, ``radii``, ``num_static``; empty for a step
+``v_means2d`` and ``v_means2d_abs`` (M, 2) in full-resolution pixels, ``radii``, ``num_static``; empty for a step
 without loss) and ``last`` (the run's last step: iterations done or time budget spent).
 
 The state is immutable: a plugin returns ``state.replace(...)`` (or ``state.resize_rows(...)``)

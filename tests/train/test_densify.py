@@ -103,3 +103,28 @@ def test_statistics_accumulate_per_set_and_a_static_only_render_leaves_the_dynam
     again = add_grad_stats(stats, g[:6], vis[:6], num_static=6)  # warm-up: only the static set rendered
     np.testing.assert_array_equal(again[GRAD_COUNT]["dynamic"], vis[6:])
     np.testing.assert_array_equal(again[GRAD_COUNT]["static"], 2 * vis[:6])
+
+
+def test_absgrad_reads_the_absolute_sums_against_its_own_threshold():
+    from types import SimpleNamespace
+
+    from d2gs_np.train.plugins import GradientStatistics
+
+    rng = np.random.default_rng(4)
+    p = _params(rng)
+    width = 100
+    plain, absolute = np.zeros((9, 2)), np.zeros((9, 2))
+    plain[0, 0] = 5e-4 * 2 / width  # static 0: over the plain threshold 2e-4, under the abs one 8e-4
+    absolute[0, 0] = plain[0, 0]
+    absolute[1, 0] = 1e-3 * 2 / width  # static 1: cancelled in the plain gradient, 1e-3 in the abs sum
+    aux = dict(v_means2d=plain, v_means2d_abs=absolute, radii=np.ones((9, 2)), num_static=6)
+    for flag in (False, True):
+        state = SimpleNamespace(aux=aux, rows=init_grad_stats(p), replace=lambda **kw: SimpleNamespace(**kw))
+        rows = GradientStatistics(absgrad=flag).on_step(state).rows
+        cfg = DensifyConfig(enabled=True, absgrad=flag)  # thresholds: plain 2e-4, abs 8e-4 (NDC)
+        out, _, _, info = densify(p, adam.adam_init(p), rows, cfg, extent=1.0, width=width,
+                                  rng=np.random.default_rng(5))
+        assert info["cloned"] == 1  # one Gaussian each way: static 0 by the plain rule, 1 by the abs
+        assert any(np.array_equal(p["static.means"][0 if not flag else 1], m) for m in out["static.means"][6:])
+    with pytest.raises(ValueError, match="absgrad must be true or false"):
+        DensifyConfig(absgrad="yes")
