@@ -28,6 +28,7 @@ import numpy as np
 
 from d2gs_np.losses.entropy import _entropy_fwd, entropy_bwd
 from d2gs_np.losses.frequency import _frequency_fwd, frequency_bwd, target_spectrum
+from d2gs_np.losses.frequency import warm_up as _frequency_warm_up
 from d2gs_np.losses.photometric import photometric_bwd, photometric_fwd
 from d2gs_np.losses.reprojection import bilinear_bwd, bilinear_fwd, cycle_bwd, cycle_fwd
 from d2gs_np.losses.smoothness import _spatial_fwd, _time_fwd, spatial_bwd, time_bwd
@@ -159,6 +160,10 @@ class Frequency:
         spectrum = target_spectrum(x.target, x.loss_mask)
         self._spectra[x.frame] = (x.target.copy(), None if x.loss_mask is None else x.loss_mask.copy(), spectrum)
         return spectrum
+
+    def warm_up(self):
+        """Compile its kernel before the run's clock starts (the trainer calls it with the renderer's)."""
+        _frequency_warm_up()
 
     def fwd(self, x: TermInputs):
         return _frequency_fwd(x.out["image"], x.target, x.loss_mask, self.cutoff, self._target_fft(x))

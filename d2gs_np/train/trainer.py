@@ -229,6 +229,9 @@ class Trainer:
         total, budget = tc.iters, tc.time_budget
         t_start = time.perf_counter()
         warm_up(self.config.render)
+        for term in self.terms:  # loss terms with kernels of their own (L_freq)
+            if hasattr(term, "warm_up"):
+                term.warm_up()
         self.log.note(f"JIT warm-up (compile or cache load) took {time.perf_counter() - t_start:.1f}s, not counted "
                       "as training time")
         if self.step_index == 0:

@@ -125,6 +125,17 @@ def test_l_freq_term_reuses_a_frames_target_spectrum_only_while_target_and_mask_
     assert list(term._spectra) == [1]  # one entry for the one frame, refreshed in place
 
 
+def test_the_trainer_warms_l_freqs_kernel_up_before_its_clock(dynamic_scene, tmp_path, monkeypatch):
+    import d2gs_np.train.terms as terms_module
+
+    calls = []
+    monkeypatch.setattr(terms_module, "_frequency_warm_up", lambda: calls.append("warm"))
+    tr = Trainer(dynamic_scene, _config(iters=1, loss=LossConfig(lambda_freq=0.01)), tmp_path / "run")
+    tr.run()
+    assert calls == ["warm"]
+    assert any("JIT warm-up" in n for n in tr.log.notes)
+
+
 def test_l_ts_uses_the_frames_time_and_is_off_in_warmup(dynamic_scene, tmp_path):
     tr = Trainer(dynamic_scene, _config(iters=20, loss=LossConfig(lambda_ts=1.0)), tmp_path / "run")
     term = tr.terms[1]
