@@ -100,11 +100,11 @@ class GradientStatistics(Plugin):
 
     name = "gradient_statistics"
 
-    def rows(self, params):
-        return init_grad_stats(params)
-
     def __init__(self, absgrad: bool = False):
         self.key = "v_means2d_abs" if absgrad else "v_means2d"  # DensifyConfig.absgrad
+
+    def rows(self, params):
+        return init_grad_stats(params)
 
     def on_step(self, state):
         if self.key not in state.aux:  # a step without loss
