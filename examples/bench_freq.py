@@ -16,17 +16,9 @@ import argparse
 import statistics
 import sys
 import time
+import timeit
 
 import numpy as np
-
-
-def _median_seconds(fn, repeats):
-    times = []
-    for _ in range(repeats):
-        t0 = time.perf_counter()
-        fn()
-        times.append(time.perf_counter() - t0)
-    return statistics.median(times)
 
 
 def bench(height, width, repeats=30, seed=0):
@@ -48,7 +40,7 @@ def bench(height, width, repeats=30, seed=0):
     }
     for fn in runs.values():
         fn()
-    out = {name: _median_seconds(fn, repeats) for name, fn in runs.items()}
+    out = {name: statistics.median(timeit.repeat(fn, number=1, repeat=repeats)) for name, fn in runs.items()}
     v_ref, s_ref = ref.frequency_fwd(render, target)
     v_fast, s_fast = fast.frequency_fwd(render, target, target_fft=spectrum)
     g_ref, g_fast = ref.frequency_bwd(s_ref), fast.frequency_bwd(s_fast)
