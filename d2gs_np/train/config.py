@@ -51,6 +51,7 @@ class LossConfig:
     lambda_gs: float = 0.0  # opacity entropy L_gs
     lambda_freq: float = 0.0  # high-frequency loss L_freq
     freq_cutoff: float = 0.1  # normalised radial frequency (1 = Nyquist) the L_freq high-pass keeps above
+    freq_static_only: bool = False  # L_freq on the static pixels only (the frame's motion mask out), every stage
     # L_reproj on the rendered depth (train.terms.Reprojection): the pose solver's cycle residuals of
     # matched pixels (its matching settings, beta and robust scale: PoseSolverConfig) with the poses held
     lambda_reproj: float = 0.0
@@ -70,6 +71,8 @@ class LossConfig:
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int) or v < 1:
                 raise ValueError(f"LossConfig.{name} must be an integer >= 1; got {v!r}")
+        if not isinstance(self.freq_static_only, bool):
+            raise ValueError(f"LossConfig.freq_static_only must be true or false; got {self.freq_static_only!r}")
         c = self.freq_cutoff
         if isinstance(c, bool) or not isinstance(c, (int, float)) or not 0.0 < c < 2.0 ** 0.5:
             raise ValueError(f"LossConfig.freq_cutoff must be in (0, sqrt 2) (normalised radial frequency, the "

@@ -49,6 +49,7 @@ class TermInputs(NamedTuple):
     model: object  # the train.model.Model being trained (its params, times, camera state)
     frame: int
     stage: object  # train.stages.Stage
+    motion_mask: Optional[np.ndarray] = None  # (h, w) bool, the frame's moving pixels at the render size, if any
 
 
 class TermGrads(NamedTuple):
@@ -136,7 +137,9 @@ class OpacityEntropy:
 class Frequency:
     """L_freq of the rendered image against the target (docs/method.md §6, Eq. 15;
     ``losses/frequency.py``); with a loss mask (warm-up) both images are multiplied by it before
-    the FFT, so pixels that carry no loss contribute nothing.
+    the FFT, so pixels that carry no loss contribute nothing. With ``static_only``
+    (``LossConfig.freq_static_only``) the frame's moving pixels are masked out the same way in
+    every stage.
 
     The target's half spectrum is kept per frame and reused while the frame's target and loss
     mask are the same arrays' values (compared in full each step, ~0.1 ms; the progressive
@@ -145,8 +148,8 @@ class Frequency:
 
     name = "freq"
 
-    def __init__(self, weight, cutoff):
-        self.weight, self.cutoff = weight, cutoff
+    def __init__(self, weight, cutoff, static_only=False):
+        self.weight, self.cutoff, self.static_only = weight, cutoff, static_only
         self._spectra = {}  # frame -> (target copy, loss mask copy or None, target_spectrum)
 
     def _target_fft(self, x: TermInputs):
@@ -166,6 +169,9 @@ class Frequency:
         _frequency_warm_up()
 
     def fwd(self, x: TermInputs):
+        if self.static_only and x.motion_mask is not None:  # moving pixels out in every stage
+            static = (~x.motion_mask).astype(np.float64)
+            x = x._replace(loss_mask=static if x.loss_mask is None else x.loss_mask * static)
         return _frequency_fwd(x.out["image"], x.target, x.loss_mask, self.cutoff, self._target_fft(x))
 
     def bwd(self, saved) -> TermGrads:
@@ -247,7 +253,7 @@ def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_d
     if config.lambda_gs > 0:
         terms.append(OpacityEntropy(config.lambda_gs))
     if config.lambda_freq > 0:
-        terms.append(Frequency(config.lambda_freq, config.freq_cutoff))
+        terms.append(Frequency(config.lambda_freq, config.freq_cutoff, config.freq_static_only))
     if config.lambda_reproj > 0:
         if scene is None or pose_solver is None or scene.num_frames < 2:
             say("L_reproj: left out (it needs a scene of two frames or more and the pose solver's matching "

@@ -204,7 +204,7 @@ class Trainer:
             return {**record, "loss": float("nan"), "train_psnr": float("nan")}
         out, saved = frame_render_fwd(state.model, k, tgt.K, tgt.width, tgt.height, plan.stage.static_only)
         record["views"] = int(out["poses"].shape[0]) if "poses" in out else 1
-        inputs = TermInputs(out, tgt.image, loss_mask, state.model, k, plan.stage)
+        inputs = TermInputs(out, tgt.image, loss_mask, state.model, k, plan.stage, tgt.mask)
         loss, values, v_render, v_terms = terms_fwd_bwd(self.terms, inputs)
         # The views a subset backward runs through (blur.backward_views) depend only on (seed, step),
         # so a resumed run draws the same ones.

@@ -125,6 +125,25 @@ def test_l_freq_term_reuses_a_frames_target_spectrum_only_while_target_and_mask_
     assert list(term._spectra) == [1]  # one entry for the one frame, refreshed in place
 
 
+def test_l_freq_on_static_pixels_only_masks_the_moving_ones_out(dynamic_scene, tmp_path):
+    from d2gs_np.losses.frequency import frequency_fwd
+
+    cfg = _config(iters=2, loss=LossConfig(lambda_freq=0.5, freq_static_only=True))
+    term = next(t for t in Trainer(dynamic_scene, cfg, tmp_path / "run").terms if t.name == "freq")
+    rng = np.random.default_rng(4)
+    x = _joint_inputs(Trainer(dynamic_scene, _config(iters=2), tmp_path / "run2"))
+    x = x._replace(out={"image": rng.uniform(0.2, 0.8, x.target.shape)})
+    moving = np.zeros(x.target.shape[:2], bool)
+    moving[3:9, 5:20] = True
+    static = (~moving).astype(np.float64)
+    got = term.fwd(x._replace(motion_mask=moving))[0]
+    assert got == pytest.approx(frequency_fwd(x.out["image"], x.target, static, term.cutoff)[0], rel=1e-13)
+    assert got != pytest.approx(frequency_fwd(x.out["image"], x.target, None, term.cutoff)[0], rel=1e-3)
+    assert term.fwd(x)[0] == pytest.approx(frequency_fwd(x.out["image"], x.target)[0], rel=1e-13)  # no mask
+    with pytest.raises(ValueError, match="freq_static_only must be true or false"):
+        LossConfig(freq_static_only=1)
+
+
 def test_the_trainer_warms_l_freqs_kernel_up_before_its_clock(dynamic_scene, tmp_path, monkeypatch):
     import d2gs_np.train.terms as terms_module
 
