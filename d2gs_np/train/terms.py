@@ -156,9 +156,8 @@ class Frequency:
         hit = self._spectra.get(x.frame)
         if hit is not None:
             t, m, spectrum = hit
-            same_mask = (m is None and x.loss_mask is None) or (
-                m is not None and x.loss_mask is not None and np.array_equal(m, x.loss_mask))
-            if same_mask and t.shape == x.target.shape and np.array_equal(t, x.target):
+            same_mask = m is None if x.loss_mask is None else (m is not None and np.array_equal(m, x.loss_mask))
+            if same_mask and np.array_equal(t, x.target):
                 return spectrum
         spectrum = target_spectrum(x.target, x.loss_mask)
         self._spectra[x.frame] = (x.target.copy(), None if x.loss_mask is None else x.loss_mask.copy(), spectrum)
