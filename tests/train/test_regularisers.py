@@ -43,9 +43,13 @@ def static_scene():
 
 
 def test_terms_enter_by_their_weights():
-    assert [t.name for t in loss_terms(LossConfig())] == ["photometric"]
+    # the default: L_freq at the method's weight, on the static pixels only; the other terms off
+    default = loss_terms(LossConfig())
+    assert [t.name for t in default] == ["photometric", "freq"] and default[1].weight == 0.002
+    assert LossConfig().freq_static_only
+    assert [t.name for t in loss_terms(LossConfig(lambda_freq=0.0))] == ["photometric"]
     assert [t.name for t in loss_terms(ALL_ON)] == ["photometric", "ts", "gs", "freq"]
-    assert [t.name for t in loss_terms(LossConfig(lambda_gs=0.5))] == ["photometric", "gs"]
+    assert [t.name for t in loss_terms(LossConfig(lambda_gs=0.5, lambda_freq=0.0))] == ["photometric", "gs"]
     weights = {t.name: t.weight for t in loss_terms(ALL_ON)}
     assert weights == {"photometric": 1.0, "ts": 1.0, "gs": 0.01, "freq": 0.002}
 
@@ -190,10 +194,14 @@ def test_training_with_every_regulariser_logs_each_term(dynamic_scene, tmp_path)
     assert header.endswith("loss_photometric,loss_ts,loss_gs,loss_freq,loss_reproj")
 
 
-def test_default_run_has_no_regularisers(dynamic_scene, tmp_path):
+def test_default_run_has_only_the_static_frequency_term(dynamic_scene, tmp_path):
     tr = Trainer(dynamic_scene, _config(iters=2), tmp_path / "run")
-    assert [t.name for t in tr.terms] == ["photometric"] and "knn" not in [p.name for p in tr.plugins]
-    assert any("L_ts, L_gs, L_reproj, L_freq: off" in n for n in tr.log.notes)
+    assert [t.name for t in tr.terms] == ["photometric", "freq"] and "knn" not in [p.name for p in tr.plugins]
+    assert tr.terms[1].static_only
+    assert any("L_ts, L_gs, L_reproj: off" in n and "loss = L_render + L_freq" in n for n in tr.log.notes)
+    off = Trainer(dynamic_scene, _config(iters=2, loss=LossConfig(lambda_freq=0.0)), tmp_path / "off")
+    assert [t.name for t in off.terms] == ["photometric"]
+    assert any("L_ts, L_gs, L_reproj, L_freq: off" in n for n in off.log.notes)
 
 
 def test_neighbour_lists_follow_every_change_of_the_dynamic_rows(dynamic_scene, tmp_path):
