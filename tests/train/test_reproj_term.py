@@ -106,7 +106,7 @@ def test_pixels_without_static_cover_give_no_depth():
 
 def test_left_out_without_a_scene():
     notes = []
-    terms = loss_terms(LossConfig(lambda_reproj=0.001), note=notes.append)
+    terms = loss_terms(LossConfig(lambda_reproj=0.001, lambda_freq=0.0), note=notes.append)
     assert [t.name for t in terms] == ["photometric"]
     assert any("L_reproj: left out" in n for n in notes)
 
@@ -117,7 +117,7 @@ TINY = dict(width=96, height=54, num_frames=6)  # SIFT finds 12-22 matches per p
 def _config(iters, **train):
     base = dict(iters=iters, quiet=True, eval_every=0, log_every=1, checkpoint_every=0, prune_every=0)
     base.update(train)
-    return ExperimentConfig(train=TrainConfig(**base), loss=LossConfig(lambda_reproj=0.05),
+    return ExperimentConfig(train=TrainConfig(**base), loss=LossConfig(lambda_reproj=0.05, lambda_freq=0.0),
                             pose_solver=PoseSolverConfig(mode="off"))
 
 
