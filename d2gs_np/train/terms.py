@@ -253,6 +253,9 @@ def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_d
         terms.append(OpacityEntropy(config.lambda_gs))
     if config.lambda_freq > 0:
         terms.append(Frequency(config.lambda_freq, config.freq_cutoff, config.freq_static_only))
+        where = ("the static pixels only (loss.freq_static_only; the whole image of a frame without moving pixels)"
+                 if config.freq_static_only else "the whole image (in the warm-up stage: the static pixels)")
+        say(f"L_freq: weight {config.lambda_freq:g}, on {where}")
     if config.lambda_reproj > 0:
         if scene is None or pose_solver is None or scene.num_frames < 2:
             say("L_reproj: left out (it needs a scene of two frames or more and the pose solver's matching "

@@ -199,9 +199,13 @@ def test_default_run_has_only_the_static_frequency_term(dynamic_scene, tmp_path)
     assert [t.name for t in tr.terms] == ["photometric", "freq"] and "knn" not in [p.name for p in tr.plugins]
     assert tr.terms[1].static_only
     assert any("L_ts, L_gs, L_reproj: off" in n and "loss = L_render + L_freq" in n for n in tr.log.notes)
+    assert any(n.startswith("L_freq: weight 0.002, on the static pixels only") for n in tr.log.notes)
     off = Trainer(dynamic_scene, _config(iters=2, loss=LossConfig(lambda_freq=0.0)), tmp_path / "off")
     assert [t.name for t in off.terms] == ["photometric"]
     assert any("L_ts, L_gs, L_reproj, L_freq: off" in n for n in off.log.notes)
+    assert not any(n.startswith("L_freq: weight") for n in off.log.notes)
+    whole = Trainer(dynamic_scene, _config(iters=2, loss=LossConfig(freq_static_only=False)), tmp_path / "whole")
+    assert any(n.startswith("L_freq: weight 0.002, on the whole image") for n in whole.log.notes)
 
 
 def test_neighbour_lists_follow_every_change_of_the_dynamic_rows(dynamic_scene, tmp_path):
