@@ -148,6 +148,25 @@ def test_l_freq_on_static_pixels_only_masks_the_moving_ones_out(dynamic_scene, t
         LossConfig(freq_static_only=1)
 
 
+def test_l_freq_on_static_pixels_gives_moving_pixels_no_gradient_and_an_all_moving_frame_zero(dynamic_scene, tmp_path):
+    # The default term (LossConfig()) in the joint stage, where no loss mask is set: the mask is the
+    # motion mask alone. Moving pixels must get exactly zero gradient (an unmasked render would give
+    # them the FFT's global coupling), and a frame whose every pixel moves gives value 0 and a zero,
+    # finite gradient (all bins at amplitude 0: the phase gate's stiff end).
+    term = next(t for t in Trainer(dynamic_scene, _config(iters=2), tmp_path / "run").terms if t.name == "freq")
+    x = _joint_inputs(Trainer(dynamic_scene, _config(iters=2), tmp_path / "run2"))
+    x = x._replace(out={"image": np.random.default_rng(6).uniform(0.2, 0.8, x.target.shape)})
+    moving = np.zeros(x.target.shape[:2], bool)
+    moving[3:9, 5:20] = True
+    value, saved = term.fwd(x._replace(motion_mask=moving))
+    v_image = term.bwd(saved).render["image"]
+    assert value > 0 and np.all(np.isfinite(v_image))
+    assert np.all(v_image[moving] == 0.0) and np.any(v_image[~moving] != 0.0)
+    value, saved = term.fwd(x._replace(motion_mask=np.ones_like(moving)))
+    v_image = term.bwd(saved).render["image"]
+    assert value == 0.0 and np.all(v_image == 0.0)
+
+
 def test_the_trainer_warms_l_freqs_kernel_up_before_its_clock(dynamic_scene, tmp_path, monkeypatch):
     import d2gs_np.train.terms as terms_module
 
