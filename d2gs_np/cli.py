@@ -83,7 +83,7 @@ def _cmd_train(args):
 
 
 def _cmd_eval(args):
-    from d2gs_np.evaluate import evaluate_run
+    from d2gs_np.evaluation.runs import evaluate_run
 
     if args.test_pose_opt < 0:
         raise SystemExit(f"--test-pose-opt must be >= 0 steps; got {args.test_pose_opt}")
@@ -113,8 +113,8 @@ def _read_pose_file(path):
 
 
 def _cmd_render(args):
-    from d2gs_np.evaluate import load_run
-    from d2gs_np.report import save_image
+    from d2gs_np.evaluation.runs import load_run
+    from d2gs_np.reporting.plots import save_image
 
     if not 0.0 <= args.time <= 1.0:
         raise ValueError(f"--time must be in [0, 1]; got {args.time}")
@@ -128,16 +128,16 @@ def _cmd_render(args):
 
 def _cmd_export_ply(args):
     from d2gs_np.data.ply import write_ply
-    from d2gs_np.evaluate import load_run
+    from d2gs_np.evaluation.runs import load_run
     from d2gs_np.scene.gaussians import DYNAMIC, STATIC
-    from d2gs_np.scene.model import evaluate_fwd
+    from d2gs_np.scene.render_inputs import render_inputs_fwd
     from d2gs_np.train.model import SCENE_PREFIXES
 
     if not 0.0 <= args.time <= 1.0:
         raise ValueError(f"--time must be in [0, 1]; got {args.time}")
     model = load_run(args.run).model
     scene_params = {n: v for n, v in model.params.items() if n.startswith(SCENE_PREFIXES)}
-    ri, _ = evaluate_fwd(scene_params, args.time, model.config.deform)
+    ri, _ = render_inputs_fwd(scene_params, args.time, model.config.deform)
     # Scales and opacities do not change with time: export the stored log-scales and logits
     # (exact, and finite even where the sigmoid saturates).
     sets = [p for p in (STATIC, DYNAMIC) if f"{p}.means" in scene_params]
@@ -168,9 +168,9 @@ def _cmd_demo(args):
     """Small built-in scene -> train the full method -> evaluate -> report.html."""
     from d2gs_np.data.suite import SUITE, write_suite_scene
     from d2gs_np.data.synthetic import PRESETS, write_synthetic_scene
-    from d2gs_np.evaluate import evaluate_run
-    from d2gs_np.html_report import write_report
-    from d2gs_np.report import plot_error_vs_time
+    from d2gs_np.evaluation.runs import evaluate_run
+    from d2gs_np.reporting.html import write_report
+    from d2gs_np.reporting.plots import plot_error_vs_time
 
     if args.preset not in PRESETS and args.preset not in SUITE:
         raise ValueError(f"--preset must be a suite scene {sorted(SUITE)} or a regression preset {sorted(PRESETS)}; "
@@ -208,7 +208,7 @@ def _cmd_demo(args):
 
 
 def _cmd_report(args):
-    from d2gs_np.html_report import write_report
+    from d2gs_np.reporting.html import write_report
 
     if args.frames < 1:
         raise ValueError(f"--frames must be >= 1; got {args.frames}")
@@ -220,7 +220,7 @@ def _cmd_report(args):
 
 
 def _cmd_experiment(args):
-    from d2gs_np.experiments import run_experiment
+    from d2gs_np.experiments.sweep import run_experiment
 
     if args.budget is None and args.iters is None:
         raise ValueError("give --budget SECONDS or --iters N per cell")

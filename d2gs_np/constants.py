@@ -92,7 +92,7 @@ REFCHECK_RTOL_F32_GRAD = 1e-3
 # within ~1e-6 of an integer across it, so a float32 port may differ by one pixel there.
 REFCHECK_RADII_ATOL_F32 = 1
 
-# --- Pose solver (d2gs_np/optim/gauss_newton.py, docs/method.md §5) ---------------------------
+# --- Pose solver (d2gs_np/pose/gauss_newton.py, docs/method.md §5) ---------------------------
 # The SE(3) log of the solver takes theta / sin(theta) from its series in sin^2(theta) below this
 # (|w| < 1e-3): four terms leave a truncation of ~(1e-6)^4 = 1e-24; above it atan2(s, c) / s
 # divides by s >= 1e-3, which loses at most ~1e-13 relative.
@@ -112,7 +112,7 @@ DAMPING_DIAG_FLOOR = 1e-9
 # covariance pseudo-inverse and its rank: float64 rounding of J^T J is ~1e-16 x cond, and
 # directions observed only through points at 1e6 x the scene's depth fall below 1e-12.
 COVARIANCE_RCOND = 1e-12
-# The Schur-complement bundle adjustment (d2gs_np/video/bundle.py, docs/dataset_format.md §8) inverts
+# The Schur-complement bundle adjustment (d2gs_np/pose/bundle.py, docs/dataset_format.md §8) inverts
 # each point's damped 3x3 normal block from its eigendecomposition, with every eigenvalue raised to
 # at least this times the block's largest: a point seen once, or along one ray, has a rank-2 block
 # whose third eigenvalue is only the damping's. Cond <= 1e10 keeps the inverse's rounding (1e-16 x

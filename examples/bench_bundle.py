@@ -1,4 +1,4 @@
-"""The bundle adjustment before training (d2gs_np/pose_init.py, docs/method.md §5) with both solvers
+"""The bundle adjustment before training (d2gs_np/pose/given.py, docs/method.md §5) with both solvers
 of ``video.bundle.bundle_adjust``: SciPy's trust region ("scipy") and Levenberg-Marquardt with the
 points eliminated ("schur"), on the real problem pose_init builds from a scene's blurry frames and
 noisy given poses (the same KLT tracks for every run). Prints per scene and solver setting: the final
@@ -20,10 +20,10 @@ import time
 
 import numpy as np
 
-from d2gs_np import metrics
+from d2gs_np.evaluation import metrics
 from d2gs_np.data.io import load_scene
-from d2gs_np.pose_init import PoseInitConfig, adjust_given_poses
-from d2gs_np.video.tracks import klt_tracks
+from d2gs_np.pose.given import PoseInitConfig, adjust_given_poses
+from d2gs_np.pose.tracks import klt_tracks
 
 
 def parse_setting(text):

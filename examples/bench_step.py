@@ -30,7 +30,7 @@ from pathlib import Path
 import numpy as np
 
 from d2gs_np.data.synthetic import make_scene
-from d2gs_np.evaluate import evaluate, load_run
+from d2gs_np.evaluation.runs import evaluate, load_run
 from d2gs_np.train.checkpoint import load_checkpoint
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 from d2gs_np.train.densify import DensifyConfig

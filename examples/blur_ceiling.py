@@ -26,7 +26,7 @@ import numpy as np
 
 from d2gs_np.data import synthetic as sy
 from d2gs_np.geometry.se3 import se3_interpolate, se3_inverse, se3_log
-from d2gs_np.metrics import psnr
+from d2gs_np.evaluation.metrics import psnr
 
 SETTINGS = {
     "base shake x1 (mild)": dict(shake_scale=1.0, shake_freq_scale=1.0),

@@ -7,7 +7,7 @@ Run:  python examples/blur_tradeoff.py --out-dir runs/blur_tradeoff
 A fixed random scene (static Gaussians in a slab in front of the camera plus a dynamic set
 with non-zero deformation coefficients), one exposure with real camera motion (start / end
 perturbations of a few degrees and centimetres around the estimated pose) and object motion
-(tau > 0). For n in {1, 2, 4, 8, 16, 32} the n-sample blurry render (d2gs_np.blur) is compared
+(tau > 0). For n in {1, 2, 4, 8, 16, 32} the n-sample blurry render (d2gs_np.blur.render) is compared
 with a --ref-samples (default 256) render of the same scene and trajectory: PSNR, RMSE and max
 abs error of the image, and the wall time per blurry render (forward, and forward + backward),
 median of --repeats after a warm-up call that triggers (or loads) the Numba compilation.
@@ -31,9 +31,9 @@ from pathlib import Path
 
 import numpy as np
 
-from d2gs_np.blur import BlurConfig, blur_render_bwd, blur_render_fwd
+from d2gs_np.blur.render import BlurConfig, blur_render_bwd, blur_render_fwd
 from d2gs_np.geometry.camera import look_at, make_intrinsics
-from d2gs_np.metrics import psnr
+from d2gs_np.evaluation.metrics import psnr
 from d2gs_np.scene.deformation import DeformConfig
 from d2gs_np.scene.gaussians import init_params, logit
 

@@ -13,8 +13,8 @@ from pathlib import Path
 
 from d2gs_np.data.io import load_scene
 from d2gs_np.data.synthetic import write_synthetic_scene
-from d2gs_np.evaluate import evaluate_run
-from d2gs_np.report import plot_error_vs_time, read_log
+from d2gs_np.evaluation.runs import evaluate_run
+from d2gs_np.reporting.plots import plot_error_vs_time, read_log
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 from d2gs_np.train.trainer import Trainer
 

@@ -36,7 +36,7 @@ def ceiling(scene_dir, supersample=8, bottom=0.3, every=1):
     """Dict: scene, frames, psnr (mean over frames), psnr_bottom, psnr_top, seconds, for the views
     of the folder's frames (every ``every``-th) rendered at ``supersample`` against its stored sharp
     frames."""
-    from d2gs_np import metrics
+    from d2gs_np.evaluation import metrics
     from d2gs_np.data import suite
     from d2gs_np.data.io import load_scene
 

@@ -34,11 +34,11 @@ import argparse
 import numpy as np
 
 from d2gs_np.data.io import load_scene
-from d2gs_np.evaluate import load_run
+from d2gs_np.evaluation.runs import load_run
 from d2gs_np.geometry import se3_exp, se3_interpolate, se3_inverse
 from d2gs_np.geometry.camera import project_points, unproject_points
 from d2gs_np.geometry.so3 import so3_log
-from d2gs_np.trajectory import XI_END, XI_START, velocity_endpoints
+from d2gs_np.blur.endpoints import XI_END, XI_START, velocity_endpoints
 
 
 def rotation_deg(T):

@@ -1,4 +1,4 @@
-"""The pose solver (d2gs_np/optim/gauss_newton.py) against scipy.optimize.least_squares on the
+"""The pose solver (d2gs_np/pose/gauss_newton.py) against scipy.optimize.least_squares on the
 same residuals and Jacobian: robust cost against wall time for Levenberg-Marquardt (ours), plain
 Gauss-Newton (ours with the damping at its floor) and scipy's trust-region reflective solver with
 the same robust loss; prints a table (final cost, pose error, wall time, and each as a ratio to
@@ -16,7 +16,7 @@ from scipy.optimize import least_squares
 
 from d2gs_np.constants import LM_DAMPING_MIN
 from d2gs_np.geometry.se3 import se3_inverse, se3_log
-from d2gs_np.optim import gauss_newton as gn
+from d2gs_np.pose import gauss_newton as gn
 
 
 def pose_error(mids, truth):

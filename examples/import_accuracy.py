@@ -2,9 +2,9 @@
 
 For each suite scene (d2gs_np/data/suite.py): the blurry training frames are written to an image
 folder and imported like a user's video (focal length unknown: guessed, refined). Measured:
-- trajectory ATE after Sim(3) alignment (d2gs_np.metrics.ate) divided by the scene depth
+- trajectory ATE after Sim(3) alignment (d2gs_np.evaluation.metrics.ate) divided by the scene depth
   (camera to back wall): target <= 2 %;
-- relative rotation error between consecutive frames, RMS in degrees (d2gs_np.metrics.rpe): the
+- relative rotation error between consecutive frames, RMS in degrees (d2gs_np.evaluation.metrics.rpe): the
   ATE compares camera centres only and can hide a stretch of wrongly turned frames (crossing seed 1
   before the tracker's retry window: ATE 1.91 % with 4.2-4.9 deg per-frame rotation errors);
 - motion-mask IoU against the true masks, pooled over all frames (sum of intersections / sum of
@@ -31,7 +31,7 @@ import numpy as np
 
 from d2gs_np.data.io import load_scene
 from d2gs_np.data.suite import SUITE, build_suite_world, make_suite_scene, resolve
-from d2gs_np.metrics import ate, rpe
+from d2gs_np.evaluation.metrics import ate, rpe
 from d2gs_np.video.importer import import_video
 
 

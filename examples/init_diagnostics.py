@@ -67,12 +67,12 @@ def _summary(err):
 def diagnose(scene_dir, pose_init=True, config=None):
     from d2gs_np.data.io import load_scene
     from d2gs_np.data.suite import SuiteConfig, build_suite_world
-    from d2gs_np.features import static_detector_mask
-    from d2gs_np.pose_init import initial_poses, triangulate_tracks
+    from d2gs_np.pose.features import static_detector_mask
+    from d2gs_np.pose.given import initial_poses, triangulate_tracks
     from d2gs_np.scene.initialize import initialize_points
     from d2gs_np.scene.stereo import plane_sweep_depth
     from d2gs_np.train.config import ExperimentConfig
-    from d2gs_np.video.tracks import klt_tracks
+    from d2gs_np.pose.tracks import klt_tracks
 
     scene_dir = Path(scene_dir)
     scene = load_scene(scene_dir)

@@ -14,9 +14,9 @@ import argparse
 import numpy as np
 
 from d2gs_np.data.io import load_scene
-from d2gs_np.evaluate import load_run
-from d2gs_np.metrics import psnr
-from d2gs_np.report import comparison_strip, save_image
+from d2gs_np.evaluation.runs import load_run
+from d2gs_np.evaluation.metrics import psnr
+from d2gs_np.reporting.plots import comparison_strip, save_image
 
 
 def main(argv=None):

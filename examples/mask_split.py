@@ -11,7 +11,7 @@ import argparse
 import numpy as np
 
 from d2gs_np.data.io import load_scene
-from d2gs_np.evaluate import load_run
+from d2gs_np.evaluation.runs import load_run
 
 
 def _psnr(squared_error_sum, count):

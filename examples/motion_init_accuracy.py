@@ -30,7 +30,7 @@ import numpy as np
 from d2gs_np.data.io import load_scene
 from d2gs_np.data.suite import (SUITE, SuiteConfig, build_suite_world, make_suite_scene,
                                mover_tracks_of_seeds)
-from d2gs_np.metrics import trajectory_reprojection_error
+from d2gs_np.evaluation.metrics import trajectory_reprojection_error
 from d2gs_np.scene.initialize import initialize_points
 from d2gs_np.scene.motion_init import WARPS, MotionInitConfig, initialize_deformation
 from d2gs_np.train.config import ExperimentConfig

@@ -13,11 +13,11 @@ import dataclasses
 import numpy as np
 
 from d2gs_np.data.io import load_scene
-from d2gs_np.evaluate import evaluate_run
+from d2gs_np.evaluation.runs import evaluate_run
 from d2gs_np.geometry import se3_inverse, se3_log
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 from d2gs_np.train.trainer import Trainer
-from d2gs_np.trajectory import CAMERA, XI_END, XI_START
+from d2gs_np.blur.endpoints import CAMERA, XI_END, XI_START
 
 
 def main():

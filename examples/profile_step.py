@@ -119,7 +119,7 @@ def training_scene(scene_dir=None, run_dir=None):
     from d2gs_np.train.model import Model
 
     if run_dir is not None:
-        from d2gs_np.evaluate import load_run
+        from d2gs_np.evaluation.runs import load_run
 
         return _call_of_render(load_run(run_dir).model)
     scene = load_scene(scene_dir)

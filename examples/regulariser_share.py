@@ -33,7 +33,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
 
     from d2gs_np.data.io import load_scene
-    from d2gs_np.evaluate import load_run
+    from d2gs_np.evaluation.runs import load_run
     from d2gs_np.train.config import METHOD_REGULARISER_WEIGHTS, LossConfig
     from d2gs_np.train.model import frame_render_bwd, frame_render_fwd
     from d2gs_np.train.terms import TermInputs, loss_terms

@@ -20,7 +20,7 @@ steps and wall time.
         --variants render_only +ts +gs +freq all --iters 300 --size 0.5 --jobs 1 --threads 1
 
 The cells are those of ``d2gs experiment suite`` and ``d2gs experiment suite-ablation``
-(``d2gs_np/experiments.py``): run on Dask's local process pool (``--jobs`` at once, ``--threads``
+(``d2gs_np/experiments/sweep.py``): run on Dask's local process pool (``--jobs`` at once, ``--threads``
 Numba threads each), never recomputed once finished (an interrupted sweep resumes), a failed one
 retried and then reported.
 
@@ -38,7 +38,7 @@ import os
 import sys
 from pathlib import Path
 
-from d2gs_np.experiments import EXPERIMENTS, run_experiment
+from d2gs_np.experiments.sweep import EXPERIMENTS, run_experiment
 
 VARIANTS = tuple(v.name for v in EXPERIMENTS["suite"])  # sharp, blur, noblur, noisy
 # Regulariser ablation (``d2gs experiment suite-ablation``): each variant turns on the method's

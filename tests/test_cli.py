@@ -170,7 +170,7 @@ def test_report_side_by_side_needs_out_and_names_both_runs(trained, tmp_path, ca
 
 
 def test_zoom_crop_finds_the_detailed_region():
-    from d2gs_np.html_report import zoom_crop
+    from d2gs_np.reporting.html import zoom_crop
 
     img = np.full((40, 60, 3), 0.5)
     rng = np.random.default_rng(0)

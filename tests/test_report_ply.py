@@ -2,7 +2,7 @@
 import numpy as np
 
 from d2gs_np.data.ply import SH_C0, read_ply, write_ply
-from d2gs_np.report import comparison_strip, plot_error_vs_time, plot_loss_terms, read_log
+from d2gs_np.reporting.plots import comparison_strip, plot_error_vs_time, plot_loss_terms, read_log
 
 
 def _fake_run(path, rows):

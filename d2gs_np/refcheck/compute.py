@@ -2,7 +2,7 @@
 
 ``compute(kind, inputs, cotangents, dtype, renderer)`` evaluates one case with our
 implementation: the renderer's ``render_fwd``/``render_bwd`` (docs/conventions.md §10), the blur
-model (``d2gs_np.blur``) or the deformation (``d2gs_np.scene.deformation``), and returns
+model (``d2gs_np.blur.render``) or the deformation (``d2gs_np.scene.deformation``), and returns
 ``(outputs, gradients)`` as dicts of arrays in the file layout. The export calls it in float64 with
 the fast renderer; ``d2gs refcheck run`` calls it in any dtype and with either renderer, which
 makes our own code a "port" that compare can check (the NumPy reference against the Numba path).
@@ -82,16 +82,16 @@ class _RenderLayoutScene:
     so the blur model's evaluate step is the identity and its time derivative 0."""
 
     @staticmethod
-    def evaluate_fwd(params, t, deform_config):
+    def render_inputs_fwd(params, t, deform_config):
         return {k: params[f"static.{k}"] for k in RENDER_FIELDS}, params["static.means"].dtype
 
     @staticmethod
-    def evaluate_bwd(saved, v):
+    def render_inputs_bwd(saved, v):
         return {f"static.{k}": np.array(v[k], copy=True) for k in RENDER_FIELDS}, saved.type(0)
 
 
 def _compute_blur(inputs, cot, dtype, renderer):
-    from d2gs_np.blur import BlurConfig, blur_render_bwd, blur_render_fwd
+    from d2gs_np.blur.render import BlurConfig, blur_render_bwd, blur_render_fwd
     from d2gs_np.scene.deformation import DeformConfig
 
     cast = lambda k: np.ascontiguousarray(inputs[k], dtype=dtype)  # noqa: E731

@@ -185,7 +185,7 @@ def render_fwd(means, quats, scales, opacities, colors, cam_T_world, K, width, h
 
 def _render_fwd(means, quats, scales, opacities, colors, cam_T_world, K, width, height, background, config):
     """``render_fwd`` without validation: the private fast path of a caller that validated its
-    inputs once (the trainer's step, through ``d2gs_np.blur`` and ``d2gs_np.scene.model``).
+    inputs once (the trainer's step, through ``d2gs_np.blur.render`` and ``d2gs_np.scene.render_inputs``).
 
     The caller guarantees what ``render_fwd`` checks: C-contiguous float arrays of one dtype and
     the documented shapes, finite values, opacities in [0, 1], scales >= 0, quaternion norms

@@ -21,7 +21,7 @@ from d2gs_np.scene.gaussians import (
     sigmoid,
     validate_params,
 )
-from d2gs_np.scene.model import RENDER_FIELDS, evaluate_bwd, evaluate_fwd
+from d2gs_np.scene.render_inputs import RENDER_FIELDS, render_inputs_bwd, render_inputs_fwd
 
 __all__ = [
     "DeformConfig", "deform_basis", "deform_fwd", "deform_bwd",
@@ -29,5 +29,5 @@ __all__ = [
     "sigmoid", "logit", "opacity_fwd", "opacity_bwd", "scale_fwd", "scale_bwd",
     "neighbour_log_scales", "make_gaussians", "init_params", "validate_params",
     "has_dynamic", "num_static", "num_dynamic", "prune", "append_gaussians",
-    "RENDER_FIELDS", "evaluate_fwd", "evaluate_bwd",
+    "RENDER_FIELDS", "render_inputs_fwd", "render_inputs_bwd",
 ]

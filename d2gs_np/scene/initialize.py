@@ -1,7 +1,7 @@
 """Initial point clouds for the static and dynamic Gaussian sets (docs/method.md §8, §9).
 
 Static points
-1. SIFT features per frame on static pixels (motion masks dilated, ``d2gs_np.features``),
+1. SIFT features per frame on static pixels (motion masks dilated, ``d2gs_np.pose.features``),
    matched between frame pairs (k, k + s) for s in ``frame_skips`` (each clamped to N - 1).
    The defaults skip frames: triangulation needs parallax more than it needs easy matches.
 2. Each verified match is triangulated with the GIVEN (estimated) mid-exposure poses:
@@ -84,7 +84,7 @@ import cv2
 import numpy as np
 
 from d2gs_np.constants import MAD_TO_SIGMA, ONE_DEPTH_RANGE_FACTOR, PIXEL_CENTER_OFFSET
-from d2gs_np.features import FeatureConfig, detect_features, match_keypoints, static_detector_mask
+from d2gs_np.pose.features import FeatureConfig, detect_features, match_keypoints, static_detector_mask
 from d2gs_np.geometry.camera import camera_center, check_intrinsics, project_points, unproject_points
 from d2gs_np.geometry.se3 import check_rigid
 from d2gs_np.scene.stereo import StereoConfig, plane_sweep_depth

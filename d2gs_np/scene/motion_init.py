@@ -136,7 +136,7 @@ def relative_warp(image0, region0, image1, region1, kind="similarity", min_inlie
     image0/1 (H, W, 3) in [0, 1]; region0/1 (H, W) bool. Returns (H (3, 3) or None, inliers): None
     when fewer than ``min_inliers`` matches support one warp.
     """
-    from d2gs_np.features import to_gray_u8
+    from d2gs_np.pose.features import to_gray_u8
 
     if kind not in WARPS[1:]:
         raise ValueError(f"relative_warp: kind must be one of {WARPS[1:]}; got {kind!r}")
@@ -201,7 +201,7 @@ def _pair_map(frames, labels, a, b, min_inliers):
     flow (OpenCV's DIS, medium
     preset) between image k0 and image k1 pulled back by that similarity, so that the flow only
     has to find what the similarity misses (a tumbling object's faces, perspective, parallax)."""
-    from d2gs_np.features import to_gray_u8
+    from d2gs_np.pose.features import to_gray_u8
     from d2gs_np.scene.initialize import sample_image_bilinear
 
     (k0, _, c0), (k1, _, c1) = a, b

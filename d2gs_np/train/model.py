@@ -36,9 +36,9 @@ from typing import Optional
 
 import numpy as np
 
-from d2gs_np import blur as blur_model
-from d2gs_np import trajectory as traj_model
-from d2gs_np.blur import EXPOSURE_BLOCK, _blur_render_fwd, blur_render_bwd
+from d2gs_np.blur import render as blur_model
+from d2gs_np.blur import endpoints as traj_model
+from d2gs_np.blur.render import EXPOSURE_BLOCK, _blur_render_fwd, blur_render_bwd
 from d2gs_np.geometry.camera import check_intrinsics
 from d2gs_np.geometry.se3 import check_rigid, se3_exp, se3_interpolate
 from d2gs_np.render import render_fwd
@@ -47,7 +47,7 @@ from d2gs_np.scene import gaussians
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
 from d2gs_np.scene.initialize import initialize_points, pixel_scale_cap
 from d2gs_np.scene.deformation import _deform_fwd
-from d2gs_np.scene.model import RENDER_FIELDS, _evaluate_bwd, _evaluate_fwd, evaluate_fwd
+from d2gs_np.scene.render_inputs import RENDER_FIELDS, _render_inputs_bwd, _render_inputs_fwd, render_inputs_fwd
 from d2gs_np.scene.motion_init import initialize_deformation
 from d2gs_np.train.components import Components
 from d2gs_np.train.config import ExperimentConfig
@@ -258,7 +258,7 @@ class Model:
                 raise ValueError("Model.render(pose, t, K, width, height): a pose needs the time, the intrinsics and "
                                  "the image size; or pass a training frame index for its own")
         scene = {n: v for n, v in self.params.items() if n.startswith(SCENE_PREFIXES)}
-        ri, _ = evaluate_fwd(scene, float(t), self.config.deform)
+        ri, _ = render_inputs_fwd(scene, float(t), self.config.deform)
         out, _ = render_fwd(ri["means"], ri["quats"], ri["scales"], ri["opacities"], ri["colors"],
                             np.asarray(pose, dtype=np.float64), np.asarray(K, dtype=np.float64), int(width),
                             int(height), self.background, dataclasses.replace(self.config.render, raster_float32=False))
@@ -301,10 +301,10 @@ def frame_render_fwd(model: Model, k: int, K, width: int, height: int, static_on
         n = frame_views(model, k, scene, xs[0], xe[0], tau, K, width, height)
         out, saved["render"] = _blur_render_fwd(
             scene, t, tau, model.poses_ref[k], xs[0], xe[0], K, width, height, model.background, n,
-            cfg.deform, cfg.render, (_render_fwd, _render_bwd), (_evaluate_fwd, _evaluate_bwd))
+            cfg.deform, cfg.render, (_render_fwd, _render_bwd), (_render_inputs_fwd, _render_inputs_bwd))
         saved["backward_views"] = cfg.blur.backward_views
     else:
-        ri, saved["scene"] = _evaluate_fwd(scene, t, cfg.deform)
+        ri, saved["scene"] = _render_inputs_fwd(scene, t, cfg.deform)
         out, saved["render"] = _render_fwd(ri["means"], ri["quats"], ri["scales"], ri["opacities"], ri["colors"],
                                            model.poses_ref[k], K, width, height, model.background, cfg.render)
     return out, saved
@@ -362,7 +362,7 @@ def frame_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_dept
         g = _render_bwd(saved["render"], *cot)
         v_means2d = g["means2d"] * saved["ratio"]
         v_means2d_abs = g["means2d_abs"] * saved["ratio"]
-        v_p, _ = _evaluate_bwd(saved["scene"], {n: g[n] for n in RENDER_FIELDS})
+        v_p, _ = _render_inputs_bwd(saved["scene"], {n: g[n] for n in RENDER_FIELDS})
     return v_p, {"v_means2d": v_means2d, "v_means2d_abs": v_means2d_abs}
 
 

@@ -25,9 +25,9 @@ import dataclasses
 
 import numpy as np
 
-from d2gs_np.blur import EXPOSURE_BLOCK
+from d2gs_np.blur.render import EXPOSURE_BLOCK
 from d2gs_np.optim import adam
-from d2gs_np.trajectory import CAMERA, POSENET, XI_END, XI_START
+from d2gs_np.blur.endpoints import CAMERA, POSENET, XI_END, XI_START
 from d2gs_np.train.config import LearningRates
 
 __all__ = ["PER_FRAME_BLOCKS", "scene_extent", "size_extent", "position_extent", "block_learning_rate",

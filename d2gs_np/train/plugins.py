@@ -29,7 +29,7 @@ from typing import Optional
 
 import numpy as np
 
-from d2gs_np.correspond import correspondences
+from d2gs_np.pose.correspond import correspondences
 from d2gs_np.losses.smoothness import knn
 from d2gs_np.scene import gaussians
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC

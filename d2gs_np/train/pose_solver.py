@@ -42,22 +42,22 @@ from pathlib import Path
 
 import numpy as np
 
-from d2gs_np import metrics
-from d2gs_np import trajectory as traj_model
+from d2gs_np.evaluation import metrics
+from d2gs_np.blur import endpoints as traj_model
 from d2gs_np.constants import POSE_DEPTH_ALPHA_MIN
-from d2gs_np.correspond import correspondences
+from d2gs_np.pose.correspond import correspondences
 from d2gs_np.geometry.camera import camera_center, scale_intrinsics
 from d2gs_np.geometry.se3 import se3_exp, se3_interpolate, se3_inverse
-from d2gs_np.optim import gauss_newton as gn
-from d2gs_np.pose_init import track_reprojection_rms
+from d2gs_np.pose import gauss_newton as gn
+from d2gs_np.pose.given import track_reprojection_rms
 from d2gs_np.render.api import _render_fwd
 from d2gs_np.scene.gaussians import STATIC
-from d2gs_np.scene.model import _evaluate_fwd
+from d2gs_np.scene.render_inputs import _render_inputs_fwd
 from d2gs_np.train.checkpoint import atomic_write_text
 from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.plugins import Plugin
 from d2gs_np.train.state import TrainState, entered_period
-from d2gs_np.video.tracks import klt_tracks
+from d2gs_np.pose.tracks import klt_tracks
 
 __all__ = ["PoseSolver", "use_pose_solver", "static_depth", "write_mid_poses", "hold_trajectory_scale",
            "HISTORY_FILE"]
@@ -93,7 +93,7 @@ def static_depth(model, k: int, pose, scale: float = 1.0):
     h = max(1, int(round(model.heights[k] * scale)))
     K = scale_intrinsics(model.Ks[k], w / model.widths[k], h / model.heights[k])
     scene = {n: v for n, v in model.params.items() if n.startswith(f"{STATIC}.")}
-    ri, _ = _evaluate_fwd(scene, float(model.times[k]), model.config.deform)
+    ri, _ = _render_inputs_fwd(scene, float(model.times[k]), model.config.deform)
     out, _ = _render_fwd(ri["means"], ri["quats"], ri["scales"], ri["opacities"], ri["colors"],
                          np.asarray(pose, dtype=np.float64), K, w, h, model.background, model.config.render)
     return np.where(out["alpha"] >= POSE_DEPTH_ALPHA_MIN, out["expected_depth"], np.nan)

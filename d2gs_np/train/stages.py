@@ -20,7 +20,7 @@ import numpy as np
 
 from d2gs_np.losses.ssim import SSIM_WINDOW
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
-from d2gs_np.trajectory import CAMERA, POSENET
+from d2gs_np.blur.endpoints import CAMERA, POSENET
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 
 __all__ = ["Stage", "make_stages", "StepPlan", "Planner"]

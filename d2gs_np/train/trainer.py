@@ -28,7 +28,7 @@ import numpy as np
 
 from d2gs_np.data.scene import Scene
 from d2gs_np.optim import adam
-from d2gs_np.pose_init import initial_poses
+from d2gs_np.pose.given import initial_poses
 from d2gs_np.render.api import warm_up
 from d2gs_np.scene.gaussians import STATIC, num_static
 from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint, load_checkpoint_meta, save_checkpoint

@@ -32,7 +32,7 @@ import cv2
 import numpy as np
 
 from d2gs_np.constants import PIXEL_CENTER_OFFSET
-from d2gs_np.features import to_gray_u8
+from d2gs_np.pose.features import to_gray_u8
 from d2gs_np.geometry.camera import project_points
 from d2gs_np.scene.initialize import interpolate_inverse_depth
 

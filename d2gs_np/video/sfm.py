@@ -2,8 +2,8 @@
 
 Steps (``register_video``):
 1. Tracks (``SfmConfig.tracker``): "klt" (default), Lucas-Kanade tracks through the frames
-   (``d2gs_np.video.tracks``: why not SIFT on blurry frames); "sift", SIFT features per frame
-   (``d2gs_np.features``) matched between frame k and k + 1 .. k + ``match_window`` (ratio test,
+   (``d2gs_np.pose.tracks``: why not SIFT on blurry frames); "sift", SIFT features per frame
+   (``d2gs_np.pose.features``) matched between frame k and k + 1 .. k + ``match_window`` (ratio test,
    RANSAC on F) and joined into tracks (connected components of the match graph; a track that
    visits one frame twice is dropped). A frame with fewer than ``SfmConfig.min_keypoints`` points
    has no usable texture: a ValueError naming the frames, before any registration. Features and
@@ -19,7 +19,7 @@ Steps (``register_video``):
    Levenberg-Marquardt on the inliers; new tracks are triangulated from their two registered
    views farthest apart in time (kept if in front of both cameras, reprojection within
    ``max_reprojection_px`` and angle >= ``min_parallax_deg``); a bundle adjustment
-   (``d2gs_np.video.bundle``) each time the number of registered frames grows by half.
+   (``d2gs_np.pose.bundle``) each time the number of registered frames grows by half.
 5. A final bundle adjustment over all frames and points (and the focal length, unless given),
    observations with residual above ``outlier_px`` dropped, then a second one.
 6. If a frame cannot be registered, a frame keeps fewer than ``min_pnp_inliers`` consistent
@@ -44,12 +44,12 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from d2gs_np.features import FeatureConfig, detect_features, match_keypoints
+from d2gs_np.pose.features import FeatureConfig, detect_features, match_keypoints
 from d2gs_np.geometry.camera import project_points
 from d2gs_np.geometry.so3 import so3_orthonormalize
 from d2gs_np.scene.initialize import triangulate_matches
-from d2gs_np.video.bundle import BundleProblem, bundle_adjust, params_to_poses, poses_to_params
-from d2gs_np.video.tracks import TrackConfig, klt_tracks
+from d2gs_np.pose.bundle import BundleProblem, bundle_adjust, params_to_poses, poses_to_params
+from d2gs_np.pose.tracks import TrackConfig, klt_tracks
 
 __all__ = ["SfmConfig", "SfmResult", "register_video", "build_tracks", "NoParallaxError"]
 
@@ -64,7 +64,7 @@ class SfmConfig:
 
     # SIFT at a low contrast threshold: blurry frames lose DoG contrast (as in InitConfig)
     features: FeatureConfig = field(default_factory=lambda: FeatureConfig(contrast_threshold=0.01))
-    # "klt": Lucas-Kanade tracks (d2gs_np.video.tracks: why); "sift": SIFT matches of each frame with the
+    # "klt": Lucas-Kanade tracks (d2gs_np.pose.tracks: why); "sift": SIFT matches of each frame with the
     # next match_window frames joined into tracks. Measured on the blurry suite, seeds 0 / 1, ATE/depth
     # sift -> klt: photo_room 0.54 / 0.76 -> 0.16 / 0.17 %, wall_disk 0.93 / 4.10 -> 0.10 / 0.08 %,
     # cube_sign 2.63 / 2.02 -> 2.40 / 1.58 %, crossing refused / refused -> 0.99 / 1.91 %

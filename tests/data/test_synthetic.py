@@ -300,7 +300,7 @@ def test_make_scene_rejects_unknown_preset_and_field():
 
 
 def test_shake_scale_strengthens_blur_and_keeps_the_path_smooth():
-    from d2gs_np import metrics
+    from d2gs_np.evaluation import metrics
     from d2gs_np.data.synthetic import make_scene
 
     kw = dict(width=64, height=36, num_frames=6, num_test_views=0)

@@ -9,7 +9,7 @@ from d2gs_np.data.synthetic import make_scene
 from d2gs_np.geometry import se3_exp, se3_inverse, se3_log
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 from d2gs_np.train.trainer import Trainer
-from d2gs_np.trajectory import XI_END, XI_START
+from d2gs_np.blur.endpoints import XI_END, XI_START
 from example_fixtures import load_example
 
 

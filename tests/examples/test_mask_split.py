@@ -6,10 +6,10 @@ import json
 import numpy as np
 import pytest
 
-from d2gs_np import metrics
+from d2gs_np.evaluation import metrics
 from d2gs_np.data.io import load_scene, write_scene
 from d2gs_np.data.synthetic import make_scene
-from d2gs_np.evaluate import load_run
+from d2gs_np.evaluation.runs import load_run
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 from d2gs_np.train.trainer import Trainer
 from example_fixtures import load_example

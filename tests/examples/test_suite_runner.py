@@ -7,7 +7,7 @@ from example_fixtures import load_example
 
 
 def _cell(out, experiment, variant):
-    from d2gs_np.experiments import EXPERIMENTS, cell_folder
+    from d2gs_np.experiments.sweep import EXPERIMENTS, cell_folder
 
     v = next(v for v in EXPERIMENTS[experiment] if v.name == variant)
     return cell_folder(out, experiment, "wall_disk", v, 0, 0.15)
@@ -48,7 +48,7 @@ def test_suite_runner_rejects_unknown_scenes(tmp_path, suite_runner):
 
 
 def test_ablation_variants_turn_on_one_regulariser_each(suite_runner, tmp_path):
-    from d2gs_np.experiments import EXPERIMENTS, scene_folder, variant_config
+    from d2gs_np.experiments.sweep import EXPERIMENTS, scene_folder, variant_config
     from d2gs_np.train.config import METHOD_REGULARISER_WEIGHTS
 
     def weights(name):

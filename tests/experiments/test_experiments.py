@@ -4,7 +4,7 @@ import json
 
 import pytest
 
-from d2gs_np import experiments as ex
+from d2gs_np.experiments import sweep as ex
 
 TINY = dict(size=40 / 240, frames=4, iters=3, threads=1)
 

@@ -6,7 +6,7 @@ import pytest
 
 from d2gs_np.constants import ONE_DEPTH_RANGE_FACTOR
 from d2gs_np.data import synthetic as syn
-from d2gs_np.features import static_detector_mask
+from d2gs_np.pose.features import static_detector_mask
 from d2gs_np.geometry.camera import look_at, make_intrinsics, project_points, unproject_points
 from d2gs_np.scene.initialize import (InitConfig, initialize_points, robust_depth_range, sample_image_bilinear,
                                       triangulate_matches)

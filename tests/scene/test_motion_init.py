@@ -283,7 +283,7 @@ def test_default_motion_init_follows_the_true_movers(name, flow_bound, centroid_
     """The default rule (flow) initialises the movers' motion to about a pixel; the centroid rule
     does not."""
     from d2gs_np.data.suite import build_suite_world, make_suite_scene, mover_tracks_of_seeds, resolve
-    from d2gs_np.metrics import trajectory_reprojection_error
+    from d2gs_np.evaluation.metrics import trajectory_reprojection_error
 
     kw = dict(width=120, height=68, num_frames=12, num_test_views=0, rot_noise_deg=0.0, trans_noise=0.0,
               subframes=8)

@@ -27,17 +27,17 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from d2gs_np import blur as blur_model
-from d2gs_np import metrics
-from d2gs_np import trajectory as traj_model
+from d2gs_np.blur import render as blur_model
+from d2gs_np.evaluation import metrics
+from d2gs_np.blur import endpoints as traj_model
 from d2gs_np.data.synthetic import make_scene
-from d2gs_np.evaluate import evaluate, load_run
+from d2gs_np.evaluation.runs import evaluate, load_run
 from d2gs_np.geometry.se3 import se3_exp, se3_interpolate
 from d2gs_np.losses.frequency import frequency_bwd, frequency_fwd
 from d2gs_np.losses.photometric import photometric_bwd, photometric_fwd
 from d2gs_np.optim import adam
 from d2gs_np.render import render_fwd
-from d2gs_np.scene.model import evaluate_fwd
+from d2gs_np.scene.render_inputs import render_inputs_fwd
 from d2gs_np.train.checkpoint import load_checkpoint
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 from d2gs_np.train.densify import DensifyConfig
@@ -206,7 +206,7 @@ def test_evaluation_equals_mid_pose_renders_written_out(scene, tmp_path):
     for k, f in enumerate(scene.frames):
         (xs, xe), _ = traj_model.endpoints_fwd(params, cfg.trajectory, np.array([k]), poses, times)
         mid = se3_interpolate(se3_exp(xs[0]) @ poses[k], se3_exp(xe[0]) @ poses[k], 0.5)
-        ri, _ = evaluate_fwd(scene_params, float(f.time), cfg.deform)
+        ri, _ = render_inputs_fwd(scene_params, float(f.time), cfg.deform)
         img, _ = render_fwd(ri["means"], ri["quats"], ri["scales"], ri["opacities"], ri["colors"], mid,
                             np.asarray(f.K, np.float64), f.width, f.height, bg,
                             dataclasses.replace(cfg.render, raster_float32=False))  # evaluation: float64

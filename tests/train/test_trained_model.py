@@ -129,11 +129,11 @@ def test_a_training_step_runs_no_validation(scene, tmp_path, monkeypatch):
     def forbidden(*a, **k):
         raise AssertionError("validation inside the training step")
 
-    import d2gs_np.blur as blur
+    import d2gs_np.blur.render as blur
     import d2gs_np.render.api as api
     import d2gs_np.scene.deformation as deformation
-    import d2gs_np.scene.model as scene_model
-    import d2gs_np.trajectory as trajectory
+    import d2gs_np.scene.render_inputs as scene_model
+    import d2gs_np.blur.endpoints as trajectory
 
     for module, name in ((api, "_validate_inputs"), (api, "_check_cotangent"), (scene_model, "validate_params"),
                          (deformation, "_check_block"), (blur, "check_rigid"), (trajectory, "check_rigid"),

@@ -8,7 +8,7 @@ import json
 import numpy as np
 import pytest
 
-from d2gs_np import blur as blur_model
+from d2gs_np.blur import render as blur_model
 from d2gs_np.data.synthetic import make_scene
 from d2gs_np.scene import deformation
 from d2gs_np.train.config import ExperimentConfig, LearningRates, TrainConfig
@@ -72,8 +72,8 @@ def test_static_scene_leaves_out_dynamic_set_and_never_deforms(static_scene, tmp
 
     monkeypatch.setattr(deformation, "deform_fwd", forbidden)
     monkeypatch.setattr(deformation, "_deform_fwd", forbidden)
-    import d2gs_np.scene.model as model
-    monkeypatch.setattr(model, "_deform_fwd", forbidden)  # the name evaluate_fwd and the fast path call
+    import d2gs_np.scene.render_inputs as model
+    monkeypatch.setattr(model, "_deform_fwd", forbidden)  # the name render_inputs_fwd and the fast path call
     tr = Trainer(static_scene, _config(iters=20), tmp_path / "run")
     tr.run()
     assert not tr.components.dynamic
@@ -173,7 +173,7 @@ def test_pruning_keeps_optimizer_state_in_step(dynamic_scene, tmp_path):
 
 
 def test_posenet_trajectory_and_learned_exposure_train(dynamic_scene, tmp_path):
-    from d2gs_np.trajectory import TrajectoryConfig
+    from d2gs_np.blur.endpoints import TrajectoryConfig
 
     scene = dataclasses.replace(dynamic_scene, exposure_fraction=None)  # exposure unknown -> learned
     cfg = _config(iters=8).replace(trajectory=TrajectoryConfig(kind="posenet"))

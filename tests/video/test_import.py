@@ -10,7 +10,7 @@ from d2gs_np.data.io import load_scene
 from d2gs_np.data.suite import build_suite_world, make_suite_scene, render_suite_view, resolve
 from d2gs_np.geometry.camera import camera_center, make_intrinsics
 from d2gs_np.geometry.so3 import so3_exp, so3_log
-from d2gs_np.metrics import ate
+from d2gs_np.evaluation.metrics import ate
 from d2gs_np.video.decode import read_frames
 from d2gs_np.video.importer import ImportConfig, import_video
 from d2gs_np.video.sfm import register_video
@@ -210,7 +210,7 @@ def test_a_large_mover_does_not_take_the_place_of_the_static_world(tmp_path):
 def test_register_video_with_given_tracks_is_the_same_registration():
     """register_video(tracks=klt_tracks(...)) reproduces the registration that tracks by itself (the
     importer tracks once and registers subsets), and names malformed tracks before any work."""
-    from d2gs_np.video.tracks import klt_tracks
+    from d2gs_np.pose.tracks import klt_tracks
 
     sc = make_suite_scene("wall_disk", 0, subframes=4, num_test_views=0, num_frames=10)
     imgs = [f.image for f in sc.frames]

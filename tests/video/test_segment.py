@@ -4,7 +4,7 @@ import pytest
 
 from d2gs_np.geometry.camera import look_at, make_intrinsics, project_points
 from d2gs_np.geometry.so3 import so3_exp
-from d2gs_np.metrics import ate
+from d2gs_np.evaluation.metrics import ate
 from d2gs_np.video.importer import ImportConfig, static_motion
 from d2gs_np.video.sfm import register_video
 from d2gs_np.video.masks import MaskConfig, fill_holes

@@ -1,0 +1,1 @@
+"""Experiments: sweeps of training runs on Dask and their tables (docs/method.md §10)."""

@@ -1,0 +1,439 @@
+"""Experiments: named sweeps of independent training runs, run in parallel on Dask (docs/method.md §10).
+
+An experiment is a list of variants; a sweep crosses it with scenes and seeds into cells. Each
+cell is one run with its own folders (``OUT/scenes/<scene>_s<seed>_<kind>[_x<size>][_f<frames>]``,
+``OUT/runs/<experiment>/<scene>_s<seed>_<variant>[_x<size>][_f<frames>]``): it makes its scene
+(if not there), trains with the variant's config, evaluates, and writes ``RUN/metrics.json``.
+A cell whose metrics exist is never recomputed (resume); its settings (budget, steps, base
+config, and with a budget the thread count) are recorded in ``RUN/cell.json``, and a later sweep into the same folder with other
+settings is refused with an error naming the cell, never answered with the old result. A cell
+that raises is retried ``retries`` times and then reported as failed in the table and the
+return value, never silently dropped.
+
+Variants (``EXPERIMENTS``):
+- ``baselines``: the full method; no blur model (n = 1, no pose refinement: the paper's
+  GaussianFlow row); a two-stage baseline (``d2gs_np/evaluation/baselines.py``: each frame deconvolved
+  with a kernel from the given poses, then trained without the blur model and without pose
+  refinement, as the no-blur row); the sharp-input
+  upper bound (sharp frames, true poses).
+- ``progressive``: the paper's Table VI: no progressive resolution, linear, exponential, cosine.
+- ``virtual-views``: n in {1, 2, 4, 8, 16}: quality against time.
+- ``ablation``: the paper's Table V on the given poses: render only; + L_ts; + L_gs; + L_freq
+  (each alone, at the method's weights); + the pose solver (the "+ L_reproj" row); all.
+- ``suite``: what ``examples/suite.py`` runs (sharp / blurry with true poses, with and without
+  the blur model / blurry with the given noisy poses); ``suite-ablation``: the ablation's
+  regularisers with true poses (``examples/suite.py --variants render_only ...``).
+A variant is a name, config overrides (a nested dict merged into the config's JSON form, so a
+variant is data and every key is checked by ``ExperimentConfig.from_dict``), scene overrides
+(``SuiteConfig`` fields, e.g. exposure 0 or true poses) and an optional preprocessing of the
+scene (``two_stage``).
+
+Scheduling: ``scheduler=None`` runs the cells on Dask's local process pool (``jobs`` processes,
+no set-up); ``scheduler="ADDRESS"`` submits them to a running ``dask.distributed`` scheduler
+(``Client(ADDRESS)``), so a lab runs the same command on its cluster; a
+``distributed.Client`` object may be passed too (tests use a ``LocalCluster``). Cells only
+read and write their own folders under ``OUT``, which every worker must see (a shared file
+system on a cluster).
+
+Outputs: ``OUT/<name>.csv`` (a row per cell), ``OUT/<name>.md`` (the table, with the command),
+``OUT/<name>_error_vs_time.png`` (held-out PSNR against training seconds, every cell).
+"""
+from __future__ import annotations
+
+import copy
+import csv
+import json
+import os
+import shutil
+import threading
+import time
+import traceback
+from dataclasses import dataclass, field
+from pathlib import Path
+from typing import Optional
+
+from d2gs_np.train.config import METHOD_REGULARISER_WEIGHTS
+
+__all__ = ["Variant", "EXPERIMENTS", "run_cell", "run_experiment", "experiment_cells", "cell_folder"]
+
+
+@dataclass(frozen=True)
+class Variant:
+    name: str
+    config: dict = field(default_factory=dict)  # nested overrides of ExperimentConfig.to_dict()
+    scene: dict = field(default_factory=dict)  # scene generator overrides (SuiteConfig / SyntheticConfig fields)
+    two_stage: bool = False  # deconvolve the frames first (d2gs_np/evaluation/baselines.py), then train without blur
+
+    @property
+    def scene_kind(self) -> str:
+        """The folder name part that identifies the scene this variant trains on."""
+        parts = [f"{k}{v}" for k, v in sorted(self.scene.items())] or ["given"]
+        return "_".join(parts).replace(".", "p") + ("_rl" if self.two_stage else "")
+
+
+_REG = METHOD_REGULARISER_WEIGHTS  # the method's weights (docs/method.md §6)
+_NO_REG = {k: 0.0 for k in _REG}
+_TRUE_POSES = {"rot_noise_deg": 0.0, "trans_noise": 0.0}
+_SHARP = {"exposure_fraction": 0.0, **_TRUE_POSES}
+
+EXPERIMENTS = {
+    "baselines": (
+        Variant("full"),
+        Variant("noblur", config={"train": {"blur": "off"}, "pose_solver": {"mode": "off"}}),
+        Variant("two_stage", config={"train": {"blur": "off"}, "pose_solver": {"mode": "off"}}, two_stage=True),
+        Variant("sharp_bound", scene=_SHARP),
+    ),
+    "progressive": (
+        Variant("none", config={"train": {"progressive": False}}),
+        Variant("linear", config={"schedule": {"kind": "linear"}}),
+        Variant("exponential", config={"schedule": {"kind": "exponential"}}),
+        Variant("cosine", config={"schedule": {"kind": "cosine"}}),
+    ),
+    "virtual-views": tuple(
+        Variant(f"n{n}", config={"train": {"blur": "off"}} if n == 1 else {"blur": {"num_virtual": n}})
+        for n in (1, 2, 4, 8, 16)),
+    # The paper's Table V on the given (noisy) poses: the photometric loss alone, each regulariser
+    # added alone at the method's weight, the pose solver (the "+ L_reproj" row: refinement on
+    # reprojection residuals), and everything.
+    "ablation": (
+        Variant("render_only", config={"loss": _NO_REG, "pose_solver": {"mode": "off"}}),
+        Variant("+ts", config={"loss": {**_NO_REG, "lambda_ts": _REG["lambda_ts"]}, "pose_solver": {"mode": "off"}}),
+        Variant("+gs", config={"loss": {**_NO_REG, "lambda_gs": _REG["lambda_gs"]}, "pose_solver": {"mode": "off"}}),
+        Variant("+freq", config={"loss": {**_NO_REG, "lambda_freq": _REG["lambda_freq"]},
+                                 "pose_solver": {"mode": "off"}}),
+        Variant("+reproj", config={"loss": {**_NO_REG, "lambda_reproj": _REG["lambda_reproj"]},
+                                   "pose_solver": {"mode": "on"}}),
+        Variant("all", config={"loss": dict(_REG), "pose_solver": {"mode": "on"}}),
+    ),
+    # The same ablation with true poses (examples/suite.py): the regularisers without pose error;
+    # trusted poses leave the pose solver out, so "+reproj" is L_reproj's depth term alone.
+    "suite-ablation": (
+        Variant("render_only", scene=_TRUE_POSES, config={"loss": _NO_REG}),
+        Variant("+ts", scene=_TRUE_POSES, config={"loss": {**_NO_REG, "lambda_ts": _REG["lambda_ts"]}}),
+        Variant("+gs", scene=_TRUE_POSES, config={"loss": {**_NO_REG, "lambda_gs": _REG["lambda_gs"]}}),
+        Variant("+freq", scene=_TRUE_POSES, config={"loss": {**_NO_REG, "lambda_freq": _REG["lambda_freq"]}}),
+        Variant("+reproj", scene=_TRUE_POSES, config={"loss": {**_NO_REG, "lambda_reproj": _REG["lambda_reproj"]}}),
+        Variant("all", scene=_TRUE_POSES, config={"loss": dict(_REG)}),
+    ),
+    "suite": (
+        Variant("sharp", scene=_SHARP),
+        Variant("blur", scene=_TRUE_POSES),
+        Variant("noblur", scene=_TRUE_POSES, config={"train": {"blur": "off"}}),
+        Variant("noisy"),
+    ),
+}
+
+
+def _merge(base: dict, over: dict) -> dict:
+    out = copy.deepcopy(base)
+    for k, v in over.items():
+        if isinstance(v, dict) and isinstance(out.get(k), dict):
+            out[k] = _merge(out[k], v)
+        else:
+            out[k] = v
+    return out
+
+
+def variant_config(variant: Variant, base=None, **train):
+    """The ExperimentConfig of a variant: ``base`` (default config) with the variant's overrides and
+    then ``train`` field overrides (budget, iters, seed, quiet). Unknown keys raise here."""
+    from d2gs_np.train.config import ExperimentConfig
+
+    d = (base or ExperimentConfig()).to_dict()
+    d = _merge(d, variant.config)
+    d = _merge(d, {"train": train})
+    return ExperimentConfig.from_dict(d)
+
+
+def _scene_overrides(scene: str, variant: Variant, size: float) -> dict:
+    from d2gs_np.data.suite import SUITE
+
+    o = dict(variant.scene)
+    if scene not in SUITE:  # regression presets name their fields differently
+        if "trans_noise" in o:
+            o["trans_noise_fraction"] = o.pop("trans_noise")
+        if o.get("exposure_fraction") == 0.0:
+            o["subframes"] = 1
+    if size != 1.0:
+        base_w, base_h = (240, 135)
+        o.update(width=max(16, int(round(base_w * size))), height=max(16, int(round(base_h * size))))
+    return o
+
+
+def scene_folder(out, scene, variant: Variant, seed, size=1.0, frames=None) -> Path:
+    """OUT/scenes/<scene>_s<seed>_<kind>[_x<size>][_f<frames>]: every setting that changes the
+    scene is in its name, so sweeps at other sizes or frame counts in one OUT never share it."""
+    name = f"{scene}_s{seed}_{variant.scene_kind}" + ("" if size == 1.0 else f"_x{size:g}")
+    return Path(out) / "scenes" / (name + (f"_f{int(frames)}" if frames else ""))
+
+
+def scene_done_marker(folder) -> Path:
+    """The file that marks a scene folder as whole: the folder's name + ".done" (not
+    ``with_suffix``, which would cut a size such as x0.6667 at its dot)."""
+    folder = Path(folder)
+    return folder.with_name(folder.name + ".done")
+
+
+def _make_scene(out, scene, variant, seed, size, frames) -> Path:
+    from d2gs_np.evaluation.baselines import deblur_scene
+    from d2gs_np.data.suite import SUITE, write_suite_scene
+    from d2gs_np.data.synthetic import write_synthetic_scene
+
+    folder = scene_folder(out, scene, variant, seed, size, frames)
+    done = scene_done_marker(folder)
+    if done.exists():
+        return folder
+    o = _scene_overrides(scene, variant, size)
+    if frames:
+        o["num_frames"] = frames
+    # Cells that share a scene may start together (threads of one worker, or workers on a shared
+    # file system): each writes its own copy under a private name and publishes it by one atomic
+    # rename, so a cell never reads a folder another is still writing (a sweep test saw a cell
+    # fail that way). The first rename wins; a later writer finds the folder there and discards
+    # its copy, which is the same scene (same generator, seed and settings).
+    tag = f".tmp-{os.getpid()}-{threading.get_ident()}"
+    tmp = folder.with_name(folder.name + tag)
+    raw = folder.with_name(folder.name + "_raw" + tag) if variant.two_stage else tmp
+    for d in {tmp, raw}:
+        shutil.rmtree(d, ignore_errors=True)
+    try:
+        if scene in SUITE:
+            write_suite_scene(raw, scene, seed, overwrite=True, **o)
+        else:
+            write_synthetic_scene(raw, scene, seed, overwrite=True, **o)
+        if variant.two_stage:
+            rep = deblur_scene(raw, tmp, overwrite=True)
+            (tmp / "deblur_report.json").write_text(json.dumps(rep, indent=1) + "\n")
+        try:
+            os.rename(tmp, folder)
+        except OSError:
+            if not folder.is_dir():  # not "another writer published it first"
+                raise
+    finally:
+        for d in {tmp, raw}:
+            shutil.rmtree(d, ignore_errors=True)
+    done.write_text("ok\n")
+    return folder
+
+
+def cell_folder(out, experiment, scene, variant: Variant, seed, size=1.0, frames=None) -> Path:
+    """OUT/runs/<experiment>/<scene>_s<seed>_<variant>[_x<size>][_f<frames>]: variants of other
+    experiments may share a name (``noblur``), and sweeps at other sizes or frame counts may share
+    an OUT, so all of these are in the path."""
+    name = f"{scene}_s{seed}_{variant.name}" + ("" if size == 1.0 else f"_x{size:g}")
+    return Path(out) / "runs" / str(experiment) / (name + (f"_f{int(frames)}" if frames else ""))
+
+
+def cell_settings(experiment, scene, variant: Variant, seed, budget, iters, size, frames, config_path,
+                  threads=1) -> dict:
+    """What decides a cell's result besides its folder (``RUN/cell.json``). The thread count only
+    with a time budget: results do not depend on it, but the steps a budget buys do."""
+    base = None
+    if config_path is not None:
+        base = json.loads(Path(config_path).read_text())
+    return {"experiment": experiment, "scene": scene, "seed": int(seed), "variant": variant.name,
+            "variant_config": variant.config, "variant_scene": variant.scene, "two_stage": variant.two_stage,
+            "budget": budget, "iters": iters, "size": size, "frames": frames, "base_config": base,
+            "threads": None if budget is None else int(threads)}
+
+
+def run_cell(out, scene, variant: Variant, seed, budget=None, iters=None, size=1.0, threads=1, config_path=None,
+             frames=None, experiment="cells") -> dict:
+    """Make the scene, train, evaluate one cell (module docstring); returns its record. Runs in a
+    worker; imports inside so a worker process starts light."""
+    import numba
+
+    numba.set_num_threads(max(1, min(int(threads), numba.config.NUMBA_NUM_THREADS)))
+    from d2gs_np.data.io import load_scene
+    from d2gs_np.evaluation.runs import evaluate_run
+    from d2gs_np.train.config import ExperimentConfig
+    from d2gs_np.train.trainer import Trainer
+
+    run_dir = cell_folder(out, experiment, scene, variant, seed, size, frames)
+    metrics_path = run_dir / "metrics.json"
+    settings = json.loads(json.dumps(cell_settings(experiment, scene, variant, seed, budget, iters, size, frames,
+                                                   config_path, threads)))
+    settings_path = run_dir / "cell.json"
+    if settings_path.exists():
+        before = json.loads(settings_path.read_text())
+        if before != settings:
+            diff = sorted(k for k in set(before) | set(settings) if before.get(k) != settings.get(k))
+            raise ValueError(f"cell {run_dir} was run with other settings ({', '.join(diff)}: "
+                             f"{[before.get(k) for k in diff]} then, {[settings.get(k) for k in diff]} now); "
+                             "give the sweep a new --out, or delete that cell's folder to rerun it")
+    if not metrics_path.exists():
+        base = ExperimentConfig.load(config_path) if config_path else None
+        train = {"quiet": True, "seed": int(seed), "time_budget": budget}
+        if iters:
+            train["iters"] = int(iters)
+        cfg = variant_config(variant, base, **train)  # config errors before any scene is made
+        sdir = _make_scene(out, scene, variant, seed, size, frames)
+        run_dir.mkdir(parents=True, exist_ok=True)
+        tmp = settings_path.with_name("cell.json.tmp")
+        tmp.write_text(json.dumps(settings, indent=1) + "\n")
+        tmp.replace(settings_path)
+        t0 = time.perf_counter()
+        Trainer(load_scene(sdir), cfg, run_dir).run()
+        wall = time.perf_counter() - t0
+        result = evaluate_run(run_dir)
+        result["wall_seconds"] = wall
+        tmp = metrics_path.with_suffix(".tmp")
+        tmp.write_text(json.dumps(result, indent=1, allow_nan=False, default=lambda x: None) + "\n")
+        tmp.replace(metrics_path)  # a finished cell is marked done atomically
+    return {"scene": scene, "variant": variant.name, "seed": int(seed), "run": str(run_dir), "status": "ok",
+            **flatten(json.loads(metrics_path.read_text()))}
+
+
+def _cell_with_retries(retries, *args, **kwargs):
+    last = None
+    for attempt in range(retries + 1):
+        try:
+            rec = run_cell(*args, **kwargs)
+            rec["attempts"] = attempt + 1
+            return rec
+        except Exception:  # reported below with its traceback; a cell never disappears
+            last = traceback.format_exc()
+    scene, variant, seed = args[1], args[2], args[3]
+    return {"scene": scene, "variant": variant.name, "seed": int(seed), "status": "failed", "attempts": retries + 1,
+            "error": last.strip().splitlines()[-1], "traceback": last}
+
+
+def flatten(m: dict) -> dict:
+    def g(*keys):
+        d = m
+        for k in keys:
+            if not isinstance(d, dict) or k not in d:
+                return None
+            d = d[k]
+        return d
+    return {
+        "dvs_psnr": g("dvs", "psnr"), "dvs_ssim": g("dvs", "ssim"), "input_psnr": g("input_blur", "psnr"),
+        "input_ssim": g("input_blur", "ssim"), "nvs_psnr": g("nvs", "psnr"), "nvs_ssim": g("nvs", "ssim"),
+        "dvs_flip": g("dvs", "flip"), "input_flip": g("input_blur", "flip"), "nvs_flip": g("nvs", "flip"),
+        "ate": g("trajectory", "ate"), "ate_initial": g("trajectory", "initial", "ate"),
+        "ate_bundle": g("trajectory", "bundle_adjusted", "ate"),
+        "num_gaussians": g("num_gaussians"), "steps": g("steps"), "train_seconds": g("train_seconds"),
+        "wall_seconds": g("wall_seconds"),
+    }
+
+
+def experiment_cells(name: str, scenes, seeds, variants=None):
+    """(scene, Variant, seed) cells of an experiment, optionally restricted to named variants."""
+    if name not in EXPERIMENTS:
+        raise ValueError(f"unknown experiment {name!r}; choose from {sorted(EXPERIMENTS)}")
+    vs = EXPERIMENTS[name]
+    if variants:
+        known = [v.name for v in vs]
+        bad = sorted(set(variants) - set(known))
+        if bad:
+            raise ValueError(f"experiment {name!r} has no variant(s) {bad}; its variants are {known}")
+        vs = tuple(v for v in vs if v.name in variants)
+    return [(s, v, int(seed)) for s in scenes for seed in seeds for v in vs]
+
+
+def _check_scenes(scenes):
+    from d2gs_np.data.suite import SUITE
+    from d2gs_np.data.synthetic import PRESETS
+
+    bad = sorted(set(scenes) - set(SUITE) - set(PRESETS))
+    if bad or not scenes:
+        raise ValueError(f"unknown scene(s) {bad or scenes}; choose suite scenes {sorted(SUITE)} or regression "
+                         f"presets {sorted(PRESETS)}")
+
+
+def run_experiment(name: str, out, scenes, seeds=(0,), budget: Optional[float] = None, iters: Optional[int] = None,
+                   size: float = 1.0, jobs: int = 1, threads: int = 1, scheduler=None, retries: int = 1,
+                   config_path=None, variants=None, frames=None, command: str = "") -> list:
+    """Run an experiment's cells (module docstring); returns the records (failed cells included,
+    ``status == "failed"``) and writes the table, CSV and plot."""
+    _check_scenes(scenes)
+    if budget is None and not iters:
+        raise ValueError("give a time budget (seconds per cell) or a number of steps per cell")
+    if budget is not None and not budget > 0:
+        raise ValueError(f"budget must be > 0 seconds; got {budget}")
+    if jobs < 1 or threads < 1 or retries < 0 or size <= 0:
+        raise ValueError(f"jobs and threads must be >= 1, retries >= 0, size > 0; got {jobs}, {threads}, {retries}, "
+                         f"{size}")
+    if config_path is not None and not Path(config_path).exists():
+        raise FileNotFoundError(f"config file {config_path} does not exist")
+    cells = experiment_cells(name, scenes, seeds, variants)
+    base = None
+    if config_path is not None:
+        from d2gs_np.train.config import ExperimentConfig
+        base = ExperimentConfig.load(config_path)
+    for _, v, _ in cells:  # every variant's config is valid before any cell starts
+        variant_config(v, base)
+    out = Path(out)
+    out.mkdir(parents=True, exist_ok=True)
+    kw = dict(budget=budget, iters=iters, size=size, threads=threads, config_path=config_path, frames=frames,
+              experiment=name)
+    records = _run_cells(cells, str(out), retries, kw, jobs, scheduler)
+    order = {(s, v.name, sd): i for i, (s, v, sd) in enumerate(cells)}
+    records.sort(key=lambda r: order[(r["scene"], r["variant"], r["seed"])])
+    write_outputs(name, out, records, command)
+    return records
+
+
+def compute_local(tasks, jobs):
+    """Dask delayed ``tasks`` on the local process pool, ``jobs`` at once. One task per dispatch
+    (``chunksize=1``): Dask's default batches up to 6 ready tasks into one worker's job, which on
+    a sweep of minutes-long cells left a worker idle while the other ran a batch in turn."""
+    import dask
+
+    return list(dask.compute(*tasks, scheduler="processes", num_workers=jobs, chunksize=1))
+
+
+def _run_cells(cells, out, retries, kw, jobs, scheduler):
+    import dask
+
+    tasks = [dask.delayed(_cell_with_retries, pure=False)(retries, out, s, v, sd, **kw) for s, v, sd in cells]
+    if scheduler is None:
+        return compute_local(tasks, jobs)
+    from distributed import Client
+
+    client = scheduler if isinstance(scheduler, Client) else Client(scheduler)
+    try:
+        return list(dask.compute(*tasks, scheduler=client))
+    finally:
+        if client is not scheduler:
+            client.close()
+
+
+def _fmt(x, spec=".2f"):
+    return "" if x is None else format(x, spec)
+
+
+def table(records) -> str:
+    lines = ["| scene | seed | variant | status | input dB | DVS PSNR dB | DVS SSIM | DVS FLIP | NVS PSNR dB | "
+             "NVS SSIM | ATE initial -> trained | Gaussians | steps | train s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    for r in records:
+        status = r["status"] if r["status"] == "ok" else f"FAILED: {r.get('error', '')}"
+        lines.append(
+            f"| {r['scene']} | {r['seed']} | {r['variant']} | {status} | {_fmt(r.get('input_psnr'))} | "
+            f"{_fmt(r.get('dvs_psnr'))} | {_fmt(r.get('dvs_ssim'), '.3f')} | {_fmt(r.get('dvs_flip'), '.4f')} | "
+            f"{_fmt(r.get('nvs_psnr'))} | "
+            f"{_fmt(r.get('nvs_ssim'), '.3f')} | {_fmt(r.get('ate_initial'), '.4f')} -> {_fmt(r.get('ate'), '.4f')} | "
+            f"{_fmt(r.get('num_gaussians'), 'd')} | {_fmt(r.get('steps'), 'd')} | {_fmt(r.get('train_seconds'), '.0f')} |")
+    return "\n".join(lines)
+
+
+def write_outputs(name, out, records, command=""):
+    out = Path(out)
+    fields = ["scene", "seed", "variant", "status", "attempts", "input_psnr", "dvs_psnr", "dvs_ssim", "nvs_psnr",
+              "nvs_ssim", "input_flip", "dvs_flip", "nvs_flip", "ate_initial", "ate_bundle", "ate", "num_gaussians", "steps", "train_seconds", "wall_seconds", "run",
+              "error"]
+    with open(out / f"{name}.csv", "w", newline="") as fh:
+        w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
+        w.writeheader()
+        w.writerows(records)
+    md = table(records)
+    (out / f"{name}.md").write_text((f"`{command}`\n\n" if command else "") + md + "\n")
+    ok = [r for r in records if r["status"] == "ok"]
+    if ok:
+        from d2gs_np.reporting.plots import plot_error_vs_time
+
+        plot_error_vs_time([r["run"] for r in ok], out / f"{name}_error_vs_time.png",
+                           labels=[f"{r['scene']}/{r['variant']}/s{r['seed']}" for r in ok],
+                           title=f"{name}: held-out PSNR against training seconds")
+    return md

@@ -1,0 +1,533 @@
+"""Bundle adjustment: reprojection residuals, their sparse Jacobian, a robust solver (docs/dataset_format.md §8).
+
+Unknowns
+- cameras (C, 6): per camera (phi, t) with cam_T_world = [[exp(phi), t], [0, 1]] (OpenCV axes,
+  world -> camera); phi is a rotation vector (``so3_exp``).
+- points (P, 3): world positions.
+- focal f (optional, shared): fx = fy = f; the principal point is fixed.
+
+Residual of observation o (camera c_o sees point p_o at pixel uv_o, our pixel convention):
+    x = exp(phi_c) X_p + t_c,  r_o = (f x_0 / x_2 + cx - u_o,  f x_1 / x_2 + cy - v_o).
+Derivatives: dx/dphi = -hat(R X) J_l(phi) (left Jacobian: exp(phi + d) = exp(J_l(phi) d) exp(phi)),
+dx/dt = I, dx/dX = R, d(uv)/dx = f [[1/z, 0, -x/z^2], [0, 1/z, -y/z^2]], d(uv)/df = (x/z, y/z).
+
+The same kind of least-squares problem as the endpoint refinement of the trajectory: a sum of
+squared image-space errors over poses, solved here by SciPy's trust-region ``least_squares``
+with the analytic sparse Jacobian and a robust loss (``soft_l1``), so that mismatches and
+points on moving objects lose their pull (docs/dataset_format.md §8), or (``solver="schur"``)
+by Levenberg-Marquardt on the normal equations with the points eliminated (``_schur_lm``;
+docs/method.md §5 has its measurements).
+"""
+from __future__ import annotations
+
+from dataclasses import dataclass
+
+import time
+
+import numpy as np
+import scipy.sparse as sp
+from scipy.optimize import least_squares
+
+from d2gs_np.constants import BA_POINT_EIG_FLOOR, DAMPING_DIAG_FLOOR, LM_DAMPING_MAX, LM_DAMPING_MIN
+from d2gs_np.geometry.so3 import hat, left_jacobian, left_jacobian_inv, so3_exp, so3_log
+from d2gs_np.pose.linalg import cholesky_solve
+
+__all__ = ["reprojection_fwd", "reprojection_bwd", "reprojection_jacobian", "pose_prior_fwd", "BundleProblem",
+           "bundle_adjust", "poses_to_params", "params_to_poses", "robust_loss", "SOLVERS", "LOSSES"]
+
+SOLVERS = ("scipy", "schur")  # bundle_adjust(solver=...)
+LOSSES = ("linear", "soft_l1", "huber", "cauchy", "arctan")  # SciPy's robust losses
+# The Schur solver's first Levenberg-Marquardt lambda (relative to diag(H)). The robust problems of
+# pose_init have several local minima, and the first steps choose among them. Measured (first-round
+# cost, examples/bench_bundle.py and tests/pose/test_given.py's 160 x 90 photo_room): 1e-3 reached the
+# lowest of {1e-4, 1e-3, 1e-2} on wall_disk (98.9; 170.5 at 1e-4), big_mover (437.1; 505.5 at 1e-4),
+# cube_sign seed 0 (124.3; 135.0 at 1e-2), the small photo_room (52.37; 57.74 at 1e-2) and tied on
+# photo_room seeds 0 / 1 and cube_sign seed 1; only crossing ended higher (104.6 against 102.9).
+# 1 lost photo_room seed 1's convergence (ATE 0.0209 against 0.0093).
+SCHUR_DAMPING_INIT = 1e-3
+
+
+def poses_to_params(cam_T_world):
+    """(C, 4, 4) rigid world-to-camera poses -> (C, 6) (phi, t)."""
+    T = np.asarray(cam_T_world, dtype=np.float64)
+    return np.concatenate([so3_log(T[:, :3, :3]), T[:, :3, 3]], axis=1)
+
+
+def params_to_poses(cams):
+    """(C, 6) (phi, t) -> (C, 4, 4) world-to-camera poses."""
+    cams = np.asarray(cams, dtype=np.float64)
+    T = np.tile(np.eye(4), (cams.shape[0], 1, 1))
+    T[:, :3, :3] = so3_exp(cams[:, :3])
+    T[:, :3, 3] = cams[:, 3:]
+    return T
+
+
+def _check_obs(cams, points, cam_idx, pt_idx, uv):
+    cams = np.asarray(cams, dtype=np.float64)
+    points = np.asarray(points, dtype=np.float64)
+    if cams.ndim != 2 or cams.shape[1] != 6:
+        raise ValueError(f"cams must have shape (C, 6) (rotation vector, translation); got {cams.shape}")
+    if points.ndim != 2 or points.shape[1] != 3:
+        raise ValueError(f"points must have shape (P, 3); got {points.shape}")
+    cam_idx = np.asarray(cam_idx)
+    pt_idx = np.asarray(pt_idx)
+    uv = np.asarray(uv, dtype=np.float64)
+    if cam_idx.ndim != 1 or pt_idx.shape != cam_idx.shape or uv.shape != (cam_idx.shape[0], 2):
+        raise ValueError(f"cam_idx (O,), pt_idx (O,) and uv (O, 2) must agree; got {cam_idx.shape}, "
+                         f"{pt_idx.shape}, {uv.shape}")
+    if not (np.issubdtype(cam_idx.dtype, np.integer) and np.issubdtype(pt_idx.dtype, np.integer)):
+        raise TypeError("cam_idx and pt_idx must be integer arrays")
+    if cam_idx.size and (cam_idx.min() < 0 or cam_idx.max() >= cams.shape[0]
+                         or pt_idx.min() < 0 or pt_idx.max() >= points.shape[0]):
+        raise ValueError("cam_idx / pt_idx index outside cams / points")
+    return cams, points, cam_idx.astype(np.int64), pt_idx.astype(np.int64), uv
+
+
+def reprojection_fwd(cams, points, focal, cx, cy, cam_idx, pt_idx, uv):
+    """Residuals (O, 2) = projection - observation, in pixels; saved for the backward pass."""
+    cams, points, cam_idx, pt_idx, uv = _check_obs(cams, points, cam_idx, pt_idx, uv)
+    phi = cams[cam_idx, :3]
+    R = so3_exp(phi)  # (O, 3, 3)
+    RX = np.einsum("oij,oj->oi", R, points[pt_idx])
+    x = RX + cams[cam_idx, 3:]
+    z = x[:, 2]
+    n = x[:, :2] / z[:, None]
+    r = focal * n + np.array([cx, cy]) - uv
+    saved = (phi, R, RX, x, n, float(focal), cam_idx, pt_idx, cams.shape[0], points.shape[0])
+    return r, saved
+
+
+def _blocks(saved):
+    """Per-observation Jacobian blocks: d r / d cam (O, 2, 6), d r / d point (O, 2, 3), d r / d f (O, 2)."""
+    phi, R, RX, x, n, f, _, _, _, _ = saved
+    z = x[:, 2]
+    O = x.shape[0]
+    dproj = np.zeros((O, 2, 3))
+    dproj[:, 0, 0] = f / z
+    dproj[:, 1, 1] = f / z
+    dproj[:, :, 2] = -f * n / z[:, None]
+    dx_dphi = -hat(RX) @ left_jacobian(phi)
+    d_cam = np.concatenate([dproj @ dx_dphi, dproj], axis=2)
+    d_pt = dproj @ R
+    return d_cam, d_pt, n
+
+
+def reprojection_bwd(saved, v_residuals):
+    """Cotangents of (cams (C, 6), points (P, 3), focal) from v_residuals (O, 2): J^T v."""
+    _, _, _, _, _, _, cam_idx, pt_idx, C, P = saved
+    d_cam, d_pt, n = _blocks(saved)
+    v = np.asarray(v_residuals, dtype=np.float64)
+    v_cams = np.zeros((C, 6))
+    np.add.at(v_cams, cam_idx, np.einsum("oij,oi->oj", d_cam, v))
+    v_points = np.zeros((P, 3))
+    np.add.at(v_points, pt_idx, np.einsum("oij,oi->oj", d_pt, v))
+    v_focal = float(np.sum(n * v))
+    return v_cams, v_points, v_focal
+
+
+def reprojection_jacobian(saved, free_cams, with_focal):
+    """Sparse Jacobian (2 O, 6 |free cams| + 3 P [+ 1]) of the flattened residuals with respect to
+    the parameter vector [cams[free_cams].ravel(), points.ravel(), (f)]."""
+    _, _, _, _, _, _, cam_idx, pt_idx, C, P = saved
+    d_cam, d_pt, n = _blocks(saved)
+    O = cam_idx.shape[0]
+    slot = np.full(C, -1, dtype=np.int64)
+    slot[free_cams] = np.arange(len(free_cams))
+    nc = 6 * len(free_cams)
+    rows_o = np.arange(2 * O).reshape(O, 2)
+    s = slot[cam_idx]
+    has = s >= 0
+    r_cam = np.repeat(rows_o[has][:, :, None], 6, axis=2)
+    c_cam = np.broadcast_to((6 * s[has])[:, None, None] + np.arange(6), r_cam.shape)
+    r_pt = np.repeat(rows_o[:, :, None], 3, axis=2)
+    c_pt = np.broadcast_to((nc + 3 * pt_idx)[:, None, None] + np.arange(3), r_pt.shape)
+    rows = [r_cam.ravel(), r_pt.ravel()]
+    cols = [c_cam.ravel(), c_pt.ravel()]
+    vals = [d_cam[has].ravel(), d_pt.ravel()]
+    ncols = nc + 3 * P
+    if with_focal:
+        rows.append(np.arange(2 * O))
+        cols.append(np.full(2 * O, ncols))
+        vals.append(n.ravel())
+        ncols += 1
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
+                         shape=(2 * O, ncols))
+
+
+def _check_prior_sigmas(sigma_t, sigma_r):
+    if not (np.isfinite(sigma_t) and sigma_t > 0 and np.isfinite(sigma_r) and sigma_r > 0):
+        raise ValueError(f"pose prior sigmas must be finite and > 0; got sigma_t={sigma_t}, sigma_r={sigma_r}")
+
+
+def pose_prior_fwd(cams, prior_cams, sigma_t, sigma_r):
+    """Residuals of a prior that holds cameras near given poses, and their Jacobian blocks.
+
+    Per camera 6 rows: ``(c - c_g) / sigma_t`` on the camera centre c = -R^T t (world units) and
+    ``log(R R_g^T) / sigma_r`` on the rotation (radians). Returns (r (C, 6), J (C, 6, 6)) with J the
+    derivative of each camera's rows with respect to its (phi, t): with a perturbation
+    exp(phi + d) = exp(J_l(phi) d) exp(phi), d log(R R_g^T) / d phi = J_l(log(R R_g^T))^-1 J_l(phi),
+    dc / d phi = -R^T hat(t) J_l(phi), dc / dt = -R^T.
+    """
+    cams = np.asarray(cams, dtype=np.float64)
+    prior = np.asarray(prior_cams, dtype=np.float64)
+    if cams.ndim != 2 or cams.shape[1] != 6 or prior.shape != cams.shape:
+        raise ValueError(f"cams and prior_cams must both have shape (C, 6); got {cams.shape}, {prior.shape}")
+    _check_prior_sigmas(sigma_t, sigma_r)
+    phi, t = cams[:, :3], cams[:, 3:]
+    R, Rg = so3_exp(phi), so3_exp(prior[:, :3])
+    Rt = np.transpose(R, (0, 2, 1))
+    c = -np.einsum("cij,cj->ci", Rt, t)
+    cg = -np.einsum("cji,cj->ci", Rg, prior[:, 3:])
+    e = so3_log(R @ np.transpose(Rg, (0, 2, 1)))
+    Jl = left_jacobian(phi)
+    r = np.concatenate([(c - cg) / sigma_t, e / sigma_r], axis=1)
+    J = np.zeros((cams.shape[0], 6, 6))
+    J[:, :3, :3] = -(Rt @ hat(t) @ Jl) / sigma_t
+    J[:, :3, 3:] = -Rt / sigma_t
+    J[:, 3:, :3] = (left_jacobian_inv(e) @ Jl) / sigma_r
+    return r, J
+
+
+@dataclass
+class BundleProblem:
+    """Observations and the starting point of a bundle adjustment."""
+
+    cams: np.ndarray  # (C, 6)
+    points: np.ndarray  # (P, 3)
+    focal: float
+    cx: float
+    cy: float
+    cam_idx: np.ndarray  # (O,) int
+    pt_idx: np.ndarray  # (O,) int
+    uv: np.ndarray  # (O, 2) observed pixels, our convention
+
+
+def robust_loss(z, loss):
+    """SciPy's robust losses (``scipy.optimize.least_squares``): rho(z) and rho'(z) of z = (r / f_scale)^2,
+    element-wise; the cost is 0.5 f_scale^2 sum rho(z) over residual elements.
+
+    linear z; soft_l1 2 (sqrt(1 + z) - 1); huber z (z <= 1), 2 sqrt(z) - 1; cauchy ln(1 + z);
+    arctan arctan(z).
+    """
+    z = np.asarray(z, dtype=np.float64)
+    if loss == "linear":
+        return z, np.ones_like(z)
+    if loss == "soft_l1":
+        t = np.sqrt(1.0 + z)
+        return 2.0 * (t - 1.0), 1.0 / t
+    if loss == "huber":
+        small = z <= 1.0
+        zs = np.sqrt(np.maximum(z, 1.0))
+        return np.where(small, z, 2.0 * zs - 1.0), np.where(small, 1.0, 1.0 / zs)
+    if loss == "cauchy":
+        return np.log1p(z), 1.0 / (1.0 + z)
+    if loss == "arctan":
+        return np.arctan(z), 1.0 / (1.0 + z * z)
+    raise ValueError(f"loss must be one of {LOSSES}; got {loss!r}")
+
+
+def _check_solver_args(solver, loss, f_scale, max_nfev, tol):
+    if not isinstance(solver, str) or solver not in SOLVERS:
+        raise ValueError(f"bundle_adjust: solver must be one of {SOLVERS}; got {solver!r}")
+    if not isinstance(loss, str) or loss not in LOSSES:
+        raise ValueError(f"bundle_adjust: loss must be one of {LOSSES}; got {loss!r}")
+    if isinstance(f_scale, bool) or not isinstance(f_scale, (int, float, np.floating, np.integer)):
+        raise TypeError(f"bundle_adjust: f_scale must be a number (pixels); got {type(f_scale).__name__}")
+    if not (np.isfinite(f_scale) and f_scale > 0):
+        raise ValueError(f"bundle_adjust: f_scale must be finite and > 0 (pixels); got {f_scale}")
+    if isinstance(max_nfev, bool) or not isinstance(max_nfev, (int, np.integer)) or max_nfev < 1:
+        raise ValueError(f"bundle_adjust: max_nfev must be an int >= 1; got {max_nfev!r}")
+    if not (np.isfinite(tol) and tol >= 0):
+        raise ValueError(f"bundle_adjust: tol must be finite and >= 0; got {tol}")
+
+
+def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, loss="soft_l1", f_scale=1.0,
+                  max_nfev=50, tol=1e-8, prior=None, solver="scipy"):
+    """Robust least squares over free cameras, all points and (optionally) the shared focal length.
+
+    fixed_cams: cameras held at their start (the gauge: fix one camera; the overall scale stays
+    free and is set by the start). loss, f_scale: SciPy robust loss and its scale in pixels.
+    prior: optional (prior_cams (C, 6), sigma_t, sigma_r): ``pose_prior_fwd`` rows for every free
+    camera (in units of sigma, under the same robust loss); with it no camera need be fixed (the
+    prior holds the gauge, the scale included).
+    solver: "scipy" (``least_squares``, trust region reflective with LSMR; ``max_nfev`` residual
+    evaluations) or "schur" (Levenberg-Marquardt on the normal equations with the points
+    eliminated, ``_schur_lm``; ``max_nfev`` residual evaluations too, one per trial step). Both
+    minimise the same cost 0.5 f_scale^2 sum rho((r_i / f_scale)^2) over every residual element.
+    Returns (cams (C, 6), points (P, 3), focal, info dict with cost, nfev, status, iterations, rms /
+    median residual of the observations, and cost_history / seconds_history: the lowest cost after
+    each residual evaluation and the seconds since the call began).
+    """
+    _check_solver_args(solver, loss, f_scale, max_nfev, tol)
+    t_start = time.perf_counter()
+    cams0 = np.asarray(problem.cams, dtype=np.float64).copy()
+    pts0 = np.asarray(problem.points, dtype=np.float64)
+    _check_obs(cams0, pts0, problem.cam_idx, problem.pt_idx, problem.uv)
+    C, P = cams0.shape[0], pts0.shape[0]
+    free = np.array([c for c in range(C) if c not in set(fixed_cams)], dtype=np.int64)
+    nc = 6 * len(free)
+
+    def unpack(x):
+        cams = cams0.copy()
+        cams[free] = x[:nc].reshape(-1, 6)
+        pts = x[nc:nc + 3 * P].reshape(P, 3)
+        f = x[-1] if refine_focal else problem.focal
+        return cams, pts, f
+
+    cache = {}
+
+    if prior is not None:
+        prior_cams, sigma_t, sigma_r = prior
+        prior_cams = np.asarray(prior_cams, dtype=np.float64)
+        if prior_cams.shape != cams0.shape:
+            raise ValueError(f"prior cams must have the shape of the problem's cams {cams0.shape}; got "
+                             f"{prior_cams.shape}")
+        _check_prior_sigmas(sigma_t, sigma_r)
+    O2 = 2 * len(problem.cam_idx)
+    if solver == "schur":
+        return _schur_lm(problem, cams0, pts0, free, refine_focal, loss, float(f_scale), int(max_nfev), float(tol),
+                         None if prior is None else (prior_cams, float(sigma_t), float(sigma_r)), t_start)
+    history = {"cost": [], "seconds": []}
+
+    def fun(x):
+        cams, pts, f = unpack(x)
+        r, saved = reprojection_fwd(cams, pts, f, problem.cx, problem.cy, problem.cam_idx, problem.pt_idx, problem.uv)
+        cache["key"], cache["saved"] = x.tobytes(), saved
+        if prior is None:
+            out = r.ravel()
+        else:
+            rp, cache["prior_J"] = pose_prior_fwd(cams[free], prior_cams[free], sigma_t, sigma_r)
+            out = np.concatenate([r.ravel(), rp.ravel()])
+        # record the cost (read-only: the solver's path is unchanged)
+        c = 0.5 * f_scale ** 2 * float(np.sum(robust_loss((out / f_scale) ** 2, loss)[0]))
+        best = min(history["cost"][-1], c) if history["cost"] else c
+        history["cost"].append(best if np.isfinite(best) else c)
+        history["seconds"].append(time.perf_counter() - t_start)
+        return out
+
+    def jac(x):
+        if cache.get("key") != x.tobytes():
+            fun(x)
+        J = reprojection_jacobian(cache["saved"], free, refine_focal)
+        if prior is None:
+            return J
+        # the prior's rows: one 6 x 6 block per free camera, on its own columns (the first 6F)
+        Jp = sp.block_diag(list(cache["prior_J"]), format="csr")
+        Jp = sp.hstack([Jp, sp.csr_matrix((Jp.shape[0], J.shape[1] - Jp.shape[1]))], format="csr")
+        return sp.vstack([J, Jp], format="csr")
+
+    x0 = np.concatenate([cams0[free].ravel(), pts0.ravel()] + ([np.array([problem.focal])] if refine_focal else []))
+    r0 = fun(x0)
+    res = least_squares(fun, x0, jac=jac, loss=loss, f_scale=f_scale, method="trf", x_scale="jac",
+                        max_nfev=max_nfev, ftol=tol, xtol=tol, gtol=tol, tr_solver="lsmr")
+    cams, pts, f = unpack(res.x)
+    r = res.fun[:O2].reshape(-1, 2)
+    err = np.linalg.norm(r, axis=1)
+    info = {"cost": float(res.cost), "nfev": int(res.nfev), "status": int(res.status),
+            "rms_px_start": float(np.sqrt(np.mean(r0[:O2] ** 2))) if O2 else 0.0, "median_px": float(np.median(err)) if err.size else 0.0,
+            "rms_px": float(np.sqrt(np.mean(err ** 2))) if err.size else 0.0, "residual_px": err,
+            "solver": "scipy", "iterations": int(res.njev) if res.njev is not None else int(res.nfev),
+            "cost_history": history["cost"], "seconds_history": history["seconds"]}
+    return cams, pts, float(f), info
+
+
+def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev, tol, prior, t_start):
+    """Levenberg-Marquardt with the points eliminated (Schur complement onto the camera side).
+
+    Unknowns x = (y, p): y = the free cameras' (phi, t) [and the focal], p = the points. Each
+    iteration linearises the residuals at x and reweights them IRLS-style: element i gets the weight
+    w_i = rho'(z_i), z_i = (r_i / f_scale)^2, so that H = J^T W J and g = J^T W r, and g is the exact
+    gradient of the robust cost 0.5 f_scale^2 sum rho(z_i) (SciPy's scaling adds a second-order
+    correction to H; the minimiser is the same, only the path differs). The damped system
+        [A + lam D_y    E          ] [dy]     [g_y]
+        [E^T            V + lam D_p] [dp] = - [g_p]
+    with Marquardt's scaling D = diag(H) (floored at DAMPING_DIAG_FLOOR x its largest entry, so a
+    parameter no residual sees is still damped and stays where it is) is solved by eliminating the
+    points, whose blocks V_p (3 x 3 per point) are independent:
+        S = A + lam D_y - E (V + lam D_p)^-1 E^T,  S dy = -g_y + E (V + lam D_p)^-1 g_p,
+        dp = -(V + lam D_p)^-1 (g_p + E^T dy);
+    S is dense (6 x free cameras [+ 1]) and Cholesky-factored (``optim.linalg.cholesky_solve``); each damped point block is inverted from
+    its eigendecomposition with its eigenvalues floored at BA_POINT_EIG_FLOOR x the largest (a point
+    seen once, or along one ray, has a rank-2 block: the damping regularises it). A trial step is
+    accepted only if the true cost falls (a non-finite residual counts as an infinite cost; a failed
+    factorisation as a rejection). Nielsen's update of lam: after acceptance lam *= max(1/3, 1 - (2 rho
+    - 1)^3) with rho = actual / predicted decrease (the quadratic model of J^T W J), nu = 2; after a
+    rejection lam *= nu, nu *= 2. The rotation vectors are updated additively, as SciPy's are.
+    Stops when an accepted step lowers the cost by less than tol x cost (status 2), when a step is
+    below tol x (|x| + tol) (status 3), after max_nfev residual evaluations (status 0) or when lam
+    reaches LM_DAMPING_MAX (status -2, no step lowers the cost).
+    """
+    cx, cy = problem.cx, problem.cy
+    ci = np.asarray(problem.cam_idx).astype(np.int64)
+    pi = np.asarray(problem.pt_idx).astype(np.int64)
+    uv = np.asarray(problem.uv, dtype=np.float64)
+    C, P, O = cams0.shape[0], pts0.shape[0], ci.shape[0]
+    F = len(free)
+    nc = 6 * F
+    ny = nc + (1 if refine_focal else 0)
+    k = 7 if refine_focal else 6
+    slot = np.full(C, -1, dtype=np.int64)
+    slot[free] = np.arange(F)
+    s = slot[ci]
+    seen_free = s >= 0
+    cols_y = np.empty((O, k), dtype=np.int64)  # camera-side columns of each observation (fixed: 0..5, zero blocks)
+    cols_y[:, :6] = 6 * np.maximum(s, 0)[:, None] + np.arange(6)
+    if refine_focal:
+        cols_y[:, 6] = nc
+    flat_yy = (cols_y[:, :, None] * ny + cols_y[:, None, :]).ravel()
+    flat_p = (3 * pi[:, None] + np.arange(3)).ravel()
+    flat_pp = (9 * pi[:, None] + np.arange(9)).ravel()
+    E_rows = np.repeat(cols_y[:, :, None], 3, axis=2).ravel()
+    E_cols = np.repeat((3 * pi[:, None] + np.arange(3))[:, None, :], k, axis=1).ravel()
+    fs2 = f_scale * f_scale
+
+    def split(cams, pts, f):
+        return np.concatenate([cams[free].ravel()] + ([np.array([f])] if refine_focal else [])), pts
+
+    def unpack(y, pts):
+        cams = cams0.copy()
+        cams[free] = y[:nc].reshape(-1, 6)
+        return cams, pts, (y[nc] if refine_focal else problem.focal)
+
+    def evaluate(y, pts):
+        cams, pts, f = unpack(y, pts)
+        with np.errstate(all="ignore"):
+            r, saved = reprojection_fwd(cams, pts, f, cx, cy, ci, pi, uv)
+            rp = Jpr = None
+            if prior is not None:
+                rp, Jpr = pose_prior_fwd(cams[free], prior[0][free], prior[1], prior[2])
+            rho = robust_loss((r / f_scale) ** 2, loss)[0]
+            cost = 0.5 * fs2 * float(np.sum(rho))
+            if rp is not None:
+                cost += 0.5 * fs2 * float(np.sum(robust_loss((rp / f_scale) ** 2, loss)[0]))
+        if not np.isfinite(cost):
+            cost = np.inf
+        return cost, r, saved, rp, Jpr
+
+    def normal_equations(r, saved, rp, Jpr):
+        d_cam, d_pt, n = _blocks(saved)
+        d_cam[~seen_free] = 0.0
+        Jy = np.concatenate([d_cam, n[:, :, None]], axis=2) if refine_focal else d_cam  # (O, 2, k)
+        w = robust_loss((r / f_scale) ** 2, loss)[1]  # (O, 2)
+        WJy = w[:, :, None] * Jy
+        WJp = w[:, :, None] * d_pt
+        V = np.bincount(flat_pp, np.einsum("oia,oib->oab", WJp, d_pt).ravel(), minlength=9 * P).reshape(P, 3, 3)
+        gp = np.bincount(flat_p, np.einsum("oia,oi->oa", WJp, r).ravel(), minlength=3 * P)
+        if ny == 0:  # every camera fixed, focal fixed: the points alone
+            A, gy, E = np.zeros((0, 0)), np.zeros(0), sp.csr_matrix((0, 3 * P))
+        else:
+            A = np.bincount(flat_yy, np.einsum("oia,oib->oab", WJy, Jy).ravel(), minlength=ny * ny).reshape(ny, ny)
+            Eo = np.einsum("oia,oib->oab", WJy, d_pt)  # (O, k, 3)
+            gy = np.bincount(cols_y.ravel(), np.einsum("oia,oi->oa", WJy, r).ravel(), minlength=ny)
+            E = sp.csr_matrix((Eo.ravel(), (E_rows, E_cols)), shape=(ny, 3 * P))
+        if rp is not None:
+            wp = robust_loss((rp / f_scale) ** 2, loss)[1]  # (F, 6)
+            blk = np.einsum("fia,fi,fib->fab", Jpr, wp, Jpr)
+            idx = 6 * np.arange(F)[:, None] + np.arange(6)
+            A[idx[:, :, None], idx[:, None, :]] += blk
+            gy[:nc] += np.einsum("fia,fi->fa", Jpr, wp * rp).ravel()
+        return dict(Jy=Jy, Jp=d_pt, w=w, A=A, V=V, E=E, gy=gy, gp=gp, Jpr=Jpr, rp=rp)
+
+    def damped_step(ne, lam):
+        """(dy, dp) of the damped system, or None when S is not positive definite."""
+        A, V, E, gy, gp = ne["A"], ne["V"], ne["E"], ne["gy"], ne["gp"]
+        dA = np.diag(A).copy()
+        dV = np.diagonal(V, axis1=1, axis2=2).copy()  # (P, 3)
+        top = max(dA.max() if dA.size else 0.0, dV.max() if dV.size else 0.0, 1e-300)
+        floor = DAMPING_DIAG_FLOOR * top
+        Vd = V + lam * np.maximum(dV, floor)[:, :, None] * np.eye(3)
+        ev, Q = np.linalg.eigh(Vd)
+        ev = np.maximum(ev, BA_POINT_EIG_FLOOR * np.maximum(ev[:, -1:], floor))
+        Vinv = np.einsum("pij,pj,pkj->pik", Q, 1.0 / ev, Q)
+        Vinv_sp = sp.bsr_matrix((Vinv, np.arange(P), np.arange(P + 1)), shape=(3 * P, 3 * P)).tocsr()
+        dp_rhs = Vinv_sp @ gp
+        if ny:
+            EV = E @ Vinv_sp
+            S = A + np.diag(lam * np.maximum(dA, floor)) - (EV @ E.T).toarray()
+            S = 0.5 * (S + S.T)
+            rhs = -gy + E @ dp_rhs
+            if not (np.all(np.isfinite(S)) and np.all(np.isfinite(rhs))):
+                return None
+            dy, ok = cholesky_solve(np.ascontiguousarray(S), np.ascontiguousarray(rhs))
+            if not ok:
+                return None
+            dp = -dp_rhs - Vinv_sp @ (E.T @ dy)
+        else:
+            dy = np.zeros(0)
+            dp = -dp_rhs
+        if not (np.all(np.isfinite(dy)) and np.all(np.isfinite(dp))):
+            return None
+        return dy, dp
+
+    def predicted_decrease(ne, dy, dp):
+        """-(g . dx + 0.5 dx^T J^T W J dx): the decrease the reweighted quadratic model promises."""
+        Jdx = np.einsum("oia,oa->oi", ne["Jy"], dy[cols_y] if ny else np.zeros((O, k))) + \
+            np.einsum("oia,oa->oi", ne["Jp"], dp.reshape(P, 3)[pi])
+        quad = float(np.sum(ne["w"] * Jdx ** 2))
+        if ne["rp"] is not None:
+            Jpdx = np.einsum("fia,fa->fi", ne["Jpr"], dy[:nc].reshape(F, 6))
+            quad += float(np.sum(robust_loss((ne["rp"] / f_scale) ** 2, loss)[1] * Jpdx ** 2))
+        return -(float(ne["gy"] @ dy) + float(ne["gp"] @ dp) + 0.5 * quad)
+
+    y, pts = split(cams0, pts0, problem.focal)
+    pts = pts.copy()
+    cost, r, saved, rp, Jpr = evaluate(y, pts)
+    if not np.isfinite(cost):
+        bad = np.flatnonzero(~np.all(np.isfinite(r), axis=1))
+        raise ValueError(f"bundle_adjust: the residuals are not finite at the start ({bad.size} observations, e.g. "
+                         f"{bad[:5].tolist()}: a point on a camera's plane z = 0, or a non-finite camera / point); "
+                         f"drop those observations or start the points elsewhere")
+    r0 = r
+    nfev, iterations, status = 1, 0, 0
+    cost_hist, sec_hist = [cost], [time.perf_counter() - t_start]
+    lam, nu = SCHUR_DAMPING_INIT, 2.0
+    ne = normal_equations(r, saved, rp, Jpr)
+    while nfev < max_nfev:
+        step = damped_step(ne, lam)
+        if step is None:  # S not positive definite at this damping: more damping
+            if lam >= LM_DAMPING_MAX:
+                status = -2
+                break
+            lam, nu = min(lam * nu, LM_DAMPING_MAX), 2.0 * nu
+            continue
+        dy, dp = step
+        pred = predicted_decrease(ne, dy, dp)
+        y_new, pts_new = y + dy, pts + dp.reshape(P, 3)
+        new = evaluate(y_new, pts_new)
+        nfev += 1
+        small_step = np.sqrt(dy @ dy + dp @ dp) <= tol * (np.sqrt(y @ y + np.sum(pts * pts)) + tol)
+        if new[0] < cost:
+            decrease = cost - new[0]
+            rho_gain = decrease / pred if pred > 0 else 1.0
+            y, pts, (cost, r, saved, rp, Jpr) = y_new, pts_new, new
+            iterations += 1
+            lam = min(max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho_gain - 1.0) ** 3), LM_DAMPING_MIN), LM_DAMPING_MAX)
+            nu = 2.0
+            cost_hist.append(cost)
+            sec_hist.append(time.perf_counter() - t_start)
+            if decrease <= tol * cost:
+                status = 2
+                break
+            if small_step:
+                status = 3
+                break
+            ne = normal_equations(r, saved, rp, Jpr)
+        else:
+            cost_hist.append(cost)
+            sec_hist.append(time.perf_counter() - t_start)
+            if small_step:
+                status = 3
+                break
+            if lam >= LM_DAMPING_MAX:
+                status = -2
+                break
+            lam, nu = min(lam * nu, LM_DAMPING_MAX), 2.0 * nu
+    cams, pts, f = unpack(y, pts)
+    err = np.linalg.norm(r, axis=1)
+    info = {"cost": float(cost), "nfev": int(nfev), "status": int(status), "solver": "schur",
+            "iterations": int(iterations), "damping": float(lam),
+            "rms_px_start": float(np.sqrt(np.mean(r0 ** 2))) if O else 0.0,
+            "median_px": float(np.median(err)) if err.size else 0.0,
+            "rms_px": float(np.sqrt(np.mean(err ** 2))) if err.size else 0.0, "residual_px": err,
+            "cost_history": cost_hist, "seconds_history": sec_hist}
+    return cams, pts, float(f), info

@@ -1,0 +1,696 @@
+"""Pose refinement by Gauss-Newton / Levenberg-Marquardt on reprojection residuals (docs/method.md §5).
+
+Unknowns. Every frame k has its exposure endpoints ``T_s,k``, ``T_e,k`` (cam_T_world). The solver
+perturbs them on the LEFT (docs/method.md §4, ``geometry/se3.py``): ``exp(a_k) T_s,k`` and
+``exp(b_k) T_e,k`` with ``x_k = (a_k, b_k)``, 12 numbers, each tangent (rho, phi) translation
+first. ``x`` is the total perturbation from the endpoints the problem was built with (no
+re-linearisation on the manifold), so the residual function of ``x`` is one fixed function that
+``scipy.optimize.least_squares`` can minimise too (the cross-check). The residuals see only the
+mid pose ``M_k = T_s exp(log(T_s^-1 T_e) / 2)`` (geodesic midpoint), so:
+
+- the spread ``b_k - a_k`` is held by a prior residual ``(b_k - a_k) / spread_sigma`` (6 rows);
+- the gauge (a global rigid motion, and the scale the depths fix only softly) is held by keeping
+  the frames in ``fixed`` (frame 0 by default) out of the unknowns;
+- optionally (``PoseProblem.prior_poses``), each free frame's mid pose is held near a given pose
+  G_k (the poses the video came with) by 6 rows ``(c(M_k) - c(G_k)) / sigma_t`` (camera centres)
+  and ``log(R(M_k) R(G_k)^T) / sigma_r`` (rotation), the maximum a posteriori form of "the given
+  poses are right to about sigma". Measured why (docs/method.md §5): without it the depths of a
+  partly trained scene, biased low by semi-transparent Gaussians, pulled the cameras together
+  call after call; on photo_room (12 frames 160x90, noisy poses) the trajectory shrank to 0.52x
+  its size and turned 2.5 deg while the centre-aligned ATE, blind to both, fell;
+- Levenberg-Marquardt damping makes every step solvable even where the data leave directions
+  unobserved (a frame without matches, matches on a line, points at infinity).
+
+Residuals of a match p (frame k) <-> p' (frame j), Eq. 10 written as a cycle: lift p' with the
+rendered depth ``D_j(p')`` in camera j, map to the world with ``M_j``, into camera k with ``M_k``,
+project with K_k to p'' at camera depth ``z_k(p'')``::
+
+    r_pix   = p'' - p                                  (2 rows, pixels)
+    r_depth = beta (z_k(p'') - D_k(p)) / D_k(p)        (1 row)
+
+``beta`` (``GaussNewtonConfig.beta``) weighs a relative depth error against pixels; the paper's
+100 makes a 1 % depth error cost as much as a 1 px reprojection error. Depths are constants of
+the problem (read from a render at the current mid poses, refreshed between solver calls).
+
+Symbolic part (CasADi). Two ``casadi.Function`` objects, built once per process:
+``mid``: (x_k, T_s,k, T_e,k) -> (M_k as 12 numbers, dM_k/dx_k 12x12), with SO(3)/SE(3) exp and log
+written with explicit small-angle branches (``casadi.if_else``; the series of ``geometry/so3.py``
+below SERIES_ANGLE2, the closed forms above, with a dummy angle in the branch not taken so no
+NaN is ever formed); ``match``: (M_k, M_j, intrinsics, observation) -> (r 3, dr/dM_k 3x12,
+dr/dM_j 3x12). ``match.map(n)`` evaluates n matches in one call (cached per n). The chain rule
+dr/dx_k = dr/dM_k dM_k/dx_k is one matrix product per match: the Jacobian is exact.
+
+Robust loss (IRLS). Each data residual r_i (not the prior rows) carries
+rho(r) = r^2/2 (``none``), Huber ``r^2/2 if |r| <= d else d|r| - d^2/2`` or Cauchy
+``d^2/2 log(1 + (r/d)^2)``, with d = ``robust_scale``; elementwise, as ``least_squares``'s
+``loss="huber"`` / ``"cauchy"`` with ``f_scale = d``. Each iteration solves the weighted normal
+equations ``(H + lam D) dx = -g``, ``H = J^T W J``, ``g = J^T W r``, W the IRLS weights
+(``rho'(r)/r``), D = diag(H) floored at ``DAMPING_DIAG_FLOOR`` x max diag(H) (Marquardt scaling
+that still damps a column without data). A step is accepted only if the robust cost decreases,
+so the cost never rises; otherwise lam grows by ``damping_up`` up to ``LM_DAMPING_MAX`` (the
+system is solved as (H/lam + D) dx = -g/lam once lam > 1, so a huge lam stays finite and gives a
+tiny step). Stops when the relative cost decrease of an accepted step falls below ``ftol``, when
+the step is below ``xtol`` (relative to |x|), at ``max_iters``, or when lam reaches its limit.
+
+Covariance. At the end, ``pinv(H)`` of the final normal equations (unit residual variance, prior
+rows included) over the free unknowns, with its numerical rank (singular values above
+``COVARIANCE_RCOND`` x the largest): a rank below 12 x (free frames) names unobserved directions.
+"""
+from __future__ import annotations
+
+import functools
+import math
+import numbers
+import time
+from dataclasses import dataclass, field
+
+import casadi as ca
+import numpy as np
+from numba import njit
+
+from d2gs_np.constants import (  # noqa: F401 (LM_DAMPING_MAX is re-exported for tests)
+    COVARIANCE_RCOND,
+    DAMPING_DIAG_FLOOR,
+    GN_LOG_SERIES_SIN2,
+    GN_MIN_DEPTH,
+    LM_DAMPING_MAX,
+    LM_DAMPING_MIN,
+    SERIES_ANGLE2,
+)
+from d2gs_np.geometry.se3 import check_rigid
+from d2gs_np.geometry.so3 import _A_COEFFS, _B_COEFFS, _C_COEFFS, _D_COEFFS
+from d2gs_np.losses.reprojection import bilinear_fwd
+from d2gs_np.pose.linalg import cholesky_solve
+
+__all__ = [
+    "ROBUST_LOSSES",
+    "GaussNewtonConfig",
+    "PairObservations",
+    "PoseProblem",
+    "GaussNewtonResult",
+    "sample_depth",
+    "pair_observations",
+    "solve",
+    "robust_cost",
+    "toy_problem",
+]
+
+ROBUST_LOSSES = ("none", "huber", "cauchy")
+NUM_VARS = 12  # per frame: a (6) on the exposure start, b (6) on the exposure end
+
+
+@dataclass(frozen=True)
+class GaussNewtonConfig:
+    """Settings of the pose solver (module docstring)."""
+
+    max_iters: int = 40  # 15 before the pose prior; with its tight default, calls at 15 stopped at max_iters
+    # Weight of the relative depth residual: the paper's 100 reduced to 10, and the Cauchy loss at
+    # 1 px, as measured on the wall_disk suite scene (docs/method.md §5): on the initial model and on
+    # a model trained 93 steps, Cauchy / 1 px / beta 10 lowered ATE 0.069 -> 0.037 and 0.067 -> 0.046
+    # and RPE_r 0.94 -> 0.46 and 0.88 -> 0.58 deg, where Huber / 2 px / beta 100 gave 0.055 and 0.070
+    # (worse than the start) and RPE_r 0.90 and 1.03 deg.
+    beta: float = 10.0
+    robust: str = "cauchy"  # "none", "huber" or "cauchy" (IRLS)
+    robust_scale: float = 1.0  # d of the robust loss, in residual units (pixels)
+    spread_sigma: float = 1e-3  # prior: a change of the endpoint spread b - a by this costs 1/2
+    damping_init: float = 1e-3  # initial Levenberg-Marquardt lambda (relative to diag(H))
+    damping_up: float = 10.0  # lambda x this after a rejected step
+    damping_down: float = 0.3  # lambda x this after an accepted step
+    ftol: float = 1e-6  # stop when an accepted step lowers the cost by less than this fraction
+    xtol: float = 1e-10  # stop when |dx| < xtol (|x| + xtol)
+
+    def __post_init__(self):
+        for name in ("beta", "robust_scale", "spread_sigma", "damping_init", "damping_up", "damping_down", "ftol",
+                     "xtol"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
+                raise TypeError(f"GaussNewtonConfig.{name} must be a finite real number; got {v!r}")
+        if isinstance(self.max_iters, bool) or not isinstance(self.max_iters, numbers.Integral) or self.max_iters < 0:
+            raise ValueError(f"GaussNewtonConfig.max_iters must be an int >= 0; got {self.max_iters!r}")
+        if self.robust not in ROBUST_LOSSES:
+            raise ValueError(f"GaussNewtonConfig.robust must be one of {ROBUST_LOSSES}; got {self.robust!r}")
+        for name in ("beta", "robust_scale", "spread_sigma", "damping_init", "ftol", "xtol"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"GaussNewtonConfig.{name} must be > 0; got {getattr(self, name)}")
+        if self.damping_up <= 1.0 or not 0.0 < self.damping_down < 1.0:
+            raise ValueError(f"GaussNewtonConfig.damping_up must be > 1 and damping_down in (0, 1); got "
+                             f"{self.damping_up}, {self.damping_down}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Symbolic SE(3) (CasADi), following geometry/se3.py: xi = (rho, phi), left perturbations
+# ---------------------------------------------------------------------------------------------
+
+
+def _hat(v):
+    return ca.vertcat(ca.horzcat(0, -v[2], v[1]), ca.horzcat(v[2], 0, -v[0]), ca.horzcat(-v[1], v[0], 0))
+
+
+def _horner(t2, coeffs):
+    out = coeffs[-1]
+    for c in coeffs[-2::-1]:
+        out = out * t2 + c
+    return out
+
+
+def _coef(t2, coeffs, closed):
+    """Series below SERIES_ANGLE2, closed form (a function of theta) above; the closed form sees
+    a dummy angle 1 where the series is taken, so neither branch ever forms NaN."""
+    small = t2 < SERIES_ANGLE2
+    safe = ca.if_else(small, 1.0, t2)
+    return ca.if_else(small, _horner(t2, coeffs), closed(ca.sqrt(safe)))
+
+
+def _so3_exp_sym(phi):
+    t2 = ca.dot(phi, phi)
+    A = _coef(t2, _A_COEFFS, lambda t: ca.sin(t) / t)
+    B = _coef(t2, _B_COEFFS, lambda t: (1 - ca.cos(t)) / (t * t))
+    C = _coef(t2, _C_COEFFS, lambda t: (t - ca.sin(t)) / (t * t * t))
+    P = _hat(phi)
+    P2 = ca.mtimes(P, P)
+    return ca.SX.eye(3) + A * P + B * P2, ca.SX.eye(3) + B * P + C * P2  # R, J_l
+
+
+def _se3_exp_sym(xi):
+    R, Jl = _so3_exp_sym(xi[3:6])
+    return R, ca.mtimes(Jl, xi[0:3])
+
+
+def _se3_log_sym(R, t):
+    """(R, t) near the identity -> xi (6). The angle comes from atan2(|w|, c) with w the skew part
+    and c = (tr R - 1) / 2; below |w|^2 = GN_LOG_SERIES_SIN2 (and c > 0) theta / sin(theta) is its
+    series in sin^2. Valid for rotation angles below pi (the solver only takes the log of
+    T_s^-1 T_e, the small endpoint spread)."""
+    w = 0.5 * ca.vertcat(R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1])
+    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1)
+    s2 = ca.dot(w, w)
+    small = ca.logic_and(s2 < GN_LOG_SERIES_SIN2, c > 0)
+    safe = ca.if_else(small, 1.0, s2)
+    s = ca.sqrt(safe)
+    factor = ca.if_else(small, 1 + s2 / 6 + 3 * s2 * s2 / 40 + 5 * s2 * s2 * s2 / 112, ca.atan2(s, c) / s)
+    phi = factor * w
+    t2 = ca.dot(phi, phi)
+    D = _coef(t2, _D_COEFFS, lambda th: 1 / (th * th) - (1 + ca.cos(th)) / (2 * th * ca.sin(th)))
+    P = _hat(phi)
+    Jl_inv = ca.SX.eye(3) - 0.5 * P + D * ca.mtimes(P, P)
+    return ca.vertcat(ca.mtimes(Jl_inv, t), phi)
+
+
+def _pose_sym(m):
+    """12 numbers (R row-major, t) -> (R 3x3, t 3)."""
+    return ca.reshape(m[0:9], 3, 3).T, m[9:12]
+
+
+def _pose_flat(R, t):
+    return ca.vertcat(ca.reshape(R.T, 9, 1), t)
+
+
+def pose_to_flat(T):
+    """(..., 4, 4) -> (..., 12): R row-major, then t (the symbolic functions' pose layout)."""
+    T = np.asarray(T, dtype=np.float64)
+    return np.concatenate([T[..., :3, :3].reshape(T.shape[:-2] + (9,)), T[..., :3, 3]], axis=-1)
+
+
+def flat_to_pose(m):
+    m = np.asarray(m, dtype=np.float64)
+    T = np.zeros(m.shape[:-1] + (4, 4))
+    T[..., :3, :3] = m[..., :9].reshape(m.shape[:-1] + (3, 3))
+    T[..., :3, 3] = m[..., 9:12]
+    T[..., 3, 3] = 1.0
+    return T
+
+
+@functools.lru_cache(maxsize=None)
+def _mid_function() -> ca.Function:
+    """(x 12, T_s 12, T_e 12) -> (mid pose 12, d mid / dx 12x12, start 12, end 12)."""
+    x, ms, me = ca.SX.sym("x", NUM_VARS), ca.SX.sym("Ts", 12), ca.SX.sym("Te", 12)
+    Rs0, ts0 = _pose_sym(ms)
+    Re0, te0 = _pose_sym(me)
+    Ra, ta = _se3_exp_sym(x[0:6])
+    Rb, tb = _se3_exp_sym(x[6:12])
+    Rs, ts = ca.mtimes(Ra, Rs0), ca.mtimes(Ra, ts0) + ta  # exp(a) T_s
+    Re, te = ca.mtimes(Rb, Re0), ca.mtimes(Rb, te0) + tb  # exp(b) T_e
+    Rd = ca.mtimes(Rs.T, Re)  # T_s^-1 T_e
+    td = ca.mtimes(Rs.T, te - ts)
+    half = 0.5 * _se3_log_sym(Rd, td)
+    Rh, th = _se3_exp_sym(half)
+    Rm, tm = ca.mtimes(Rs, Rh), ca.mtimes(Rs, th) + ts  # T_s exp(xi / 2)
+    mid = _pose_flat(Rm, tm)
+    return ca.Function("gn_mid", [x, ms, me], [mid, ca.jacobian(mid, x), _pose_flat(Rs, ts), _pose_flat(Re, te)],
+                       ["x", "Ts", "Te"], ["mid", "dmid", "start", "end"])
+
+
+@functools.lru_cache(maxsize=None)
+def _match_function() -> ca.Function:
+    """(M_k 12, M_j 12, cam 8 = fx_k fy_k cx_k cy_k fx_j fy_j cx_j cy_j, obs 7 = u v u' v' D_k D_j beta)
+    -> (r 3, dr/dM_k 3x12, dr/dM_j 3x12)."""
+    mk, mj, cam, obs = ca.SX.sym("Mk", 12), ca.SX.sym("Mj", 12), ca.SX.sym("cam", 8), ca.SX.sym("obs", 7)
+    Rk, tk = _pose_sym(mk)
+    Rj, tj = _pose_sym(mj)
+    u, v, u1, v1, Dk, Dj, beta = (obs[i] for i in range(7))
+    Xj = Dj * ca.vertcat((u1 - cam[6]) / cam[4], (v1 - cam[7]) / cam[5], 1)  # lifted in camera j
+    Xw = ca.mtimes(Rj.T, Xj - tj)
+    Xk = ca.mtimes(Rk, Xw) + tk
+    z = Xk[2]
+    r = ca.vertcat(cam[0] * Xk[0] / z + cam[2] - u, cam[1] * Xk[1] / z + cam[3] - v, beta * (z - Dk) / Dk)
+    return ca.Function("gn_match", [mk, mj, cam, obs], [r, ca.jacobian(r, mk), ca.jacobian(r, mj)],
+                       ["Mk", "Mj", "cam", "obs"], ["r", "dr_dMk", "dr_dMj"])
+
+
+@functools.lru_cache(maxsize=None)
+def _prior_function() -> ca.Function:
+    """(M 12, G 12, sigma 2 = sigma_t sigma_r) -> (r 6, dr/dM 6x12): the pose prior rows of the
+    module docstring, camera centres c = -R^T t first, then the rotation log."""
+    m, g, sig = ca.SX.sym("M", 12), ca.SX.sym("G", 12), ca.SX.sym("sigma", 2)
+    Rm, tm = _pose_sym(m)
+    Rg, tg = _pose_sym(g)
+    dc = -ca.mtimes(Rm.T, tm) + ca.mtimes(Rg.T, tg)
+    phi = _se3_log_sym(ca.mtimes(Rm, Rg.T), ca.SX.zeros(3))[3:6]
+    r = ca.vertcat(dc / sig[0], phi / sig[1])
+    return ca.Function("gn_prior", [m, g, sig], [r, ca.jacobian(r, m)], ["M", "G", "sigma"], ["r", "dr_dM"])
+
+
+@functools.lru_cache(maxsize=64)
+def _mapped(kind: str, n: int) -> ca.Function:
+    base = {"mid": _mid_function, "match": _match_function, "prior": _prior_function}[kind]()
+    return base.map(n, "serial")
+
+
+# ---------------------------------------------------------------------------------------------
+# Problem assembly
+# ---------------------------------------------------------------------------------------------
+
+
+def sample_depth(depth_map, pts):
+    """Bilinear read of an (H, W) depth map at (M, 2) points in our pixel convention (centres at
+    +0.5); points outside the image give NaN. Returns (M,). (``losses.reprojection.bilinear_fwd``,
+    which L_reproj differentiates.)"""
+    return bilinear_fwd(np.asarray(depth_map, dtype=np.float64), pts)[0]
+
+
+@dataclass
+class PairObservations:
+    """Matches of frame k with frame j and the rendered depths at them (valid ones only)."""
+
+    k: int
+    j: int
+    pts_k: np.ndarray  # (M, 2)
+    pts_j: np.ndarray  # (M, 2)
+    depth_k: np.ndarray  # (M,) D_k(p) > GN_MIN_DEPTH
+    depth_j: np.ndarray  # (M,) D_j(p')
+    dropped: int = 0  # matches dropped for a zero, negative, non-finite or out-of-image depth
+
+
+def pair_observations(k, j, pts_k, pts_j, depth_k, depth_j) -> PairObservations:
+    """Observations of one pair; matches whose depth (either side) is not finite and above
+    GN_MIN_DEPTH are dropped (a render with nothing there, or a point behind the camera), and
+    counted in ``dropped``. depth_k, depth_j: (M,) depths at the points, or (H, W) depth maps
+    (then read bilinearly at the points)."""
+    pts_k = np.asarray(pts_k, dtype=np.float64).reshape(-1, 2)
+    pts_j = np.asarray(pts_j, dtype=np.float64).reshape(-1, 2)
+    if pts_k.shape != pts_j.shape:
+        raise ValueError(f"pts_k and pts_j must both be (M, 2); got {pts_k.shape} and {pts_j.shape}")
+    dk = np.asarray(depth_k, dtype=np.float64)
+    dj = np.asarray(depth_j, dtype=np.float64)
+    dk = sample_depth(dk, pts_k) if dk.ndim == 2 else dk.reshape(-1)
+    dj = sample_depth(dj, pts_j) if dj.ndim == 2 else dj.reshape(-1)
+    if dk.shape != (len(pts_k),) or dj.shape != (len(pts_k),):
+        raise ValueError(f"depth_k and depth_j must be (M,) = ({len(pts_k)},) or (H, W) maps; got {np.shape(depth_k)} "
+                         f"and {np.shape(depth_j)}")
+    with np.errstate(invalid="ignore"):
+        ok = np.isfinite(dk) & np.isfinite(dj) & (dk > GN_MIN_DEPTH) & (dj > GN_MIN_DEPTH) \
+            & np.isfinite(pts_k).all(1) & np.isfinite(pts_j).all(1)
+    return PairObservations(int(k), int(j), pts_k[ok], pts_j[ok], dk[ok], dj[ok], int((~ok).sum()))
+
+
+@dataclass
+class PoseProblem:
+    """The endpoints to refine, the intrinsics and the observations (module docstring)."""
+
+    starts: np.ndarray  # (N, 4, 4) exposure-start cam_T_world
+    ends: np.ndarray  # (N, 4, 4) exposure-end cam_T_world
+    Ks: np.ndarray  # (N, 3, 3)
+    pairs: list  # list[PairObservations]
+    fixed: tuple = (0,)  # frames held fixed (the gauge)
+    prior_poses: np.ndarray = None  # (N, 4, 4) cam_T_world the free mid poses are held near; None: no prior
+    prior_sigma: tuple = (1.0, 1.0)  # (sigma_t world units, sigma_r radians) of the prior rows
+
+    def __post_init__(self):
+        for name in ("starts", "ends"):
+            T = np.ascontiguousarray(getattr(self, name), dtype=np.float64)
+            if T.ndim != 3 or T.shape[1:] != (4, 4):
+                raise ValueError(f"PoseProblem.{name} must be (N, 4, 4) cam_T_world poses; got {T.shape}")
+            check_rigid(T, f"PoseProblem.{name}")
+            setattr(self, name, T)
+        N = len(self.starts)
+        if self.ends.shape[0] != N:
+            raise ValueError(f"PoseProblem.starts and ends must have the same N; got {N} and {len(self.ends)}")
+        self.Ks = np.ascontiguousarray(self.Ks, dtype=np.float64)
+        if self.Ks.shape != (N, 3, 3) or not np.all(np.isfinite(self.Ks)):
+            raise ValueError(f"PoseProblem.Ks must be finite (N, 3, 3) = ({N}, 3, 3); got {self.Ks.shape}")
+        self.fixed = tuple(int(f) for f in self.fixed)
+        if any(not 0 <= f < N for f in self.fixed):
+            raise ValueError(f"PoseProblem.fixed must hold frame indices in [0, {N}); got {self.fixed}")
+        for p in self.pairs:
+            if not isinstance(p, PairObservations):
+                raise TypeError(f"PoseProblem.pairs must hold PairObservations (pair_observations); got "
+                                f"{type(p).__name__}")
+            if not (0 <= p.k < N and 0 <= p.j < N) or p.k == p.j:
+                raise ValueError(f"PoseProblem: pair ({p.k}, {p.j}) must name two different frames in [0, {N})")
+        if self.prior_poses is not None:
+            G = np.ascontiguousarray(self.prior_poses, dtype=np.float64)
+            if G.shape != (N, 4, 4):
+                raise ValueError(f"PoseProblem.prior_poses must be (N, 4, 4) = ({N}, 4, 4) cam_T_world poses; got "
+                                 f"{G.shape}")
+            check_rigid(G, "PoseProblem.prior_poses")
+            self.prior_poses = G
+            sig = tuple(float(v) for v in self.prior_sigma)
+            if len(sig) != 2 or not all(math.isfinite(v) and v > 0 for v in sig):
+                raise ValueError(f"PoseProblem.prior_sigma must be two finite numbers > 0 (sigma_t in world units, "
+                                 f"sigma_r in radians); got {self.prior_sigma!r}")
+            self.prior_sigma = sig
+        self.free = np.array([k for k in range(N) if k not in self.fixed], dtype=np.int64)
+        self._build_obs()
+
+    @property
+    def num_frames(self) -> int:
+        return len(self.starts)
+
+    @property
+    def num_params(self) -> int:
+        return NUM_VARS * len(self.free)
+
+    @property
+    def num_matches(self) -> int:
+        return int(self._ks.shape[0])
+
+    @property
+    def dropped(self) -> int:
+        return int(sum(p.dropped for p in self.pairs))
+
+    def _build_obs(self):
+        pairs = [p for p in self.pairs if len(p.pts_k)]
+        if pairs:
+            self._ks = np.concatenate([np.full(len(p.pts_k), p.k) for p in pairs])
+            self._js = np.concatenate([np.full(len(p.pts_k), p.j) for p in pairs])
+            obs = np.concatenate([np.column_stack([p.pts_k, p.pts_j, p.depth_k, p.depth_j]) for p in pairs])
+        else:
+            self._ks = self._js = np.zeros(0, dtype=np.int64)
+            obs = np.zeros((0, 6))
+        intr = np.stack([self.Ks[:, 0, 0], self.Ks[:, 1, 1], self.Ks[:, 0, 2], self.Ks[:, 1, 2]], axis=1)  # (N, 4)
+        self._cam = np.concatenate([intr[self._ks], intr[self._js]], axis=1)  # (M, 8)
+        self._obs = obs
+        self._flat_s = pose_to_flat(self.starts)
+        self._flat_e = pose_to_flat(self.ends)
+
+    # ------------------------------------------------------------------ evaluation
+    def full_x(self, x_free):
+        """(12 F,) unknowns of the free frames -> (N, 12) with zeros for the fixed ones."""
+        x = np.zeros((self.num_frames, NUM_VARS))
+        x[self.free] = np.asarray(x_free, dtype=np.float64).reshape(len(self.free), NUM_VARS)
+        return x
+
+    def poses(self, x_free):
+        """(starts, ends, mids) (N, 4, 4) each at the unknowns x."""
+        x = self.full_x(x_free)
+        f = _mapped("mid", self.num_frames)
+        mid, _, s, e = f(x.T, self._flat_s.T, self._flat_e.T)
+        return flat_to_pose(np.array(s).T), flat_to_pose(np.array(e).T), flat_to_pose(np.array(mid).T)
+
+    @property
+    def num_prior_rows(self) -> int:
+        """Rows of the pose prior: 6 per free frame when ``prior_poses`` is given, else 0."""
+        return 0 if self.prior_poses is None else 6 * len(self.free)
+
+    def residuals(self, x_free, beta, spread_sigma, jacobian=True):
+        """Residual vector and its Jacobian at x: (r (3M + 6F + P,), J (3M + 6F + P, 12F) or None).
+        Rows: 3 per match (u, v, depth) in match order, then 6 spread-prior rows per free frame,
+        then (with ``prior_poses``) P = 6 pose-prior rows per free frame."""
+        N, F, M, P = self.num_frames, len(self.free), self.num_matches, self.num_prior_rows
+        x = self.full_x(x_free)
+        mid, dmid, _, _ = _mapped("mid", N)(x.T, self._flat_s.T, self._flat_e.T)
+        mid = np.array(mid).T  # (N, 12)
+        dmid = np.array(dmid).reshape(12, N, 12).transpose(1, 0, 2)  # (N, 12 out, 12 in)
+        xf = x[self.free]
+        prior = (xf[:, 6:] - xf[:, :6]) / spread_sigma  # (F, 6)
+        r = np.empty(3 * M + 6 * F + P)
+        r[3 * M:3 * M + 6 * F] = prior.reshape(-1)
+        if P:
+            sig = np.tile(np.asarray(self.prior_sigma, dtype=np.float64)[:, None], (1, F))
+            rp, jp = _mapped("prior", F)(mid[self.free].T, pose_to_flat(self.prior_poses[self.free]).T, sig)
+            r[3 * M + 6 * F:] = np.array(rp).T.reshape(-1)
+        J = None
+        if M:
+            obs = np.concatenate([self._obs, np.full((M, 1), float(beta))], axis=1)
+            rr, jk, jj = _mapped("match", M)(mid[self._ks].T, mid[self._js].T, self._cam.T, obs.T)
+            r[:3 * M] = np.array(rr).T.reshape(-1)
+        if not jacobian:
+            return r, None
+        col = np.full(N, -1, dtype=np.int64)
+        col[self.free] = np.arange(F)
+        J = np.zeros((3 * M + 6 * F + P, NUM_VARS * F))
+        if M:
+            jk = np.array(jk).reshape(3, M, 12).transpose(1, 0, 2)  # (M, 3, 12) dr/dM_k
+            jj = np.array(jj).reshape(3, M, 12).transpose(1, 0, 2)
+            gk = np.einsum("mab,mbc->mac", jk, dmid[self._ks])  # (M, 3, 12) dr/dx_k
+            gj = np.einsum("mab,mbc->mac", jj, dmid[self._js])
+            rows = np.arange(3 * M).reshape(M, 3)
+            for g, frames in ((gk, self._ks), (gj, self._js)):
+                c = col[frames]
+                keep = c >= 0
+                ri = rows[keep][:, :, None]  # (m, 3, 1)
+                ci = (NUM_VARS * c[keep])[:, None, None] + np.arange(12)[None, None, :]  # (m, 1, 12)
+                J[ri, ci] = g[keep]
+        eye = np.eye(6) / spread_sigma
+        for i in range(F):
+            J[3 * M + 6 * i:3 * M + 6 * i + 6, NUM_VARS * i:NUM_VARS * i + 6] = -eye
+            J[3 * M + 6 * i:3 * M + 6 * i + 6, NUM_VARS * i + 6:NUM_VARS * i + 12] = eye
+        if P:
+            jp = np.array(jp).reshape(6, F, 12).transpose(1, 0, 2)  # (F, 6, 12) dr/dM
+            gp = np.einsum("fab,fbc->fac", jp, dmid[self.free])  # (F, 6, 12) dr/dx
+            base = 3 * M + 6 * F
+            for i in range(F):
+                J[base + 6 * i:base + 6 * i + 6, NUM_VARS * i:NUM_VARS * i + 12] = gp[i]
+        return r, J
+
+
+# ---------------------------------------------------------------------------------------------
+# Robust loss
+# ---------------------------------------------------------------------------------------------
+
+
+def robust_cost(r, kind, scale):
+    """sum_i rho(r_i) (module docstring) and the IRLS weights rho'(r_i) / r_i."""
+    r = np.asarray(r, dtype=np.float64)
+    a = np.abs(r)
+    if kind == "none":
+        return 0.5 * float(np.sum(r * r)), np.ones_like(r)
+    if kind == "huber":
+        inside = a <= scale
+        rho = np.where(inside, 0.5 * r * r, scale * a - 0.5 * scale * scale)
+        w = np.where(inside, 1.0, scale / np.maximum(a, scale))
+        return float(np.sum(rho)), w
+    if kind == "cauchy":
+        q = (r / scale) ** 2
+        return float(np.sum(0.5 * scale * scale * np.log1p(q))), 1.0 / (1.0 + q)
+    raise ValueError(f"robust loss must be one of {ROBUST_LOSSES}; got {kind!r}")
+
+
+def _cost(problem, r, config):
+    n = 3 * problem.num_matches
+    data, w = robust_cost(r[:n], config.robust, config.robust_scale)
+    with np.errstate(over="ignore", invalid="ignore"):
+        total = data + 0.5 * float(np.sum(r[n:] ** 2))
+    return (total if np.isfinite(total) else math.inf), np.concatenate([w, np.ones(len(r) - n)])
+
+
+# ---------------------------------------------------------------------------------------------
+# The solver
+# ---------------------------------------------------------------------------------------------
+
+
+@dataclass
+class GaussNewtonResult:
+    status: str  # converged_cost | converged_step | max_iters | damping_limit | no_unknowns
+    x: np.ndarray  # (N, 12) endpoint perturbations (a, b) found; zeros for fixed frames
+    starts: np.ndarray  # (N, 4, 4) refined exposure starts exp(a) T_s
+    ends: np.ndarray  # (N, 4, 4) refined exposure ends exp(b) T_e
+    mids: np.ndarray  # (N, 4, 4) their geodesic midpoints
+    costs: list  # robust cost: initial, then after every iteration
+    times: list  # wall seconds since the start, at each entry of costs
+    damping: list  # lambda after every iteration
+    iterations: int
+    accepted: int
+    covariance: np.ndarray  # (12F, 12F) pinv of the final normal matrix
+    rank: int  # numerical rank of the final normal matrix
+    num_params: int  # 12 F
+    num_matches: int
+    dropped: int  # matches dropped for invalid depths (PoseProblem.dropped)
+    free: np.ndarray = field(default_factory=lambda: np.zeros(0, dtype=np.int64))
+
+    @property
+    def wall_time(self) -> float:
+        return self.times[-1] if self.times else 0.0
+
+
+@njit(cache=True)
+def _normal_equations_kernel(J, w, r):
+    """H = J^T W J, g = J^T W r over the non-zero entries of each row (a match row touches at
+    most 24 columns, a prior row 2), in a fixed order."""
+    n_rows, n = J.shape
+    H = np.zeros((n, n))
+    g = np.zeros(n)
+    cols = np.empty(n, dtype=np.int64)
+    for i in range(n_rows):
+        m = 0
+        for c in range(n):
+            if J[i, c] != 0.0:
+                cols[m] = c
+                m += 1
+        wi = w[i]
+        for a in range(m):
+            ca_ = cols[a]
+            va = wi * J[i, ca_]
+            g[ca_] += va * r[i]
+            for b in range(m):
+                H[ca_, cols[b]] += va * J[i, cols[b]]
+    return H, g
+
+
+def _normal_equations(J, w, r):
+    """H = J^T W J, g = J^T W r (a Numba loop over the sparse rows: LAPACK/BLAS calls on these
+    small matrices took 0.1-0.3 s each on a machine whose cores are shared, ~1000 x their cost)."""
+    return _normal_equations_kernel(np.ascontiguousarray(J), np.ascontiguousarray(w), np.ascontiguousarray(r))
+
+
+def _solve_damped(H, g, lam):
+    """dx of (H + lam D) dx = -g, D = diag(H) floored; scaled by 1/lam when lam > 1 so that a huge
+    lam never overflows. The matrix is symmetric positive definite (H is PSD, D > 0): Cholesky."""
+    d = np.diag(H).copy()
+    d = np.maximum(d, DAMPING_DIAG_FLOOR * max(float(d.max(initial=0.0)), 1.0))
+    if lam > 1.0:
+        A, b = H / lam + np.diag(d), -g / lam
+    else:
+        A, b = H + lam * np.diag(d), -g
+    dx, ok = cholesky_solve(np.ascontiguousarray(A), np.ascontiguousarray(b))
+    if not ok or not np.all(np.isfinite(dx)):
+        dx = np.linalg.lstsq(A, b, rcond=None)[0]
+    return dx
+
+
+def _covariance(H):
+    """(pinv(H), numerical rank) from one symmetric eigendecomposition."""
+    if H.size == 0:
+        return np.zeros((0, 0)), 0
+    s, V = np.linalg.eigh(0.5 * (H + H.T))
+    top = float(np.max(np.abs(s)))
+    keep = s > COVARIANCE_RCOND * top if top > 0 else np.zeros(len(s), dtype=bool)
+    inv = np.where(keep, 1.0 / np.where(keep, s, 1.0), 0.0)
+    return (V * inv) @ V.T, int(keep.sum())
+
+
+def solve(problem: PoseProblem, config: GaussNewtonConfig = None, x0=None) -> GaussNewtonResult:
+    """Levenberg-Marquardt with IRLS on the problem's residuals (module docstring). x0: optional
+    (12 F,) start (default 0: the endpoints the problem was built with)."""
+    config = GaussNewtonConfig() if config is None else config
+    if not isinstance(config, GaussNewtonConfig):
+        raise TypeError(f"config must be a GaussNewtonConfig; got {type(config).__name__}")
+    if not isinstance(problem, PoseProblem):
+        raise TypeError(f"problem must be a PoseProblem; got {type(problem).__name__}")
+    t0 = time.perf_counter()
+    n = problem.num_params
+    x = np.zeros(n) if x0 is None else np.array(x0, dtype=np.float64).reshape(-1)
+    if x.shape != (n,) or not np.all(np.isfinite(x)):
+        raise ValueError(f"x0 must be a finite ({n},) vector (12 per free frame); got shape {x.shape}")
+    args = (config.beta, config.spread_sigma)
+    r, J = problem.residuals(x, *args)
+    cost, w = _cost(problem, r, config)
+    if not math.isfinite(cost):
+        raise ValueError("the initial residuals are not finite (a lifted point behind a camera?); check the poses "
+                         "and depths the problem was built with")
+    costs, times, damping = [cost], [time.perf_counter() - t0], []
+    lam = min(max(float(config.damping_init), LM_DAMPING_MIN), LM_DAMPING_MAX)
+    status, iters, accepted = ("no_unknowns" if n == 0 else "max_iters"), 0, 0
+    while n and iters < config.max_iters:
+        iters += 1
+        H, g = _normal_equations(J, w, r)
+        step_ok = False
+        while True:
+            dx = _solve_damped(H, g, lam)
+            x_new = x + dx
+            r_new, J_new = problem.residuals(x_new, *args)
+            cost_new, w_new = _cost(problem, r_new, config)
+            if cost_new < cost:
+                step_ok = True
+                lam = max(lam * config.damping_down, LM_DAMPING_MIN)
+                break
+            if lam >= LM_DAMPING_MAX:
+                break
+            lam = min(lam * config.damping_up, LM_DAMPING_MAX)
+        damping.append(lam)
+        if not step_ok:
+            costs.append(cost)
+            times.append(time.perf_counter() - t0)
+            status = "damping_limit"
+            break
+        accepted += 1
+        decrease = (cost - cost_new) / max(cost, np.finfo(float).tiny)
+        x, r, J, cost, w = x_new, r_new, J_new, cost_new, w_new
+        costs.append(cost)
+        times.append(time.perf_counter() - t0)
+        if decrease < config.ftol:
+            status = "converged_cost"
+            break
+        if np.linalg.norm(dx) < config.xtol * (np.linalg.norm(x) + config.xtol):
+            status = "converged_step"
+            break
+    cov, rank = _covariance(_normal_equations(J, w, r)[0])
+    starts, ends, mids = problem.poses(x)
+    times[-1] = time.perf_counter() - t0
+    return GaussNewtonResult(status=status, x=problem.full_x(x), starts=starts, ends=ends, mids=mids, costs=costs,
+                             times=times, damping=damping, iterations=iters, accepted=accepted, covariance=cov,
+                             rank=rank, num_params=n, num_matches=problem.num_matches, dropped=problem.dropped,
+                             free=problem.free.copy())
+
+
+# ---------------------------------------------------------------------------------------------
+# A synthetic problem with known answer (examples/gn_vs_scipy.py, notebooks/05_pose_refinement)
+# ---------------------------------------------------------------------------------------------
+
+
+def toy_problem(num_frames=4, num_points=150, pixel_noise=0.0, outlier_fraction=0.0, rot_error=0.01,
+                trans_error=0.03, spread=1e-3, gaps=(1, 2), seed=0, width=160, height=90):
+    """(problem, true mid poses (N, 4, 4)): a camera sliding sideways past points 4-7 units away,
+    matches of pairs (k, k + g) with exact depths, ``pixel_noise`` px of noise on p, a fraction of
+    p replaced by uniform outliers, and every free frame's endpoints moved by one random left
+    perturbation (rotation std ``rot_error`` rad, translation std ``trans_error``)."""
+    from d2gs_np.geometry.se3 import se3_exp
+
+    rng = np.random.default_rng(seed)
+    f = 0.75 * width
+    K = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
+    mids = np.stack([se3_exp(np.r_[0.15 * k, 0.02 * k, 0.0, 0.0, 0.03 * k, 0.01 * k]) for k in range(num_frames)])
+    d = rng.normal(0, spread, (num_frames, 6))
+    starts, ends = se3_exp(-d) @ mids, se3_exp(d) @ mids
+    X = np.c_[rng.uniform(-2.5, 2.5, (num_points, 2)), rng.uniform(4.0, 7.0, num_points)]
+
+    def project(T):
+        Xc = X @ T[:3, :3].T + T[:3, 3]
+        p = Xc @ K.T
+        return p[:, :2] / p[:, 2:], Xc[:, 2]
+
+    pairs = []
+    for k in range(num_frames):
+        for g in gaps:
+            j = k + g
+            if j >= num_frames:
+                continue
+            pk, dk = project(mids[k])
+            pj, dj = project(mids[j])
+            pk = pk + rng.normal(0, pixel_noise, pk.shape) if pixel_noise else pk
+            bad = rng.random(num_points) < outlier_fraction
+            pk[bad] = rng.uniform([0, 0], [width, height], (int(bad.sum()), 2))
+            pairs.append(pair_observations(k, j, pk, pj, dk, dj))
+    P = np.stack([np.eye(4) if k == 0 else se3_exp(np.r_[rng.normal(0, trans_error, 3), rng.normal(0, rot_error, 3)])
+                  for k in range(num_frames)])
+    return PoseProblem(P @ starts, P @ ends, np.stack([K] * num_frames), pairs), mids
