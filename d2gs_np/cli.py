@@ -416,11 +416,9 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
-class CheckFailed(Exception):
-    """A check ran and failed (``d2gs refcheck compare``): exit status 1, unlike a usage error's 2."""
-
-
 def main(argv=None):
+    from d2gs_np.refcheck.cli import CheckFailed
+
     args = build_parser().parse_args(argv)
     try:
         args.func(args)

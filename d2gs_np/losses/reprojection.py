@@ -17,17 +17,16 @@ depth):
 ``cycle_fwd`` / ``cycle_bwd`` hold one direction (lift from a, compare in b) on plain arrays, with
 the gradient on both depths; the poses and pixels are constants. A row is valid when both depths
 are finite and > 0 and the lifted point lies in front of camera b (X_z > GN_MIN_DEPTH); an invalid
-match contributes nothing (its residual is reported as NaN) and is counted. ``bilinear_fwd`` /
-``bilinear_bwd`` read a depth map at pixels (centres at +0.5, docs/conventions.md §2) and scatter
-a gradient back onto it.
+match contributes nothing (its residual is reported as NaN) and is counted. The depth maps are read
+at the matched pixels by ``geometry.sampling.bilinear_fwd`` / ``bilinear_bwd``.
 """
 from __future__ import annotations
 
 import numpy as np
 
-from d2gs_np.constants import GN_MIN_DEPTH, PIXEL_CENTER_OFFSET
+from d2gs_np.constants import GN_MIN_DEPTH
 
-__all__ = ["cycle_fwd", "cycle_bwd", "bilinear_fwd", "bilinear_bwd", "cauchy"]
+__all__ = ["cycle_fwd", "cycle_bwd", "cauchy"]
 
 
 def cauchy(r, scale):
@@ -87,32 +86,3 @@ def cycle_bwd(saved, v_cost=1.0):
     v_d_a[ok] = g[:, 0] * dux + g[:, 1] * duy + g[:, 2] * dz
     v_d_b[ok] = g[:, 2] * (-beta * z / d_b ** 2)
     return v_d_a, v_d_b
-
-
-def bilinear_fwd(image, pts):
-    """Bilinear read of an (H, W) map at (M, 2) pixels (centres at +0.5); NaN outside the
-    centres' hull or where a tap is NaN. Returns (values (M,), saved)."""
-    image = np.asarray(image)
-    pts = np.asarray(pts, dtype=np.float64).reshape(-1, 2)
-    H, W = image.shape
-    x, y = pts[:, 0] - PIXEL_CENTER_OFFSET, pts[:, 1] - PIXEL_CENTER_OFFSET
-    inside = (x >= 0) & (y >= 0) & (x <= W - 1) & (y <= H - 1)
-    x0 = np.clip(np.floor(np.where(inside, x, 0)).astype(np.int64), 0, max(W - 2, 0))
-    y0 = np.clip(np.floor(np.where(inside, y, 0)).astype(np.int64), 0, max(H - 2, 0))
-    x1, y1 = np.minimum(x0 + 1, W - 1), np.minimum(y0 + 1, H - 1)
-    fx, fy = np.where(inside, x - x0, 0.0), np.where(inside, y - y0, 0.0)
-    idx = np.stack([y0 * W + x0, y0 * W + x1, y1 * W + x0, y1 * W + x1], axis=1)  # (M, 4) flat taps
-    w = np.stack([(1 - fx) * (1 - fy), fx * (1 - fy), (1 - fx) * fy, fx * fy], axis=1)
-    taps = image.reshape(-1)[idx]
-    vals = w[:, 0] * taps[:, 0] + w[:, 1] * taps[:, 1] + w[:, 2] * taps[:, 2] + w[:, 3] * taps[:, 3]
-    vals = np.where(inside, vals, np.nan)
-    return vals, {"idx": idx, "w": w, "inside": inside, "shape": (H, W), "dtype": image.dtype}
-
-
-def bilinear_bwd(saved, v_vals):
-    """(H, W) gradient of <v_vals, bilinear_fwd(image, pts)> on the image (zero where a value
-    is NaN or the gradient is 0)."""
-    v = np.where(saved["inside"] & np.isfinite(v_vals), v_vals, 0.0)
-    H, W = saved["shape"]
-    out = np.bincount(saved["idx"].ravel(), weights=(saved["w"] * v[:, None]).ravel(), minlength=H * W)
-    return out.reshape(H, W).astype(saved["dtype"], copy=False)

@@ -79,7 +79,7 @@ from d2gs_np.constants import (  # noqa: F401 (LM_DAMPING_MAX is re-exported for
 )
 from d2gs_np.geometry.se3 import check_rigid
 from d2gs_np.geometry.so3 import _A_COEFFS, _B_COEFFS, _C_COEFFS, _D_COEFFS
-from d2gs_np.losses.reprojection import bilinear_fwd
+from d2gs_np.geometry.sampling import bilinear_fwd
 from d2gs_np.pose.linalg import cholesky_solve
 
 __all__ = [
@@ -283,7 +283,7 @@ def _mapped(kind: str, n: int) -> ca.Function:
 
 def sample_depth(depth_map, pts):
     """Bilinear read of an (H, W) depth map at (M, 2) points in our pixel convention (centres at
-    +0.5); points outside the image give NaN. Returns (M,). (``losses.reprojection.bilinear_fwd``,
+    +0.5); points outside the image give NaN. Returns (M,). (``geometry.sampling.bilinear_fwd``,
     which L_reproj differentiates.)"""
     return bilinear_fwd(np.asarray(depth_map, dtype=np.float64), pts)[0]
 

@@ -1,13 +1,17 @@
 """The ``d2gs refcheck`` subcommand: export, compare, run, gsplat (docs/refcheck.md §1).
 
 Registered by ``d2gs_np.cli.build_parser`` through ``add_refcheck_parser``. A comparison that
-runs and fails raises ``d2gs_np.cli.CheckFailed`` (exit status 1); usage errors exit 2.
+runs and fails raises ``CheckFailed`` (exit status 1); usage errors exit 2.
 """
 from __future__ import annotations
 
 from pathlib import Path
 
-__all__ = ["add_refcheck_parser"]
+__all__ = ["add_refcheck_parser", "CheckFailed"]
+
+
+class CheckFailed(Exception):
+    """A check ran and failed (``d2gs refcheck compare``): exit status 1, unlike a usage error's 2."""
 
 
 def _cmd_refcheck_export(args):
@@ -26,7 +30,6 @@ def _cmd_refcheck_run(args):
 
 
 def _cmd_refcheck_compare(args):
-    from d2gs_np.cli import CheckFailed
     from d2gs_np.refcheck import compare_dirs, format_table, parse_rtol
 
     rows, ok = compare_dirs(args.dir, args.theirs, rtol=parse_rtol(args.rtol), cases=args.cases,
@@ -37,7 +40,6 @@ def _cmd_refcheck_compare(args):
 
 
 def _cmd_refcheck_gsplat(args):
-    from d2gs_np.cli import CheckFailed
     from d2gs_np.refcheck import compare_dirs, format_table, parse_rtol
     from d2gs_np.refcheck.gsplat_runner import GsplatUnavailable, run_gsplat
 

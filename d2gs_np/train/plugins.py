@@ -10,7 +10,7 @@ pauses the training stopwatch around the plugin (evaluation is not training time
 plugins fire when the schedule step enters a new period (``state.entered_period``), so they
 follow a time budget (docs/method.md §7).
 
-The default list (``default_plugins``), in order:
+The default list (``train/setup.py``, ``default_plugins``), in order:
 1. ``Evaluate``: held-out PSNR on the model the optimiser produced, before pruning and
    densification change it;
 2. ``GradientStatistics``: accumulates densification's screen-space gradients (before pruning
@@ -41,8 +41,7 @@ from d2gs_np.train.optimise import size_extent
 from d2gs_np.train.rows import SETS, num_rows
 from d2gs_np.train.state import TrainState, entered_period
 
-__all__ = ["Plugin", "Evaluate", "GradientStatistics", "Prune", "Densify", "NeighbourRefresh", "DepthMemory",
-           "default_plugins"]
+__all__ = ["Plugin", "Evaluate", "GradientStatistics", "Prune", "Densify", "NeighbourRefresh", "DepthMemory"]
 
 
 class Plugin:
@@ -306,23 +305,3 @@ class DepthMemory(Plugin):
             if key.startswith("depth_"):
                 f = int(key[len("depth_"):])
                 self.maps[f] = (np.asarray(value, dtype=np.float64), np.asarray(state[f"scale_{f}"], dtype=np.float64))
-
-
-def default_plugins(scene, config: ExperimentConfig, extent: float, note=None, run_dir=None) -> list:
-    """The plugins a run has by its config, in order (module docstring); the pose solver last,
-    when ``train.pose_solver.use_pose_solver`` says so (its correspondence cache goes to ``run_dir``)."""
-    tc = config.train
-    plugins = []
-    if tc.eval_every:
-        plugins.append(Evaluate(scene, tc.eval_every, tc.eval_frames))
-    if config.densify.enabled:
-        plugins.append(GradientStatistics(config.densify.absgrad))
-    if tc.prune_every:
-        plugins.append(Prune(config, extent, [f.mask for f in scene.frames]))
-    if config.densify.enabled:
-        plugins.append(Densify(config, extent, max(f.width for f in scene.frames), note))
-    from d2gs_np.train.pose_solver import PoseSolver, use_pose_solver  # it imports this module
-
-    if use_pose_solver(scene, config, note):
-        plugins.append(PoseSolver(scene, config, run_dir, note))
-    return plugins

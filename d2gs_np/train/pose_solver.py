@@ -42,7 +42,7 @@ from pathlib import Path
 
 import numpy as np
 
-from d2gs_np.evaluation import metrics
+from d2gs_np.geometry import trajectory
 from d2gs_np.blur import endpoints as traj_model
 from d2gs_np.constants import POSE_DEPTH_ALPHA_MIN
 from d2gs_np.pose.correspond import correspondences
@@ -249,7 +249,7 @@ class PoseSolver(Plugin):
         return Es @ model.poses_ref, Ee @ model.poses_ref, C
 
     def _ate(self, mids):
-        return None if self.gt is None else float(metrics.ate(mids, self.gt))
+        return None if self.gt is None else float(trajectory.ate(mids, self.gt))
 
 
 def write_mid_poses(state: TrainState, mids, frames, C=None) -> TrainState:
@@ -276,7 +276,7 @@ def hold_trajectory_scale(before, after, anchor=0):
     if not (size_a > 0 and size_b > 0 and np.isfinite(size_a) and np.isfinite(size_b)):
         return after.copy()
     lam = size_b / size_a  # the similarity x -> lam x + (1 - lam) c_anchor, no rotation
-    return metrics.sim3_apply_to_poses(lam, np.eye(3), (1.0 - lam) * c_a[anchor], after)
+    return trajectory.sim3_apply_to_poses(lam, np.eye(3), (1.0 - lam) * c_a[anchor], after)
 
 
 def se3_interpolate_batch(starts, ends):

@@ -30,7 +30,8 @@ from d2gs_np.losses.entropy import _entropy_fwd, entropy_bwd
 from d2gs_np.losses.frequency import _frequency_fwd, frequency_bwd, target_spectrum
 from d2gs_np.losses.frequency import warm_up as _frequency_warm_up
 from d2gs_np.losses.photometric import photometric_bwd, photometric_fwd
-from d2gs_np.losses.reprojection import bilinear_bwd, bilinear_fwd, cycle_bwd, cycle_fwd
+from d2gs_np.geometry.sampling import bilinear_bwd, bilinear_fwd
+from d2gs_np.losses.reprojection import cycle_bwd, cycle_fwd
 from d2gs_np.losses.smoothness import _spatial_fwd, _time_fwd, spatial_bwd, time_bwd
 from d2gs_np.losses.ssim import SSIM_WINDOW
 from d2gs_np.constants import POSE_DEPTH_ALPHA_MIN

@@ -38,7 +38,8 @@ from d2gs_np.train.log import RunLog, Stopwatch, psnr_from_mse
 from d2gs_np.train.model import Model, frame_render_bwd, frame_render_fwd
 from d2gs_np.train.optimise import (centre_endpoint_grads, learning_rates, optimiser_step, position_extent,
                                     scene_extent)
-from d2gs_np.train.plugins import DepthMemory, default_plugins
+from d2gs_np.train.plugins import DepthMemory
+from d2gs_np.train.setup import default_plugins
 from d2gs_np.train.schedule import TargetCache, schedule_step, training_progress
 from d2gs_np.train.stages import Planner, make_stages
 from d2gs_np.train.state import TrainState

@@ -31,7 +31,7 @@ import numpy as np
 from d2gs_np.data.io import write_scene
 from d2gs_np.data.scene import Frame, Scene
 from d2gs_np.geometry.camera import make_intrinsics
-from d2gs_np.evaluation.metrics import ate
+from d2gs_np.geometry.trajectory import ate
 from d2gs_np.video.decode import check_decode_args, read_frames
 from d2gs_np.video.masks import MaskConfig, static_motion_masks
 from d2gs_np.video.segment import border_share, track_groups

@@ -6,7 +6,8 @@ import numpy as np
 import pytest
 
 from d2gs_np.geometry.se3 import se3_exp
-from d2gs_np.losses.reprojection import bilinear_bwd, bilinear_fwd, cauchy, cycle_bwd, cycle_fwd
+from d2gs_np.geometry.sampling import bilinear_bwd, bilinear_fwd
+from d2gs_np.losses.reprojection import cauchy, cycle_bwd, cycle_fwd
 
 K = np.array([[120.0, 0.0, 80.0], [0.0, 118.0, 45.0], [0.0, 0.0, 1.0]])
 
