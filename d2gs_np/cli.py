@@ -36,7 +36,7 @@ def _int_at_least(lo):
 def _finite_float(lo=-math.inf, positive=False):
     """An argparse type: a finite number >= lo (> 0 with ``positive``); NaN and inf are refused here,
     before any work, rather than deep in a run."""
-    want = "a finite number > 0" if positive else f"a finite number >= {lo:g}" if lo > -math.inf else "a finite number"
+    want = "a finite number" + (" > 0" if positive else f" >= {lo:g}" if lo > -math.inf else "")
 
     def parse(text):
         try:
@@ -285,7 +285,7 @@ def _cmd_report(args):
     check_output_path(out, "--out" if args.out else "report file", is_file=True)
     for run in args.runs:  # a run without metrics.json is evaluated, which writes it
         if Path(run).is_dir() and not (Path(run) / "metrics.json").exists():
-            check_output_path(Path(run) / "metrics.json", f"run {run}: its metrics file", is_file=True)
+            check_output_path(Path(run) / "metrics.json", "metrics file", is_file=True)
     path = write_report(args.runs, out, num_frames=args.frames)
     print(f"wrote {path}")
 
@@ -465,7 +465,8 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("--variants", nargs="+", default=None, help="only these variants of the experiment")
     ex.add_argument("--budget", type=_SECONDS, default=None, help="seconds of training per cell")
     ex.add_argument("--iters", type=_COUNT, default=None, help="steps per cell (default: the config's)")
-    ex.add_argument("--size", type=_finite_float(positive=True), default=1.0, help="image size factor on the scene's default size")
+    ex.add_argument("--size", type=_finite_float(positive=True), default=1.0,
+                    help="image size factor on the scene's default size")
     ex.add_argument("--frames", type=_COUNT, default=None, help="frames per scene (default: the scene's)")
     ex.add_argument("--jobs", type=_COUNT, default=1, help="cells at once on the local scheduler (default 1)")
     ex.add_argument("--threads", type=_COUNT, default=1, help="Numba threads per cell (default 1)")
