@@ -8,11 +8,58 @@ from __future__ import annotations
 
 import argparse
 import json
+import math
 import sys
 import time
 from pathlib import Path
 
 import numpy as np
+
+from d2gs_np.train.checkpoint import check_output_path
+
+IMAGE_SUFFIXES = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff")  # what save_image (OpenCV) writes
+
+
+def _int_at_least(lo):
+    """An argparse type: an integer >= lo; argparse names the flag in its error (status 2)."""
+    def parse(text):
+        try:
+            v = int(text)
+        except ValueError:
+            v = None
+        if v is None or v < lo:
+            raise argparse.ArgumentTypeError(f"must be an integer >= {lo}; got {text!r}")
+        return v
+    return parse
+
+
+def _finite_float(lo=-math.inf, positive=False):
+    """An argparse type: a finite number >= lo (> 0 with ``positive``); NaN and inf are refused here,
+    before any work, rather than deep in a run."""
+    want = "a finite number" + (" > 0" if positive else f" >= {lo:g}" if lo > -math.inf else "")
+
+    def parse(text):
+        try:
+            v = float(text)
+        except ValueError:
+            v = math.nan
+        if not math.isfinite(v) or v < lo or (positive and v <= 0):
+            raise argparse.ArgumentTypeError(f"must be {want}; got {text!r}")
+        return v
+    return parse
+
+
+_COUNT = _int_at_least(1)  # steps, frames, pixels, jobs ...
+_SEED = _int_at_least(0)  # NumPy's generators take seeds >= 0
+_SECONDS = _finite_float(positive=True)
+
+
+class _Parser(argparse.ArgumentParser):
+    """argparse with the CLI's own error format: one line, ``d2gs CMD: error: ...``, status 2
+    (argparse would print the usage block first)."""
+
+    def error(self, message):
+        self.exit(2, f"{self.prog}: error: {message} (see '{self.prog} --help')\n")
 
 
 def _cmd_make_scene(args):
@@ -22,6 +69,11 @@ def _cmd_make_scene(args):
     if args.preset not in PRESETS and args.preset not in SUITE:
         raise ValueError(f"--preset must be a suite scene {sorted(SUITE)} or a regression preset "
                          f"{sorted(PRESETS)}; got {args.preset!r}")
+    check_output_path(args.out, "output scene folder")
+    out = Path(args.out)
+    if out.is_dir() and any(out.iterdir()) and not args.overwrite:
+        raise ValueError(f"scene folder {out} is not empty; pass --overwrite to replace its scene, or choose a new "
+                         "folder")
     suite = args.preset in SUITE
     overrides = {}
     for arg, suite_field, regression_field in (
@@ -74,6 +126,7 @@ def _cmd_train(args):
     from d2gs_np.data.io import load_scene
     from d2gs_np.train.trainer import Trainer
 
+    check_output_path(args.out, "--out")
     cfg = _load_config(args)  # config errors before the scene is read
     scene = load_scene(args.scene)
     trainer = Trainer(scene, cfg, args.out, resume=args.resume)
@@ -85,8 +138,6 @@ def _cmd_train(args):
 def _cmd_eval(args):
     from d2gs_np.evaluation.runs import evaluate_run
 
-    if args.test_pose_opt < 0:
-        raise SystemExit(f"--test-pose-opt must be >= 0 steps; got {args.test_pose_opt}")
     result = evaluate_run(args.run, args.scene, test_pose_steps=args.test_pose_opt)
     print(json.dumps(result, indent=2))
     print(f"wrote {Path(args.run) / 'metrics.json'}")
@@ -99,9 +150,16 @@ def _read_pose_file(path):
     from d2gs_np.geometry.se3 import check_rigid
 
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"--pose {path} is a folder; pass a pose JSON file")
     if not path.exists():
         raise FileNotFoundError(f"pose file {path} does not exist")
-    data = json.loads(path.read_text())
+    try:
+        data = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"pose file {path} is not valid JSON ({e}); fix the syntax") from None
+    if not isinstance(data, dict):
+        raise ValueError(f"pose file {path} must hold a JSON object with 'cam_T_world' or 'transform_matrix'")
     if "cam_T_world" in data:
         T = np.asarray(data["cam_T_world"], dtype=np.float64)
     elif "transform_matrix" in data:
@@ -118,9 +176,14 @@ def _cmd_render(args):
 
     if not 0.0 <= args.time <= 1.0:
         raise ValueError(f"--time must be in [0, 1]; got {args.time}")
+    if Path(args.out).suffix.lower() not in IMAGE_SUFFIXES:
+        raise ValueError(f"--out {args.out} needs an image extension ({', '.join(IMAGE_SUFFIXES)}); "
+                         f"e.g. --out {Path(args.out).with_suffix('.png')}")
+    check_output_path(args.out, "--out", is_file=True)
+    pose = _read_pose_file(args.pose) if args.pose else None
     model = load_run(args.run).model
     k = int(np.argmin(np.abs(model.times - args.time)))  # nearest training frame: its camera
-    pose = _read_pose_file(args.pose) if args.pose else model.mid_pose(k)
+    pose = model.mid_pose(k) if pose is None else pose
     img = model.render(pose, args.time, model.Ks[k], model.widths[k], model.heights[k])
     save_image(args.out, img)
     print(f"wrote {args.out}")
@@ -135,6 +198,7 @@ def _cmd_export_ply(args):
 
     if not 0.0 <= args.time <= 1.0:
         raise ValueError(f"--time must be in [0, 1]; got {args.time}")
+    check_output_path(args.out, "output file", is_file=True)
     model = load_run(args.run).model
     scene_params = {n: v for n, v in model.params.items() if n.startswith(SCENE_PREFIXES)}
     ri, _ = render_inputs_fwd(scene_params, args.time, model.config.deform)
@@ -158,6 +222,7 @@ def _parse_size(text):
 def _cmd_import_video(args):
     from d2gs_np.video.importer import ImportConfig, import_video
 
+    check_output_path(args.out, "output scene folder")
     cfg = ImportConfig(stride=args.stride, max_frames=args.max_frames,
                        size=None if args.size is None else _parse_size(args.size), focal=args.focal,
                        start=args.start, end=args.end, masks=not args.no_masks)
@@ -185,17 +250,19 @@ def _cmd_demo(args):
         budget = DEMO_BUDGET  # the schedule of DEMO_ITERS steps runs on the budget's clock
     if budget is not None and not budget > 0:
         raise ValueError(f"--time-budget must be > 0 seconds; got {budget}")
+    check_output_path(args.out, "--out")
     out = Path(args.out)
     scene_dir = out / "scene"
+    ns = argparse.Namespace(scene=str(scene_dir), out=str(out / "run"), config=args.config, iters=iters,
+                            time_budget=budget, seed=args.seed, quiet=False, blur=None, dynamic=None,
+                            n=None, resume=False)
+    _load_config(ns)  # a bad --config fails here, before the scene is made
     t0 = time.perf_counter()
     if args.preset in SUITE:
         write_suite_scene(scene_dir, args.preset, args.seed, overwrite=True, **size)
     else:
         write_synthetic_scene(scene_dir, args.preset, args.seed, overwrite=True, **size)
     print(f"[demo] made the built-in {args.preset!r} scene ({size}) in {time.perf_counter() - t0:.1f}s")
-    ns = argparse.Namespace(scene=str(scene_dir), out=str(out / "run"), config=args.config, iters=iters,
-                            time_budget=budget, seed=args.seed, quiet=False, blur=None, dynamic=None,
-                            n=None, resume=False)
     _cmd_train(ns)
     result = evaluate_run(out / "run")
     plot_error_vs_time(out / "run", out / "error_vs_time.png")
@@ -215,6 +282,10 @@ def _cmd_report(args):
     if len(args.runs) > 1 and args.out is None:
         raise ValueError("several runs need --out FILE.html for their side-by-side report")
     out = args.out or str(Path(args.runs[0]) / "report.html")
+    check_output_path(out, "--out" if args.out else "report file", is_file=True)
+    for run in args.runs:  # a run without metrics.json is evaluated, which writes it
+        if Path(run).is_dir() and not (Path(run) / "metrics.json").exists():
+            check_output_path(Path(run) / "metrics.json", "metrics file", is_file=True)
     path = write_report(args.runs, out, num_frames=args.frames)
     print(f"wrote {path}")
 
@@ -224,6 +295,7 @@ def _cmd_experiment(args):
 
     if args.budget is None and args.iters is None:
         raise ValueError("give --budget SECONDS or --iters N per cell")
+    check_output_path(args.out, "--out")
     cmd = "d2gs experiment " + " ".join(sys.argv[2:]) if len(sys.argv) > 2 else ""
     records = run_experiment(args.name, args.out, args.scenes, args.seeds, budget=args.budget, iters=args.iters,
                              size=args.size, jobs=args.jobs, threads=args.threads, scheduler=args.scheduler,
@@ -247,7 +319,7 @@ DEMO_QUICK_ITERS = 80  # a smoke run: every stage, the blur model and the report
 
 
 def build_parser() -> argparse.ArgumentParser:
-    p = argparse.ArgumentParser(
+    p = _Parser(
         prog="d2gs",
         description="D2GS on the CPU: sharp dynamic 3D Gaussians and camera trajectories from motion-blurred "
                     "monocular video. The method is explained in docs/method.md, the scene folder in "
@@ -271,13 +343,13 @@ def build_parser() -> argparse.ArgumentParser:
     d.add_argument("--preset", default=DEMO_PRESET,
                    help="the scene: a suite scene (photo_room, wall_disk, cube_sign, crossing, big_mover) or a "
                         f"regression preset (static, sharp, dynamic). Default {DEMO_PRESET}")
-    d.add_argument("--iters", type=int, default=None,
+    d.add_argument("--iters", type=_COUNT, default=None,
                    help=f"training steps (default: a {DEMO_ITERS}-step schedule on a {DEMO_BUDGET:.0f} s budget)")
-    d.add_argument("--time-budget", type=float, default=None,
+    d.add_argument("--time-budget", type=_SECONDS, default=None,
                    help=f"seconds of training; the schedule completes within it (default {DEMO_BUDGET:.0f}, none "
                         "with --quick or --iters)")
     d.add_argument("--config", default=None, help="experiment config JSON")
-    d.add_argument("--seed", type=int, default=0)
+    d.add_argument("--seed", type=_SEED, default=0)
     d.set_defaults(func=_cmd_demo)
 
     m = sub.add_parser("make-scene", help="generate a synthetic scene folder with ground truth "
@@ -290,15 +362,15 @@ def build_parser() -> argparse.ArgumentParser:
                    help="a suite scene (photo_room, wall_disk, cube_sign, crossing, big_mover; photographs, "
                         "realistic motion and pose error) or a regression preset (static, sharp, dynamic: "
                         "the project's older, easier scenes). Default dynamic")
-    m.add_argument("--seed", type=int, default=0)
-    m.add_argument("--frames", type=int, default=None)
-    m.add_argument("--width", type=int, default=None)
-    m.add_argument("--height", type=int, default=None)
-    m.add_argument("--exposure", type=float, default=None,
+    m.add_argument("--seed", type=_SEED, default=0)
+    m.add_argument("--frames", type=_COUNT, default=None)
+    m.add_argument("--width", type=_COUNT, default=None)
+    m.add_argument("--height", type=_COUNT, default=None)
+    m.add_argument("--exposure", type=_finite_float(0.0), default=None,
                    help="exposure / frame interval in [0, 1] (0: sharp video)")
-    m.add_argument("--rot-noise-deg", type=float, default=None,
+    m.add_argument("--rot-noise-deg", type=_finite_float(0.0), default=None,
                    help="pose error in rotation: RMS angle in degrees (suite); per-axis std (regression presets)")
-    m.add_argument("--trans-noise", type=float, default=None,
+    m.add_argument("--trans-noise", type=_finite_float(0.0), default=None,
                    help="pose error in translation: RMS fraction of the scene depth (suite); per-axis std as a "
                         "fraction of the scene scale (regression presets)")
     m.add_argument("--overwrite", action="store_true", help="replace an existing scene folder")
@@ -312,13 +384,13 @@ def build_parser() -> argparse.ArgumentParser:
                                    "initialisation (docs/dataset_format.md §8).")
     v.add_argument("video", help="video file (.mp4, .avi, .mov, ...) or folder of images (name order)")
     v.add_argument("out", help="output scene folder")
-    v.add_argument("--stride", type=int, default=1, help="keep every K-th frame (default 1)")
-    v.add_argument("--max-frames", type=int, default=None, help="stop after this many kept frames")
+    v.add_argument("--stride", type=_COUNT, default=1, help="keep every K-th frame (default 1)")
+    v.add_argument("--max-frames", type=_COUNT, default=None, help="stop after this many kept frames")
     v.add_argument("--size", default=None, help="resize frames to WIDTHxHEIGHT pixels (default: as decoded)")
-    v.add_argument("--focal", type=float, default=None,
+    v.add_argument("--focal", type=_finite_float(positive=True), default=None,
                    help="focal length in pixels at the output size (default: a 65 deg field of view, refined)")
-    v.add_argument("--start", type=float, default=None, help="start time in seconds (video files)")
-    v.add_argument("--end", type=float, default=None, help="end time in seconds (video files)")
+    v.add_argument("--start", type=_finite_float(0.0), default=None, help="start time in seconds (video files)")
+    v.add_argument("--end", type=_finite_float(0.0), default=None, help="end time in seconds (video files)")
     v.add_argument("--no-masks", action="store_true", help="write empty motion masks (a static scene)")
     v.add_argument("--overwrite", action="store_true", help="write into an existing, non-empty folder")
     v.set_defaults(func=_cmd_import_video)
@@ -330,17 +402,17 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("scene", help="scene folder (docs/dataset_format.md)")
     t.add_argument("--out", required=True, help="run folder (checkpoints, logs)")
     t.add_argument("--config", default=None, help="experiment config JSON (see ExperimentConfig)")
-    t.add_argument("--iters", type=int, default=None)
-    t.add_argument("--time-budget", type=float, default=None, help="seconds of training before a clean stop")
-    t.add_argument("--seed", type=int, default=None)
+    t.add_argument("--iters", type=_COUNT, default=None)
+    t.add_argument("--time-budget", type=_SECONDS, default=None, help="seconds of training before a clean stop")
+    t.add_argument("--seed", type=_SEED, default=None)
     t.add_argument("--blur", choices=["auto", "on", "off"], default=None,
                    help="blur model (default auto; docs/method.md §4, §9)")
     t.add_argument("--dynamic", choices=["auto", "on", "off"], default=None,
                    help="dynamic set (default auto; docs/method.md §2, §9)")
-    t.add_argument("--n", type=int, default=None, help="virtual views per blurry frame (docs/method.md §4)")
+    t.add_argument("--n", type=_COUNT, default=None, help="virtual views per blurry frame (docs/method.md §4)")
     t.add_argument("--pose-solver", choices=["auto", "on", "off"], default=None,
                    help="pose refinement between Adam steps (docs/method.md §5); auto: unless the poses are trusted")
-    t.add_argument("--pose-every", type=int, default=None, help="schedule steps between pose solver calls")
+    t.add_argument("--pose-every", type=_COUNT, default=None, help="schedule steps between pose solver calls")
     t.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.npz")
     t.add_argument("--quiet", action="store_true")
     t.set_defaults(func=_cmd_train)
@@ -351,7 +423,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "docs/dataset_format.md §6).")
     e.add_argument("run")
     e.add_argument("--scene", default=None, help="scene folder (default: the one the run was trained on)")
-    e.add_argument("--test-pose-opt", type=int, default=0, metavar="N",
+    e.add_argument("--test-pose-opt", type=_int_at_least(0), default=0, metavar="N",
                    help="also score novel views after refining each test pose on the frozen scene for N steps "
                         "(the BARF / BAD-Gaussians protocol; reported as nvs_pose_opt beside nvs). Default 0: off")
     e.set_defaults(func=_cmd_eval)
@@ -361,7 +433,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "model, axes and pixel centres: docs/conventions.md §2; pose files in scene "
                                    "convention: docs/dataset_format.md §2.")
     r.add_argument("run")
-    r.add_argument("--time", type=float, required=True, help="normalised time in [0, 1]")
+    r.add_argument("--time", type=_finite_float(), required=True, help="normalised time in [0, 1]")
     r.add_argument("--pose", default=None, help="JSON with cam_T_world or transform_matrix (OpenGL c2w); "
                    "default: the optimised pose of the nearest training frame")
     r.add_argument("--out", required=True, help="output PNG")
@@ -375,7 +447,7 @@ def build_parser() -> argparse.ArgumentParser:
                                     "Evaluation protocol: docs/method.md §10.")
     rp.add_argument("runs", nargs="+", help="run folders (trained; evaluated if RUN/metrics.json is missing)")
     rp.add_argument("--out", default=None, help="output HTML (default RUN/report.html for one run)")
-    rp.add_argument("--frames", type=int, default=3, help="frames shown per run (default 3)")
+    rp.add_argument("--frames", type=_COUNT, default=3, help="frames shown per run (default 3)")
     rp.set_defaults(func=_cmd_report)
 
     ex = sub.add_parser("experiment", help="run a sweep of training runs on Dask and write one table "
@@ -389,16 +461,17 @@ def build_parser() -> argparse.ArgumentParser:
     ex.add_argument("name", help="baselines | ablation | progressive | virtual-views | suite | suite-ablation")
     ex.add_argument("--out", required=True, help="output folder (scenes, runs, table)")
     ex.add_argument("--scenes", nargs="+", required=True, help="suite scenes or regression presets")
-    ex.add_argument("--seeds", nargs="+", type=int, default=[0])
+    ex.add_argument("--seeds", nargs="+", type=_SEED, default=[0])
     ex.add_argument("--variants", nargs="+", default=None, help="only these variants of the experiment")
-    ex.add_argument("--budget", type=float, default=None, help="seconds of training per cell")
-    ex.add_argument("--iters", type=int, default=None, help="steps per cell (default: the config's)")
-    ex.add_argument("--size", type=float, default=1.0, help="image size factor on the scene's default size")
-    ex.add_argument("--frames", type=int, default=None, help="frames per scene (default: the scene's)")
-    ex.add_argument("--jobs", type=int, default=1, help="cells at once on the local scheduler (default 1)")
-    ex.add_argument("--threads", type=int, default=1, help="Numba threads per cell (default 1)")
+    ex.add_argument("--budget", type=_SECONDS, default=None, help="seconds of training per cell")
+    ex.add_argument("--iters", type=_COUNT, default=None, help="steps per cell (default: the config's)")
+    ex.add_argument("--size", type=_finite_float(positive=True), default=1.0,
+                    help="image size factor on the scene's default size")
+    ex.add_argument("--frames", type=_COUNT, default=None, help="frames per scene (default: the scene's)")
+    ex.add_argument("--jobs", type=_COUNT, default=1, help="cells at once on the local scheduler (default 1)")
+    ex.add_argument("--threads", type=_COUNT, default=1, help="Numba threads per cell (default 1)")
     ex.add_argument("--scheduler", default=None, help="address of a dask.distributed scheduler (default: local)")
-    ex.add_argument("--retries", type=int, default=1, help="retries of a failed cell (default 1)")
+    ex.add_argument("--retries", type=_int_at_least(0), default=1, help="retries of a failed cell (default 1)")
     ex.add_argument("--config", default=None, help="base experiment config JSON for every cell")
     ex.set_defaults(func=_cmd_experiment)
 
@@ -408,7 +481,7 @@ def build_parser() -> argparse.ArgumentParser:
                                    "layout (log-scales, opacity logits, wxyz quaternions, RGB colours; "
                                    "docs/method.md §2).")
     x.add_argument("run")
-    x.add_argument("--time", type=float, required=True)
+    x.add_argument("--time", type=_finite_float(), required=True)
     x.add_argument("out", help="output .ply")
     x.set_defaults(func=_cmd_export_ply)
     from d2gs_np.refcheck.cli import add_refcheck_parser  # the reference-check kit (docs/refcheck.md)
@@ -420,13 +493,14 @@ def main(argv=None):
     from d2gs_np.refcheck.cli import CheckFailed
 
     args = build_parser().parse_args(argv)
+    command = " ".join(c for c in (args.command, getattr(args, "refcheck_command", None)) if c)
     try:
         args.func(args)
     except CheckFailed as e:
         print(f"d2gs {e}", file=sys.stderr)
         return 1
-    except (ValueError, TypeError, FileNotFoundError) as e:
-        print(f"d2gs {args.command}: error: {e}", file=sys.stderr)
+    except (ValueError, TypeError, OSError) as e:  # OSError: FileNotFoundError, PermissionError, a full disk ...
+        print(f"d2gs {command}: error: {e}", file=sys.stderr)
         return 2
     return 0
 

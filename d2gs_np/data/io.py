@@ -132,10 +132,16 @@ def _read_json(path):
         raise ValueError(f"{path} must hold a JSON object with a 'frames' list; got a {type(data).__name__}")
     frames = data.get("frames")
     if not isinstance(frames, list):
-        raise ValueError(f"{path} must have a 'frames' list (one entry per image); it has none")
+        has = "it has none" if frames is None else f"its 'frames' is a JSON {_json_kind(frames)}"
+        raise ValueError(f"{path} must have a 'frames' list (one entry per image); {has}")
     if len(frames) == 0:
         raise ValueError(f"{path} has an empty 'frames' list; a scene needs at least one frame")
     return data
+
+
+def _json_kind(value):
+    """The JSON name of a parsed value's type, for messages ("object" for a dict)."""
+    return {dict: "object", str: "string", bool: "boolean", int: "number", float: "number"}.get(type(value), "value")
 
 
 def _check_camera_model(d, where):
@@ -260,6 +266,8 @@ def _parse_file(root, path, defaults):
 # ------------------------------------------------------------------------- PNG
 def _png_header(path, label, what):
     """Existence and PNG header check -> (width, height, bit_depth, color_type)."""
+    if path.is_dir():
+        raise ValueError(f"{label}: {what} path {path} is a folder, not a PNG file; fix the path in the JSON")
     if not path.is_file():
         raise FileNotFoundError(f"{label}: {what} file {path} does not exist; fix the path in the JSON or add the file")
     with open(path, "rb") as fh:
@@ -336,7 +344,8 @@ def load_scene(path, load_images=True) -> Scene:
     # 2. files exist, headers agree with the intrinsics
     ply_rel = optional.pop("ply_file_path")
     if ply_rel is not None and not (root / ply_rel).is_file():
-        raise FileNotFoundError(f"{TRANSFORMS_FILE}: 'ply_file_path' {ply_rel!r} does not exist in {root}; "
+        state = "is a folder" if (root / ply_rel).is_dir() else "does not exist"
+        raise FileNotFoundError(f"{TRANSFORMS_FILE}: 'ply_file_path' {ply_rel!r} {state} in {root}; "
                                 "fix the path or remove the field")
     for spec in train + test:
         w, h = spec.fields["width"], spec.fields["height"]

@@ -15,6 +15,14 @@ _PROPS = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2", "opacit
           "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"]
 
 
+def _format_of(header_lines):
+    """The format a PLY header declares ("ASCII", "binary big-endian", ...), for messages."""
+    fmt = next((line.split()[1] for line in header_lines if len(line.split()) > 1 and line.split()[0] == "format"),
+               None)
+    names = {"ascii": "ASCII", "binary_big_endian": "binary big-endian"}
+    return names.get(fmt, f"format {fmt!r}" if fmt else "unknown-format")
+
+
 def write_ply(path, means, log_scales, quats, opacity_logits, colors):
     """Write Gaussians (N rows each) to ``path``; colors are plain RGB, converted to SH DC."""
     means = np.asarray(means, dtype=np.float64)
@@ -45,7 +53,8 @@ def read_ply(path) -> dict:
         raise ValueError(f"{path} is not a PLY file (no end_header)")
     header = raw[:end].decode("ascii").splitlines()
     if "format binary_little_endian 1.0" not in header:
-        raise ValueError(f"{path}: only binary little-endian PLY is supported")
+        raise ValueError(f"{path}: {_format_of(header)} PLY is not supported; only binary little-endian PLY is read "
+                         "(export-ply writes it)")
     props = [line.split()[-1] for line in header if line.startswith("property")]
     n = int(next(line.split()[-1] for line in header if line.startswith("element vertex")))
     data = np.frombuffer(raw[end + len(b"end_header\n"):], dtype="<f4", count=n * len(props)).reshape(n, len(props))
@@ -94,7 +103,9 @@ def read_points_ply(path):
         raise ValueError(f"{path} is not a PLY file (no 'ply' magic or end_header); write it with write_points_ply")
     header = raw[:end].decode("ascii", errors="replace").splitlines()
     if "format binary_little_endian 1.0" not in header:
-        raise ValueError(f"{path}: only binary little-endian PLY point clouds are supported; re-save it so")
+        raise ValueError(f"{path}: {_format_of(header)} PLY point clouds are not supported; re-save it as binary "
+                         "little-endian PLY (e.g. Open3D write_point_cloud(..., write_ascii=False), or "
+                         "d2gs_np.data.ply.write_points_ply)")
     fields, n, in_vertex = [], None, False
     for line in header:
         parts = line.split()

@@ -27,7 +27,7 @@ from d2gs_np.data.io import load_scene
 from d2gs_np.geometry.camera import camera_center
 from d2gs_np.pose.fit import PoseFitConfig, fit_pose
 from d2gs_np.scene.render_inputs import render_inputs_fwd
-from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint
+from d2gs_np.train.checkpoint import atomic_write_text, check_output_path, load_checkpoint
 from d2gs_np.train.model import SCENE_PREFIXES, Model
 from d2gs_np.train.trainer import CHECKPOINT_NAME, FINAL_NAME
 
@@ -46,6 +46,8 @@ class LoadedRun:
 def load_run(run_dir) -> LoadedRun:
     """The finished model of a run (final.npz, else the latest checkpoint)."""
     run_dir = Path(run_dir)
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ValueError(f"run folder {run_dir} is a file; pass the folder given to d2gs train --out")
     if not run_dir.is_dir():
         raise FileNotFoundError(f"run folder {run_dir} does not exist; train first (d2gs train SCENE --out {run_dir})")
     path = run_dir / FINAL_NAME
@@ -170,6 +172,7 @@ def evaluate_run(run_dir, scene_dir=None, test_pose_steps: int = 0) -> dict:
     """Load a run and its scene, evaluate, write RUN/metrics.json atomically, return the metrics.
     ``test_pose_steps`` > 0 adds novel views after test-pose refinement (``nvs_pose_opt``)."""
     run = load_run(run_dir)
+    check_output_path(Path(run_dir) / "metrics.json", "metrics file", is_file=True)  # before the evaluation
     scene_dir = scene_dir or run.meta.get("scene_root")
     if scene_dir is None:
         raise ValueError("the run does not record its scene folder; pass it explicitly (d2gs eval RUN --scene SCENE)")

@@ -1,6 +1,6 @@
 """L_reproj as a loss on rendered depth (docs/method.md §5 residuals, §6 the term).
 
-The pose solver (``optim/gauss_newton.py``) refines the cameras on the cycle residuals of matched
+The pose solver (``pose/gauss_newton.py``) refines the cameras on the cycle residuals of matched
 pixels; the same residuals, with the poses held, are a loss on the rendered depths, and through
 them on the Gaussians (Eq. 10 enters the total with lambda_reproj). For a match ``p_a`` in frame a
 and ``p_b`` in frame b, mid-exposure poses ``M_a``, ``M_b`` (cam_T_world), intrinsics ``K_a``,

@@ -16,14 +16,18 @@ class CheckFailed(Exception):
 
 def _cmd_refcheck_export(args):
     from d2gs_np.refcheck import export
+    from d2gs_np.train.checkpoint import check_output_path
 
+    check_output_path(args.dir, "export folder")
     entries = export(args.dir, cases=args.cases, dtype=args.dtype)
     print(f"wrote {len(entries)} cases and cases.json to {args.dir} (format: docs/refcheck.md)")
 
 
 def _cmd_refcheck_run(args):
     from d2gs_np.refcheck import run
+    from d2gs_np.train.checkpoint import check_output_path
 
+    check_output_path(args.out, "output folder")
     run(args.dir, args.out, renderer=args.renderer, dtype=args.dtype, cases=args.cases)
     print(f"wrote our results for {args.dir} to {args.out}; check them with 'd2gs refcheck compare "
           f"{args.dir} {args.out}'")
@@ -43,7 +47,10 @@ def _cmd_refcheck_gsplat(args):
     from d2gs_np.refcheck import compare_dirs, format_table, parse_rtol
     from d2gs_np.refcheck.gsplat_runner import GsplatUnavailable, run_gsplat
 
+    from d2gs_np.train.checkpoint import check_output_path
+
     out = args.out if args.out else str(Path(args.dir) / "gsplat")
+    check_output_path(out, "--out" if args.out else "output folder")
     try:
         covered = run_gsplat(args.dir, out, cases=args.cases, dtype=args.dtype)
     except GsplatUnavailable as e:

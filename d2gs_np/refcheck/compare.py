@@ -141,6 +141,8 @@ def compare_dirs(ours_dir, theirs_dir, rtol=None, cases=None, tolerances=None):
     dtype; "float32" for a float32 implementation run on a float64 export).
     """
     index = read_index(ours_dir)
+    if Path(theirs_dir).exists() and not Path(theirs_dir).is_dir():
+        raise ValueError(f"results folder {theirs_dir} is a file; pass the folder of NAME.npz results")
     if not Path(theirs_dir).is_dir():
         raise FileNotFoundError(f"results folder {theirs_dir} does not exist")
     if tolerances not in (None, "float64", "float32"):

@@ -63,15 +63,29 @@ def write_results(directory, name, outputs, gradients):
 def read_case(path):
     """{section: {name: array}} of a case file (sections absent from the file are empty dicts)."""
     path = Path(path)
+    if path.is_dir():
+        raise ValueError(f"refcheck case file {path} is a folder; each case is one NAME.npz file")
     if not path.is_file():
         raise FileNotFoundError(f"refcheck case file {path} does not exist")
     out = {sec: {} for sec in SECTIONS}
-    with np.load(path, allow_pickle=False) as z:
+    try:
+        z = np.load(path, allow_pickle=False)
+    except Exception:  # BadZipFile, EOFError, pickled data ...: NumPy's text would advise allow_pickle
+        raise ValueError(f"refcheck case file {path} is not a readable .npz (truncated, corrupt or another "
+                         "format); write it again with np.savez of plain numeric arrays") from None
+    with z:
         for key in z.files:
             sec, _, name = key.partition(".")
             if sec not in out or not name:
                 raise ValueError(f"{path}: key {key!r} is not <section>.<name> with section in {SECTIONS}")
-            out[sec][name] = z[key]
+            try:
+                out[sec][name] = z[key]
+            except ValueError:  # an object array (needs pickle) cannot be read safely
+                raise ValueError(f"{path}: array {key!r} holds Python objects (an object array); write plain "
+                                 "numeric arrays (float or int) with np.savez") from None
+            except Exception:  # a member cut short or damaged inside the zip
+                raise ValueError(f"{path}: array {key!r} is unreadable (truncated or corrupt file); write the file "
+                                 "again") from None
     return out
 
 
@@ -109,15 +123,29 @@ def write_index(directory, dtype, entries):
 def read_index(directory):
     """The parsed ``cases.json`` of an export folder (clear errors for a missing or foreign one)."""
     path = Path(directory) / INDEX
+    if Path(directory).exists() and not Path(directory).is_dir():
+        raise ValueError(f"refcheck folder {directory} is a file, not a folder; pass the folder made by "
+                         "'d2gs refcheck export DIR'")
     if not Path(directory).is_dir():
         raise FileNotFoundError(f"refcheck folder {directory} does not exist; create it with "
                                 f"'d2gs refcheck export {directory}'")
     if not path.is_file():
         raise FileNotFoundError(f"{path} does not exist: {directory} is not a refcheck export "
                                 f"(make one with 'd2gs refcheck export DIR')")
-    index = json.loads(path.read_text())
+    try:
+        index = json.loads(path.read_text(encoding="utf-8"))
+    except (json.JSONDecodeError, UnicodeDecodeError) as e:
+        raise ValueError(f"{path} is not valid JSON ({e}); export the folder again "
+                         f"('d2gs refcheck export {directory}')") from None
+    if not isinstance(index, dict):
+        raise ValueError(f"{path} holds a JSON {type(index).__name__}, not a refcheck index (an object); export "
+                         f"the folder again ('d2gs refcheck export {directory}')")
     if index.get("format") != FORMAT:
         raise ValueError(f"{path} has format {index.get('format')!r}, expected {FORMAT!r}")
     if index.get("version") != VERSION:
         raise ValueError(f"{path} has version {index.get('version')!r}; this code reads version {VERSION}")
+    if not isinstance(index.get("cases"), list) or not all(isinstance(e, dict) and isinstance(e.get("name"), str)
+                                                           for e in index["cases"]):
+        raise ValueError(f"{path}: 'cases' must be a list of objects with a 'name'; export the folder again "
+                         f"('d2gs refcheck export {directory}')")
     return index

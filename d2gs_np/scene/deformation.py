@@ -143,7 +143,7 @@ def deform_fwd(base_means, base_quats, base_colors, coef_means, coef_quats, coef
 
 
 def _deform_fwd(base_means, base_quats, base_colors, coef_means, coef_quats, coef_colors, t, config):
-    """``deform_fwd`` without validating the blocks (the caller did: ``scene.model.render_inputs_fwd``
+    """``deform_fwd`` without validating the blocks (the caller did: ``scene.render_inputs.render_inputs_fwd``
     checks the whole parameter dict once, the trainer's step trusts a validated model)."""
     dtype = base_means.dtype
     b64, db64 = deform_basis(t, config)

@@ -35,6 +35,27 @@ def atomic_write_text(path, text: str):
     _atomic_write_bytes(path, text.encode("utf-8"))
 
 
+def check_output_path(path, what, is_file=False):
+    """Raise ValueError, before any work, if ``path`` (a folder, or a file with ``is_file``) cannot be
+    written: it exists as the other kind, sits under a file, or its nearest existing folder is not
+    writable (``os.access``). ``what`` names it in the message (a flag, e.g. "--out")."""
+    p = Path(path)
+    if p.exists() and p.is_dir() == is_file:
+        if is_file:
+            raise ValueError(f"{what} {p} is a folder; give the path of a file (in it or elsewhere)")
+        raise ValueError(f"{what} {p} is a file, not a folder; choose a folder path (or remove the file)")
+    if is_file and p.exists() and not os.access(p, os.W_OK):
+        raise ValueError(f"{what} {p} is read-only; choose another path or make it writable (chmod u+w)")
+    folder = p if p.is_dir() else p.parent
+    while not folder.exists():  # the nearest existing ancestor: the folder that gets the new entries
+        folder = folder.parent
+    if not folder.is_dir():
+        raise ValueError(f"{what} {p} sits under {folder}, which is a file, not a folder; choose a path outside it")
+    if not os.access(folder, os.W_OK | os.X_OK):
+        raise ValueError(f"{what} {p}: the folder {folder} is not writable; choose a writable location or fix its "
+                         "permissions (chmod u+w)")
+
+
 def save_checkpoint(path, arrays: dict, meta: dict):
     """Save named arrays (e.g. "params/static.means", "adam/m/static.means") and JSON metadata atomically."""
     buf = io.BytesIO()
@@ -53,8 +74,8 @@ def load_checkpoint(path):
         with np.load(path, allow_pickle=False) as z:
             arrays = {k: z[k] for k in z.files if k != "__meta__"}
             meta = json.loads(bytes(z["__meta__"]).decode("utf-8"))
-    except Exception as e:  # zipfile/ValueError/KeyError: name the file
-        raise ValueError(f"checkpoint {path} is unreadable ({e}); delete it or retrain") from e
+    except Exception as e:  # zipfile/ValueError/KeyError: name the file, not NumPy's advice
+        raise ValueError(_unreadable(path, e)) from e
     return arrays, meta
 
 
@@ -68,4 +89,18 @@ def load_checkpoint_meta(path) -> dict:
         with np.load(path, allow_pickle=False) as z:
             return json.loads(bytes(z["__meta__"]).decode("utf-8"))
     except Exception as e:
-        raise ValueError(f"checkpoint {path} is unreadable ({e}); delete it or retrain") from e
+        raise ValueError(_unreadable(path, e)) from e
+
+
+def _unreadable(path, error):
+    """The message for a checkpoint that np.load or its __meta__ cannot read. NumPy's own text would
+    advise ``allow_pickle=True`` (unsafe on an untrusted file, and never needed for ours)."""
+    if isinstance(error, KeyError):
+        why = "it has no __meta__ record"
+    elif isinstance(error, (json.JSONDecodeError, UnicodeDecodeError)):
+        why = "its __meta__ record is not JSON"
+    elif isinstance(error, IsADirectoryError):
+        why = "it is a folder"
+    else:
+        why = "it is not an .npz archive of plain arrays: truncated, corrupt or written by another program"
+    return f"checkpoint {path} is unreadable ({why}); delete it and retrain (d2gs train SCENE --out RUN)"

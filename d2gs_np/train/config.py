@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import math
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -190,8 +191,8 @@ class TrainConfig:
                              f"{self.quiet!r}")
         if not 0.0 <= self.prune_opacity < 1.0:
             raise ValueError(f"TrainConfig.prune_opacity must be in [0, 1); got {self.prune_opacity}")
-        if self.time_budget is not None and self.time_budget <= 0:
-            raise ValueError(f"TrainConfig.time_budget must be positive seconds; got {self.time_budget}")
+        if self.time_budget is not None and not 0 < self.time_budget < math.inf:  # NaN fails too
+            raise ValueError(f"TrainConfig.time_budget must be a finite number of seconds > 0; got {self.time_budget}")
 
 
 @dataclass(frozen=True)
@@ -213,7 +214,7 @@ class PoseSolverConfig:
     correspond: CorrespondConfig = field(default_factory=CorrespondConfig)
     gauss_newton: GaussNewtonConfig = field(default_factory=GaussNewtonConfig)
     accept: str = "converged"
-    # The pose prior of optim/gauss_newton.py: every call holds the mid poses near the GIVEN poses
+    # The pose prior of pose/gauss_newton.py: every call holds the mid poses near the GIVEN poses
     # (sigma_r = prior_rot_deg, sigma_t = prior_trans_rel x the median rendered depth of the
     # matches); 0 turns that part off. Measured (600 s, the suite's noisy photo_room and cube_sign,
     # loaded machine, 270-320 steps; docs/method.md §5): at the poses' own error level (1 deg, 2 %)
@@ -314,6 +315,9 @@ class ExperimentConfig:
     @classmethod
     def load(cls, path) -> "ExperimentConfig":
         path = Path(path)
+        if path.is_dir():
+            hint = f" (e.g. {path / 'config.json'})" if (path / "config.json").is_file() else ""
+            raise ValueError(f"config file {path} is a folder; pass the config JSON file{hint}")
         if not path.exists():
             raise FileNotFoundError(f"config file {path} does not exist")
         try:

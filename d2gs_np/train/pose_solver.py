@@ -9,7 +9,7 @@ least ``pose_solver.min_steps`` real steps passed since the previous call (or th
    frame's current mid-exposure pose (``Model.mid_pose``), at ``render_scale`` of the frame size;
    pixels the static set covers with alpha below POSE_DEPTH_ALPHA_MIN give no depth (their
    matches are dropped and counted);
-3. the solver (``optim/gauss_newton.py``) over the exposure endpoints of every frame, frame 0
+3. the solver (``pose/gauss_newton.py``) over the exposure endpoints of every frame, frame 0
    fixed, with a prior on the poses training started from (``Model.start_poses``: the given
    poses or their bundle adjustment, ``pose_init.py``);
    a converged solve is then checked against KLT point tracks (computed once per run, no
