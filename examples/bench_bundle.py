@@ -22,7 +22,8 @@ import numpy as np
 
 from d2gs_np.evaluation import metrics
 from d2gs_np.data.io import load_scene
-from d2gs_np.pose.given import PoseInitConfig, adjust_given_poses
+from d2gs_np.pose.config import PoseInitConfig
+from d2gs_np.pose.given import adjust_given_poses
 from d2gs_np.pose.tracks import klt_tracks
 
 

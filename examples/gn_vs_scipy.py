@@ -17,6 +17,7 @@ from scipy.optimize import least_squares
 from d2gs_np.constants import LM_DAMPING_MIN
 from d2gs_np.geometry.se3 import se3_inverse, se3_log
 from d2gs_np.pose import gauss_newton as gn
+from d2gs_np.pose.config import ROBUST_LOSSES, GaussNewtonConfig
 
 
 def pose_error(mids, truth):
@@ -50,14 +51,14 @@ def main(argv=None):
     ap.add_argument("--points", type=int, default=200)
     ap.add_argument("--noise", type=float, default=0.5, help="pixel noise std of the matches")
     ap.add_argument("--outliers", type=float, default=0.2, help="fraction of matches replaced by outliers")
-    ap.add_argument("--robust", default="cauchy", choices=gn.ROBUST_LOSSES)
+    ap.add_argument("--robust", default="cauchy", choices=ROBUST_LOSSES)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=None, help="PNG of cost against wall time")
     args = ap.parse_args(argv)
 
     problem, truth = gn.toy_problem(args.frames, args.points, args.noise, args.outliers, rot_error=0.02,
                                     trans_error=0.05, seed=args.seed)
-    cfg = gn.GaussNewtonConfig(robust=args.robust, robust_scale=1.0, max_iters=50, ftol=1e-10)
+    cfg = GaussNewtonConfig(robust=args.robust, robust_scale=1.0, max_iters=50, ftol=1e-10)
     gn.solve(problem, dataclasses_replace(cfg, max_iters=1))  # build and cache the CasADi functions first
     rows, curves = [], {}
     for name, c in (("LM (ours)", cfg), ("GN (ours, lambda at floor)", dataclasses_replace(cfg, damping_init=LM_DAMPING_MIN))):

@@ -30,12 +30,12 @@ from scipy.optimize import least_squares
 
 from d2gs_np.constants import BA_POINT_EIG_FLOOR, DAMPING_DIAG_FLOOR, LM_DAMPING_MAX, LM_DAMPING_MIN
 from d2gs_np.geometry.so3 import hat, left_jacobian, left_jacobian_inv, so3_exp, so3_log
+from d2gs_np.pose.config import BUNDLE_SOLVERS
 from d2gs_np.pose.linalg import cholesky_solve
 
 __all__ = ["reprojection_fwd", "reprojection_bwd", "reprojection_jacobian", "pose_prior_fwd", "BundleProblem",
-           "bundle_adjust", "poses_to_params", "params_to_poses", "robust_loss", "SOLVERS", "LOSSES"]
+           "bundle_adjust", "poses_to_params", "params_to_poses", "robust_loss", "LOSSES"]
 
-SOLVERS = ("scipy", "schur")  # bundle_adjust(solver=...)
 LOSSES = ("linear", "soft_l1", "huber", "cauchy", "arctan")  # SciPy's robust losses
 # The Schur solver's first Levenberg-Marquardt lambda (relative to diag(H)). The robust problems of
 # pose_init have several local minima, and the first steps choose among them. Measured (first-round
@@ -227,8 +227,8 @@ def robust_loss(z, loss):
 
 
 def _check_solver_args(solver, loss, f_scale, max_nfev, tol):
-    if not isinstance(solver, str) or solver not in SOLVERS:
-        raise ValueError(f"bundle_adjust: solver must be one of {SOLVERS}; got {solver!r}")
+    if not isinstance(solver, str) or solver not in BUNDLE_SOLVERS:
+        raise ValueError(f"bundle_adjust: solver must be one of {BUNDLE_SOLVERS}; got {solver!r}")
     if not isinstance(loss, str) or loss not in LOSSES:
         raise ValueError(f"bundle_adjust: loss must be one of {LOSSES}; got {loss!r}")
     if isinstance(f_scale, bool) or not isinstance(f_scale, (int, float, np.floating, np.integer)):
@@ -346,7 +346,7 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
     points, whose blocks V_p (3 x 3 per point) are independent:
         S = A + lam D_y - E (V + lam D_p)^-1 E^T,  S dy = -g_y + E (V + lam D_p)^-1 g_p,
         dp = -(V + lam D_p)^-1 (g_p + E^T dy);
-    S is dense (6 x free cameras [+ 1]) and Cholesky-factored (``optim.linalg.cholesky_solve``); each damped point block is inverted from
+    S is dense (6 x free cameras [+ 1]) and Cholesky-factored (``pose.linalg.cholesky_solve``); each damped point block is inverted from
     its eigendecomposition with its eigenvalues floored at BA_POINT_EIG_FLOOR x the largest (a point
     seen once, or along one ray, has a rank-2 block: the damping regularises it). A trial step is
     accepted only if the true cost falls (a non-finite residual counts as an infinite cost; a failed

@@ -60,7 +60,6 @@ from __future__ import annotations
 
 import functools
 import math
-import numbers
 import time
 from dataclasses import dataclass, field
 
@@ -80,11 +79,10 @@ from d2gs_np.constants import (  # noqa: F401 (LM_DAMPING_MAX is re-exported for
 from d2gs_np.geometry.se3 import check_rigid
 from d2gs_np.geometry.so3 import _A_COEFFS, _B_COEFFS, _C_COEFFS, _D_COEFFS
 from d2gs_np.geometry.sampling import bilinear_fwd
+from d2gs_np.pose.config import ROBUST_LOSSES, GaussNewtonConfig
 from d2gs_np.pose.linalg import cholesky_solve
 
 __all__ = [
-    "ROBUST_LOSSES",
-    "GaussNewtonConfig",
     "PairObservations",
     "PoseProblem",
     "GaussNewtonResult",
@@ -95,46 +93,7 @@ __all__ = [
     "toy_problem",
 ]
 
-ROBUST_LOSSES = ("none", "huber", "cauchy")
 NUM_VARS = 12  # per frame: a (6) on the exposure start, b (6) on the exposure end
-
-
-@dataclass(frozen=True)
-class GaussNewtonConfig:
-    """Settings of the pose solver (module docstring)."""
-
-    max_iters: int = 40  # 15 before the pose prior; with its tight default, calls at 15 stopped at max_iters
-    # Weight of the relative depth residual: the paper's 100 reduced to 10, and the Cauchy loss at
-    # 1 px, as measured on the wall_disk suite scene (docs/method.md §5): on the initial model and on
-    # a model trained 93 steps, Cauchy / 1 px / beta 10 lowered ATE 0.069 -> 0.037 and 0.067 -> 0.046
-    # and RPE_r 0.94 -> 0.46 and 0.88 -> 0.58 deg, where Huber / 2 px / beta 100 gave 0.055 and 0.070
-    # (worse than the start) and RPE_r 0.90 and 1.03 deg.
-    beta: float = 10.0
-    robust: str = "cauchy"  # "none", "huber" or "cauchy" (IRLS)
-    robust_scale: float = 1.0  # d of the robust loss, in residual units (pixels)
-    spread_sigma: float = 1e-3  # prior: a change of the endpoint spread b - a by this costs 1/2
-    damping_init: float = 1e-3  # initial Levenberg-Marquardt lambda (relative to diag(H))
-    damping_up: float = 10.0  # lambda x this after a rejected step
-    damping_down: float = 0.3  # lambda x this after an accepted step
-    ftol: float = 1e-6  # stop when an accepted step lowers the cost by less than this fraction
-    xtol: float = 1e-10  # stop when |dx| < xtol (|x| + xtol)
-
-    def __post_init__(self):
-        for name in ("beta", "robust_scale", "spread_sigma", "damping_init", "damping_up", "damping_down", "ftol",
-                     "xtol"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
-                raise TypeError(f"GaussNewtonConfig.{name} must be a finite real number; got {v!r}")
-        if isinstance(self.max_iters, bool) or not isinstance(self.max_iters, numbers.Integral) or self.max_iters < 0:
-            raise ValueError(f"GaussNewtonConfig.max_iters must be an int >= 0; got {self.max_iters!r}")
-        if self.robust not in ROBUST_LOSSES:
-            raise ValueError(f"GaussNewtonConfig.robust must be one of {ROBUST_LOSSES}; got {self.robust!r}")
-        for name in ("beta", "robust_scale", "spread_sigma", "damping_init", "ftol", "xtol"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"GaussNewtonConfig.{name} must be > 0; got {getattr(self, name)}")
-        if self.damping_up <= 1.0 or not 0.0 < self.damping_down < 1.0:
-            raise ValueError(f"GaussNewtonConfig.damping_up must be > 1 and damping_down in (0, 1); got "
-                             f"{self.damping_up}, {self.damping_down}")
 
 
 # ---------------------------------------------------------------------------------------------

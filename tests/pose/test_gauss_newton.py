@@ -10,6 +10,7 @@ from d2gs_np.geometry.camera import camera_center
 from d2gs_np.geometry.se3 import se3_exp, se3_interpolate, se3_inverse, se3_log
 from d2gs_np.geometry.so3 import so3_log
 from d2gs_np.pose import gauss_newton as gn
+from d2gs_np.pose.config import ROBUST_LOSSES, GaussNewtonConfig
 
 K = np.array([[120.0, 0.0, 80.0], [0.0, 120.0, 45.0], [0.0, 0.0, 1.0]])
 # Central differences with h = 1e-6 in float64: truncation ~h^2 |third derivative| ~ 1e-12 |J| and
@@ -126,7 +127,7 @@ def test_recovers_the_true_mid_poses_from_noise_free_matches():
     mids, prob = _problem(n=5)
     before = max(np.abs(se3_log(prob.poses(np.zeros(prob.num_params))[2][k] @ se3_inverse(mids[k]))).max()
                  for k in range(5))
-    res = gn.solve(prob, gn.GaussNewtonConfig(max_iters=30))
+    res = gn.solve(prob, GaussNewtonConfig(max_iters=30))
     assert before > 1e-2
     assert res.status.startswith("converged")
     assert _mid_error(res, mids) < 1e-8
@@ -144,7 +145,7 @@ def test_scipy_least_squares_reaches_the_same_optimum(robust):
         p.pts_k = p.pts_k + rng.normal(0, 0.5, p.pts_k.shape)
     s, e = _perturb(starts, ends, 0.01, 0.03)
     prob = gn.PoseProblem(s, e, np.stack([K] * 4), pairs)
-    cfg = gn.GaussNewtonConfig(robust=robust, robust_scale=1.0, max_iters=50, ftol=1e-14)
+    cfg = GaussNewtonConfig(robust=robust, robust_scale=1.0, max_iters=50, ftol=1e-14)
     res = gn.solve(prob, cfg)
 
     def fun(x):
@@ -167,7 +168,7 @@ def test_cost_never_rises_from_a_five_degree_error():
     mids, starts, ends, X = _scene(5)
     s, e = _perturb(starts, ends, np.deg2rad(5.0) / np.sqrt(3), 0.2)
     prob = gn.PoseProblem(s, e, np.stack([K] * 5), _pairs(mids, X))
-    res = gn.solve(prob, gn.GaussNewtonConfig(max_iters=40))
+    res = gn.solve(prob, GaussNewtonConfig(max_iters=40))
     assert np.all(np.diff(res.costs) <= 0)
     assert _mid_error(res, mids) < 1e-6
     assert len(res.times) == len(res.costs) and np.all(np.diff(res.times) >= 0)
@@ -182,10 +183,10 @@ def test_robust_loss_recovers_the_pose_with_half_the_matches_outliers():
         p.pts_k[bad] = rng.uniform([0, 0], [160, 90], (bad.sum(), 2))
     s, e = _perturb(starts, ends, 0.01, 0.03)
     prob = gn.PoseProblem(s, e, np.stack([K] * 4), pairs)
-    initial = _mid_error(gn.solve(prob, gn.GaussNewtonConfig(max_iters=0)), mids)
-    err = {kind: _mid_error(gn.solve(prob, gn.GaussNewtonConfig(robust=kind, robust_scale=1.0, beta=100.0,
+    initial = _mid_error(gn.solve(prob, GaussNewtonConfig(max_iters=0)), mids)
+    err = {kind: _mid_error(gn.solve(prob, GaussNewtonConfig(robust=kind, robust_scale=1.0, beta=100.0,
                                                                 max_iters=50)), mids)
-           for kind in gn.ROBUST_LOSSES}
+           for kind in ROBUST_LOSSES}
     # measured (beta 100): initial 0.025, none 0.93, huber 0.018, cauchy 0.0017 (rad / world units, max over
     # frames); with beta 10 (the depth rows, which the outliers do not corrupt, weigh less) cauchy 0.0052
     assert err["none"] > initial  # plain least squares: the outliers pull the poses away
@@ -199,7 +200,7 @@ def test_points_at_infinity_leave_translation_unobserved():
     mids, starts, ends, _ = _scene(3)
     s, e = _perturb(starts, ends, 0.01, 0.03)
     prob = gn.PoseProblem(s, e, np.stack([K] * 3), _pairs(mids, far))
-    res = gn.solve(prob, gn.GaussNewtonConfig(max_iters=20))
+    res = gn.solve(prob, GaussNewtonConfig(max_iters=20))
     assert np.all(np.isfinite(res.x)) and np.all(np.isfinite(res.covariance))
     assert res.rank <= res.num_params - 3 * 2  # the mid translation of both free frames
     # rotations are still recovered
@@ -214,7 +215,7 @@ def test_points_on_a_line_are_rank_deficient_but_finite():
     mids, starts, ends, _ = _scene(3)
     s, e = _perturb(starts, ends, 0.01, 0.03)
     prob = gn.PoseProblem(s, e, np.stack([K] * 3), _pairs(mids, line))
-    res = gn.solve(prob, gn.GaussNewtonConfig(max_iters=20))
+    res = gn.solve(prob, GaussNewtonConfig(max_iters=20))
     assert np.all(np.isfinite(res.x)) and np.all(np.isfinite(res.mids))
     assert res.rank < res.num_params
     assert res.costs[-1] <= res.costs[0]
@@ -225,7 +226,7 @@ def test_a_frame_without_matches_is_left_where_it_was():
     pairs = [p for p in _pairs(mids, X) if 3 not in (p.k, p.j)]
     s, e = _perturb(starts, ends, 0.01, 0.03)
     prob = gn.PoseProblem(s, e, np.stack([K] * 4), pairs)
-    res = gn.solve(prob, gn.GaussNewtonConfig(max_iters=30))
+    res = gn.solve(prob, GaussNewtonConfig(max_iters=30))
     assert np.all(np.isfinite(res.x)) and np.all(res.x[3] == 0.0)
     assert res.rank == res.num_params - 6  # frame 3's mid pose: only the spread prior sees it
     assert _mid_error(gn.GaussNewtonResult(**{**res.__dict__, "mids": res.mids[:3]}), mids[:3]) < 1e-8
@@ -256,7 +257,7 @@ def test_depth_maps_are_read_bilinearly_at_pixel_centres():
 
 def test_huge_damping_stays_finite():
     mids, prob = _problem(n=3)
-    res = gn.solve(prob, gn.GaussNewtonConfig(damping_init=1e300, max_iters=5))
+    res = gn.solve(prob, GaussNewtonConfig(damping_init=1e300, max_iters=5))
     assert np.all(np.isfinite(res.x)) and np.all(np.isfinite(res.damping))
     assert max(res.damping) <= gn.LM_DAMPING_MAX
     assert np.all(np.diff(res.costs) <= 0)
@@ -264,10 +265,6 @@ def test_huge_damping_stays_finite():
 
 
 def test_bad_inputs_are_named():
-    with pytest.raises(ValueError, match="robust"):
-        gn.GaussNewtonConfig(robust="l1")
-    with pytest.raises(TypeError, match="beta"):
-        gn.GaussNewtonConfig(beta=float("nan"))
     with pytest.raises(ValueError, match="starts"):
         gn.PoseProblem(np.zeros((2, 3, 3)), np.zeros((2, 4, 4)), np.stack([K] * 2), [])
     mids, starts, ends, X = _scene(2)
@@ -320,7 +317,7 @@ def test_pose_prior_pulls_toward_the_given_poses_when_depths_are_biased():
         return np.linalg.norm(c - c[0], axis=1).sum()
     mids, free = _prior_problem(n=5, prior="none", depth_factor=0.7)
     _, held = _prior_problem(n=5, prior="true", depth_factor=0.7, sigma=(1e-3, 1e-3))
-    cfg = gn.GaussNewtonConfig(max_iters=40)
+    cfg = GaussNewtonConfig(max_iters=40)
     true_spread = size(mids)
     r_free, r_held = gn.solve(free, cfg), gn.solve(held, cfg)
     assert size(r_free.mids) / true_spread < 0.8
