@@ -18,6 +18,7 @@ from d2gs_np.constants import LM_DAMPING_MIN
 from d2gs_np.geometry.se3 import se3_inverse, se3_log
 from d2gs_np.pose import gauss_newton as gn
 from d2gs_np.pose.config import ROBUST_LOSSES, GaussNewtonConfig
+from d2gs_np.pose.toy import toy_problem
 
 
 def pose_error(mids, truth):
@@ -56,8 +57,8 @@ def main(argv=None):
     ap.add_argument("--out", default=None, help="PNG of cost against wall time")
     args = ap.parse_args(argv)
 
-    problem, truth = gn.toy_problem(args.frames, args.points, args.noise, args.outliers, rot_error=0.02,
-                                    trans_error=0.05, seed=args.seed)
+    problem, truth = toy_problem(args.frames, args.points, args.noise, args.outliers, rot_error=0.02,
+                                 trans_error=0.05, seed=args.seed)
     cfg = GaussNewtonConfig(robust=args.robust, robust_scale=1.0, max_iters=50, ftol=1e-10)
     gn.solve(problem, dataclasses_replace(cfg, max_iters=1))  # build and cache the CasADi functions first
     rows, curves = [], {}

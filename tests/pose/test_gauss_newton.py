@@ -89,40 +89,6 @@ def test_jacobian_matches_central_differences(scale):
     assert np.abs(J - Jfd).max() <= FD_REL_TOL * np.abs(J).max()
 
 
-@pytest.mark.parametrize("rot", [0.0, 1e-8, 0.3, 0.49, 0.51, 1.0, 3.0])  # both sides of SERIES_ANGLE2, near pi
-@pytest.mark.parametrize("spread", [0.0, 1e-8, 9e-4, 1.1e-3, 0.2, 0.8])  # both sides of sin^2 = 1e-6 and of SERIES_ANGLE2
-def test_mid_pose_jacobian_in_every_branch(rot, spread):
-    rng = np.random.default_rng(4)
-    axis = rng.normal(size=3)
-    axis /= np.linalg.norm(axis)
-    Ts = se3_exp(rng.normal(0, 0.5, 6))
-    Te = se3_exp(np.r_[0.3 * spread, 0.0, 0.0, spread * axis]) @ Ts
-    x = np.r_[rng.normal(0, 0.1, 3), rot * axis, rng.normal(0, 0.1, 3), rot * axis]
-    f = gn._mid_function()
-    fs, fe = gn.pose_to_flat(Ts), gn.pose_to_flat(Te)
-    m0, dm, _, _ = f(x, fs, fe)
-    dm = np.array(dm)
-    assert np.all(np.isfinite(dm))
-    fd = np.stack([(np.array(f(x + FD_STEP * e, fs, fe)[0]) - np.array(f(x - FD_STEP * e, fs, fe)[0])).ravel()
-                   / (2 * FD_STEP) for e in np.eye(12)], axis=1)
-    assert np.abs(dm - fd).max() <= FD_REL_TOL * max(1.0, np.abs(dm).max())
-    S, E = se3_exp(x[:6]) @ Ts, se3_exp(x[6:]) @ Te
-    assert np.abs(gn.flat_to_pose(np.array(m0).ravel()) - se3_interpolate(S, E, 0.5)).max() < 1e-12
-
-
-def test_symbolic_mid_pose_is_the_geodesic_midpoint_and_exact_at_zero_spread():
-    rng = np.random.default_rng(3)
-    for spread in (0.0, 1e-9, 1e-4, 0.3):
-        Ts = se3_exp(rng.normal(0, 0.5, 6))
-        Te = se3_exp(rng.normal(0, spread, 6)) @ Ts if spread else Ts.copy()
-        x = rng.normal(0, 0.05, 12)
-        mid, dmid, s, e = gn._mid_function()(x, gn.pose_to_flat(Ts), gn.pose_to_flat(Te))
-        S, E = se3_exp(x[:6]) @ Ts, se3_exp(x[6:]) @ Te
-        assert np.allclose(gn.flat_to_pose(np.array(s).ravel()), S, atol=1e-14)
-        assert np.abs(gn.flat_to_pose(np.array(mid).ravel()) - se3_interpolate(S, E, 0.5)).max() < 1e-13
-        assert np.all(np.isfinite(np.array(dmid)))
-
-
 def test_recovers_the_true_mid_poses_from_noise_free_matches():
     mids, prob = _problem(n=5)
     before = max(np.abs(se3_log(prob.poses(np.zeros(prob.num_params))[2][k] @ se3_inverse(mids[k]))).max()
