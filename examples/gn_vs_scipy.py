@@ -18,6 +18,7 @@ from d2gs_np.constants import LM_DAMPING_MIN
 from d2gs_np.geometry.se3 import se3_inverse, se3_log
 from d2gs_np.pose import gauss_newton as gn
 from d2gs_np.pose.config import ROBUST_LOSSES, GaussNewtonConfig
+from d2gs_np.pose.lm import SCIPY_LOSS, robust_cost
 from d2gs_np.pose.toy import toy_problem
 
 
@@ -29,12 +30,12 @@ def pose_error(mids, truth):
 def run_scipy(problem, cfg):
     """least_squares with the same loss; returns (x, trace of (seconds, cost) per evaluation)."""
     trace, t0 = [], time.perf_counter()
-    loss = {"none": "linear", "huber": "huber", "cauchy": "cauchy"}[cfg.robust]
+    loss = SCIPY_LOSS[cfg.robust]
     n = 3 * problem.num_matches
 
     def fun(x):
         r = problem.residuals(x, cfg.beta, cfg.spread_sigma, False)[0]
-        data, _ = gn.robust_cost(r[:n], cfg.robust, cfg.robust_scale)
+        data, _ = robust_cost(r[:n], cfg.robust, cfg.robust_scale)
         trace.append((time.perf_counter() - t0, data + 0.5 * float(np.sum(r[n:] ** 2))))
         return r
 

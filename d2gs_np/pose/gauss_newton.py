@@ -36,17 +36,20 @@ The mid poses, the match residuals and the prior rows, with their exact Jacobian
 functions (``pose/symbolic.py``); the chain rule dr/dx_k = dr/dM_k dM_k/dx_k is one matrix product
 per match.
 
-Robust loss (IRLS). Each data residual r_i (not the prior rows) carries
-rho(r) = r^2/2 (``none``), Huber ``r^2/2 if |r| <= d else d|r| - d^2/2`` or Cauchy
-``d^2/2 log(1 + (r/d)^2)``, with d = ``robust_scale``; elementwise, as ``least_squares``'s
-``loss="huber"`` / ``"cauchy"`` with ``f_scale = d``. Each iteration solves the weighted normal
-equations ``(H + lam D) dx = -g``, ``H = J^T W J``, ``g = J^T W r``, W the IRLS weights
-(``rho'(r)/r``), D = diag(H) floored at ``DAMPING_DIAG_FLOOR`` x max diag(H) (Marquardt scaling
-that still damps a column without data). A step is accepted only if the robust cost decreases,
-so the cost never rises; otherwise lam grows by ``damping_up`` up to ``LM_DAMPING_MAX`` (the
-system is solved as (H/lam + D) dx = -g/lam once lam > 1, so a huge lam stays finite and gives a
-tiny step). Stops when the relative cost decrease of an accepted step falls below ``ftol``, when
-the step is below ``xtol`` (relative to |x|), at ``max_iters``, or when lam reaches its limit.
+Robust loss and damping (IRLS; ``pose/lm.py``, shared with the bundle adjustment). Each data
+residual r_i (not the prior rows) carries rho(r) = r^2/2 (``none``), Huber
+``r^2/2 if |r| <= d else d|r| - d^2/2`` or Cauchy ``d^2/2 log(1 + (r/d)^2)``, with
+d = ``robust_scale``; elementwise, as ``least_squares``'s ``loss="huber"`` / ``"cauchy"`` with
+``f_scale = d`` (``lm.robust_cost``). Each iteration solves the weighted normal equations
+``(H + lam D) dx = -g``, ``H = J^T W J``, ``g = J^T W r``, W the IRLS weights (``rho'(r)/r``),
+D = diag(H) floored at ``DAMPING_DIAG_FLOOR`` x max(max diag(H), 1) (Marquardt scaling that still
+damps a column without data). A step is accepted only if the robust cost decreases
+(``lm.accept_step``), so the cost never rises; lam shrinks by ``damping_down`` after an accepted
+step and grows by ``damping_up`` after a rejected one, within [LM_DAMPING_MIN, LM_DAMPING_MAX]
+(``lm.FixedFactors``; the system is solved as (H/lam + D) dx = -g/lam once lam > 1, so a huge lam
+stays finite and gives a tiny step). Stops when the relative cost decrease of an accepted step
+falls below ``ftol``, when the step is below ``xtol`` (relative to |x|), at ``max_iters``, or when
+lam reaches its limit.
 
 Covariance. At the end, ``pinv(H)`` of the final normal equations (unit residual variance, prior
 rows included) over the free unknowns, with its numerical rank (singular values above
@@ -61,17 +64,12 @@ from dataclasses import dataclass, field
 import numpy as np
 from numba import njit
 
-from d2gs_np.constants import (  # noqa: F401 (LM_DAMPING_MAX is re-exported for tests)
-    COVARIANCE_RCOND,
-    DAMPING_DIAG_FLOOR,
-    GN_MIN_DEPTH,
-    LM_DAMPING_MAX,
-    LM_DAMPING_MIN,
-)
+from d2gs_np.constants import COVARIANCE_RCOND, DAMPING_DIAG_FLOOR, GN_MIN_DEPTH
 from d2gs_np.geometry.se3 import check_rigid
 from d2gs_np.geometry.sampling import bilinear_fwd
-from d2gs_np.pose.config import ROBUST_LOSSES, GaussNewtonConfig
+from d2gs_np.pose.config import GaussNewtonConfig
 from d2gs_np.pose.linalg import cholesky_solve
+from d2gs_np.pose.lm import FixedFactors, accept_step, at_damping_limit, damping_start, finite_or_inf, robust_cost
 from d2gs_np.pose.symbolic import NUM_VARS, flat_to_pose, mapped, pose_to_flat
 
 __all__ = [
@@ -81,7 +79,6 @@ __all__ = [
     "sample_depth",
     "pair_observations",
     "solve",
-    "robust_cost",
 ]
 
 
@@ -284,38 +281,18 @@ class PoseProblem:
 
 
 # ---------------------------------------------------------------------------------------------
-# Robust loss
+# The solver
 # ---------------------------------------------------------------------------------------------
 
 
-def robust_cost(r, kind, scale):
-    """sum_i rho(r_i) (module docstring) and the IRLS weights rho'(r_i) / r_i."""
-    r = np.asarray(r, dtype=np.float64)
-    a = np.abs(r)
-    if kind == "none":
-        return 0.5 * float(np.sum(r * r)), np.ones_like(r)
-    if kind == "huber":
-        inside = a <= scale
-        rho = np.where(inside, 0.5 * r * r, scale * a - 0.5 * scale * scale)
-        w = np.where(inside, 1.0, scale / np.maximum(a, scale))
-        return float(np.sum(rho)), w
-    if kind == "cauchy":
-        q = (r / scale) ** 2
-        return float(np.sum(0.5 * scale * scale * np.log1p(q))), 1.0 / (1.0 + q)
-    raise ValueError(f"robust loss must be one of {ROBUST_LOSSES}; got {kind!r}")
-
-
 def _cost(problem, r, config):
+    """The robust cost of the data rows plus the plain squares of the prior rows (+inf if not finite),
+    and the IRLS weight of every row (1 on the prior rows)."""
     n = 3 * problem.num_matches
     data, w = robust_cost(r[:n], config.robust, config.robust_scale)
     with np.errstate(over="ignore", invalid="ignore"):
         total = data + 0.5 * float(np.sum(r[n:] ** 2))
-    return (total if np.isfinite(total) else math.inf), np.concatenate([w, np.ones(len(r) - n)])
-
-
-# ---------------------------------------------------------------------------------------------
-# The solver
-# ---------------------------------------------------------------------------------------------
+    return finite_or_inf(total), np.concatenate([w, np.ones(len(r) - n)])
 
 
 @dataclass
@@ -418,25 +395,25 @@ def solve(problem: PoseProblem, config: GaussNewtonConfig = None, x0=None) -> Ga
         raise ValueError("the initial residuals are not finite (a lifted point behind a camera?); check the poses "
                          "and depths the problem was built with")
     costs, times, damping = [cost], [time.perf_counter() - t0], []
-    lam = min(max(float(config.damping_init), LM_DAMPING_MIN), LM_DAMPING_MAX)
+    damp, schedule = damping_start(config.damping_init), FixedFactors(config.damping_up, config.damping_down)
     status, iters, accepted = ("no_unknowns" if n == 0 else "max_iters"), 0, 0
     while n and iters < config.max_iters:
         iters += 1
         H, g = _normal_equations(J, w, r)
         step_ok = False
         while True:
-            dx = _solve_damped(H, g, lam)
+            dx = _solve_damped(H, g, damp.lam)
             x_new = x + dx
             r_new, J_new = problem.residuals(x_new, *args)
             cost_new, w_new = _cost(problem, r_new, config)
-            if cost_new < cost:
+            if accept_step(cost, cost_new):
                 step_ok = True
-                lam = max(lam * config.damping_down, LM_DAMPING_MIN)
+                damp = schedule.accepted(damp)
                 break
-            if lam >= LM_DAMPING_MAX:
+            if at_damping_limit(damp):
                 break
-            lam = min(lam * config.damping_up, LM_DAMPING_MAX)
-        damping.append(lam)
+            damp = schedule.rejected(damp)
+        damping.append(damp.lam)
         if not step_ok:
             costs.append(cost)
             times.append(time.perf_counter() - t0)

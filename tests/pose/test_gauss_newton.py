@@ -6,11 +6,13 @@ import numpy as np
 import pytest
 from scipy.optimize import least_squares
 
+from d2gs_np.constants import LM_DAMPING_MAX
 from d2gs_np.geometry.camera import camera_center
 from d2gs_np.geometry.se3 import se3_exp, se3_interpolate, se3_inverse, se3_log
 from d2gs_np.geometry.so3 import so3_log
 from d2gs_np.pose import gauss_newton as gn
 from d2gs_np.pose.config import ROBUST_LOSSES, GaussNewtonConfig
+from d2gs_np.pose.lm import SCIPY_LOSS
 
 K = np.array([[120.0, 0.0, 80.0], [0.0, 120.0, 45.0], [0.0, 0.0, 1.0]])
 # Central differences with h = 1e-6 in float64: truncation ~h^2 |third derivative| ~ 1e-12 |J| and
@@ -121,7 +123,7 @@ def test_scipy_least_squares_reaches_the_same_optimum(robust):
         return prob.residuals(x, cfg.beta, cfg.spread_sigma)[1]
 
     ref = least_squares(fun, np.zeros(prob.num_params), jac=jac, method="trf",
-                        loss="linear" if robust == "none" else "huber", f_scale=1.0, xtol=1e-14, ftol=1e-14, gtol=1e-14)
+                        loss=SCIPY_LOSS[robust], f_scale=1.0, xtol=1e-14, ftol=1e-14, gtol=1e-14)
     # scipy applies the loss to the prior rows too; there they stay far inside the Huber scale
     # (|b - a| / sigma << 1), where Huber is quadratic, so the two costs are the same function.
     prior = fun(res.x[prob.free].ravel())[3 * prob.num_matches:]
@@ -225,9 +227,9 @@ def test_huge_damping_stays_finite():
     mids, prob = _problem(n=3)
     res = gn.solve(prob, GaussNewtonConfig(damping_init=1e300, max_iters=5))
     assert np.all(np.isfinite(res.x)) and np.all(np.isfinite(res.damping))
-    assert max(res.damping) <= gn.LM_DAMPING_MAX
+    assert max(res.damping) <= LM_DAMPING_MAX
     assert np.all(np.diff(res.costs) <= 0)
-    assert gn._solve_damped(np.eye(3) * 1e300, np.ones(3), gn.LM_DAMPING_MAX).tolist() == pytest.approx([0.0] * 3, abs=1e-300)
+    assert gn._solve_damped(np.eye(3) * 1e300, np.ones(3), LM_DAMPING_MAX).tolist() == pytest.approx([0.0] * 3, abs=1e-300)
 
 
 def test_bad_inputs_are_named():
