@@ -1,4 +1,4 @@
-"""Test-view pose refinement on a frozen scene (pose_fit.py, d2gs eval --test-pose-opt)."""
+"""Test-view pose refinement on a frozen scene (d2gs_np/pose/fit.py, d2gs eval --test-pose-opt)."""
 import numpy as np
 import pytest
 

@@ -1,5 +1,5 @@
-"""Bundle adjustment of the given poses before training (pose_init.py) and the pose prior of the
-bundle adjustment (video/bundle.py: pose_prior_fwd, bundle_adjust(prior=...))."""
+"""Bundle adjustment of the given poses before training (d2gs_np/pose/given.py) and the pose prior of
+the bundle adjustment (d2gs_np/pose/bundle.py: pose_prior_fwd, bundle_adjust(prior=...))."""
 import numpy as np
 import pytest
 
