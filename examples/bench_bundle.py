@@ -1,5 +1,5 @@
 """The bundle adjustment before training (d2gs_np/pose/given.py, docs/method.md §5) with both solvers
-of ``video.bundle.bundle_adjust``: SciPy's trust region ("scipy") and Levenberg-Marquardt with the
+of ``pose.bundle.bundle_adjust``: SciPy's trust region ("scipy") and Levenberg-Marquardt with the
 points eliminated ("schur"), on the real problem pose_init builds from a scene's blurry frames and
 noisy given poses (the same KLT tracks for every run). Prints per scene and solver setting: the final
 cost of each round, the inlier rms (px), the ATE of the adjusted poses against the true ones, the
@@ -22,7 +22,8 @@ import numpy as np
 
 from d2gs_np.evaluation import metrics
 from d2gs_np.data.io import load_scene
-from d2gs_np.pose.given import PoseInitConfig, adjust_given_poses
+from d2gs_np.pose.config import PoseInitConfig
+from d2gs_np.pose.given import adjust_given_poses
 from d2gs_np.pose.tracks import klt_tracks
 
 

@@ -17,6 +17,9 @@ from scipy.optimize import least_squares
 from d2gs_np.constants import LM_DAMPING_MIN
 from d2gs_np.geometry.se3 import se3_inverse, se3_log
 from d2gs_np.pose import gauss_newton as gn
+from d2gs_np.pose.config import ROBUST_LOSSES, GaussNewtonConfig
+from d2gs_np.pose.lm import SCIPY_LOSS, robust_cost
+from d2gs_np.pose.toy import toy_problem
 
 
 def pose_error(mids, truth):
@@ -27,12 +30,12 @@ def pose_error(mids, truth):
 def run_scipy(problem, cfg):
     """least_squares with the same loss; returns (x, trace of (seconds, cost) per evaluation)."""
     trace, t0 = [], time.perf_counter()
-    loss = {"none": "linear", "huber": "huber", "cauchy": "cauchy"}[cfg.robust]
+    loss = SCIPY_LOSS[cfg.robust]
     n = 3 * problem.num_matches
 
     def fun(x):
         r = problem.residuals(x, cfg.beta, cfg.spread_sigma, False)[0]
-        data, _ = gn.robust_cost(r[:n], cfg.robust, cfg.robust_scale)
+        data, _ = robust_cost(r[:n], cfg.robust, cfg.robust_scale)
         trace.append((time.perf_counter() - t0, data + 0.5 * float(np.sum(r[n:] ** 2))))
         return r
 
@@ -50,14 +53,14 @@ def main(argv=None):
     ap.add_argument("--points", type=int, default=200)
     ap.add_argument("--noise", type=float, default=0.5, help="pixel noise std of the matches")
     ap.add_argument("--outliers", type=float, default=0.2, help="fraction of matches replaced by outliers")
-    ap.add_argument("--robust", default="cauchy", choices=gn.ROBUST_LOSSES)
+    ap.add_argument("--robust", default="cauchy", choices=ROBUST_LOSSES)
     ap.add_argument("--seed", type=int, default=0)
     ap.add_argument("--out", default=None, help="PNG of cost against wall time")
     args = ap.parse_args(argv)
 
-    problem, truth = gn.toy_problem(args.frames, args.points, args.noise, args.outliers, rot_error=0.02,
-                                    trans_error=0.05, seed=args.seed)
-    cfg = gn.GaussNewtonConfig(robust=args.robust, robust_scale=1.0, max_iters=50, ftol=1e-10)
+    problem, truth = toy_problem(args.frames, args.points, args.noise, args.outliers, rot_error=0.02,
+                                 trans_error=0.05, seed=args.seed)
+    cfg = GaussNewtonConfig(robust=args.robust, robust_scale=1.0, max_iters=50, ftol=1e-10)
     gn.solve(problem, dataclasses_replace(cfg, max_iters=1))  # build and cache the CasADi functions first
     rows, curves = [], {}
     for name, c in (("LM (ours)", cfg), ("GN (ours, lambda at floor)", dataclasses_replace(cfg, damping_init=LM_DAMPING_MIN))):

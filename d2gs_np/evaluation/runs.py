@@ -25,7 +25,8 @@ import numpy as np
 from d2gs_np.evaluation import metrics
 from d2gs_np.data.io import load_scene
 from d2gs_np.geometry.camera import camera_center
-from d2gs_np.pose.fit import PoseFitConfig, fit_pose
+from d2gs_np.pose.config import PoseFitConfig
+from d2gs_np.pose.fit import fit_pose
 from d2gs_np.scene.render_inputs import render_inputs_fwd
 from d2gs_np.train.checkpoint import atomic_write_text, check_output_path, load_checkpoint
 from d2gs_np.train.model import SCENE_PREFIXES, Model

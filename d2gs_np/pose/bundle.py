@@ -16,7 +16,8 @@ squared image-space errors over poses, solved here by SciPy's trust-region ``lea
 with the analytic sparse Jacobian and a robust loss (``soft_l1``), so that mismatches and
 points on moving objects lose their pull (docs/dataset_format.md §8), or (``solver="schur"``)
 by Levenberg-Marquardt on the normal equations with the points eliminated (``_schur_lm``;
-docs/method.md §5 has its measurements).
+docs/method.md §5 has its measurements). The robust losses (SciPy's), the damping schedule and
+the acceptance test of ``_schur_lm`` are those shared with the pose solver (``pose/lm.py``).
 """
 from __future__ import annotations
 
@@ -28,15 +29,16 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
 
-from d2gs_np.constants import BA_POINT_EIG_FLOOR, DAMPING_DIAG_FLOOR, LM_DAMPING_MAX, LM_DAMPING_MIN
+from d2gs_np.constants import BA_POINT_EIG_FLOOR, DAMPING_DIAG_FLOOR
 from d2gs_np.geometry.so3 import hat, left_jacobian, left_jacobian_inv, so3_exp, so3_log
+from d2gs_np.pose.config import BUNDLE_SOLVERS
 from d2gs_np.pose.linalg import cholesky_solve
+from d2gs_np.pose.lm import (LOSSES, Nielsen, accept_step, at_damping_limit, damping_start, finite_or_inf,
+                             robust_loss)
 
 __all__ = ["reprojection_fwd", "reprojection_bwd", "reprojection_jacobian", "pose_prior_fwd", "BundleProblem",
-           "bundle_adjust", "poses_to_params", "params_to_poses", "robust_loss", "SOLVERS", "LOSSES"]
+           "bundle_adjust", "poses_to_params", "params_to_poses"]
 
-SOLVERS = ("scipy", "schur")  # bundle_adjust(solver=...)
-LOSSES = ("linear", "soft_l1", "huber", "cauchy", "arctan")  # SciPy's robust losses
 # The Schur solver's first Levenberg-Marquardt lambda (relative to diag(H)). The robust problems of
 # pose_init have several local minima, and the first steps choose among them. Measured (first-round
 # cost, examples/bench_bundle.py and tests/pose/test_given.py's 160 x 90 photo_room): 1e-3 reached the
@@ -202,33 +204,9 @@ class BundleProblem:
     uv: np.ndarray  # (O, 2) observed pixels, our convention
 
 
-def robust_loss(z, loss):
-    """SciPy's robust losses (``scipy.optimize.least_squares``): rho(z) and rho'(z) of z = (r / f_scale)^2,
-    element-wise; the cost is 0.5 f_scale^2 sum rho(z) over residual elements.
-
-    linear z; soft_l1 2 (sqrt(1 + z) - 1); huber z (z <= 1), 2 sqrt(z) - 1; cauchy ln(1 + z);
-    arctan arctan(z).
-    """
-    z = np.asarray(z, dtype=np.float64)
-    if loss == "linear":
-        return z, np.ones_like(z)
-    if loss == "soft_l1":
-        t = np.sqrt(1.0 + z)
-        return 2.0 * (t - 1.0), 1.0 / t
-    if loss == "huber":
-        small = z <= 1.0
-        zs = np.sqrt(np.maximum(z, 1.0))
-        return np.where(small, z, 2.0 * zs - 1.0), np.where(small, 1.0, 1.0 / zs)
-    if loss == "cauchy":
-        return np.log1p(z), 1.0 / (1.0 + z)
-    if loss == "arctan":
-        return np.arctan(z), 1.0 / (1.0 + z * z)
-    raise ValueError(f"loss must be one of {LOSSES}; got {loss!r}")
-
-
 def _check_solver_args(solver, loss, f_scale, max_nfev, tol):
-    if not isinstance(solver, str) or solver not in SOLVERS:
-        raise ValueError(f"bundle_adjust: solver must be one of {SOLVERS}; got {solver!r}")
+    if not isinstance(solver, str) or solver not in BUNDLE_SOLVERS:
+        raise ValueError(f"bundle_adjust: solver must be one of {BUNDLE_SOLVERS}; got {solver!r}")
     if not isinstance(loss, str) or loss not in LOSSES:
         raise ValueError(f"bundle_adjust: loss must be one of {LOSSES}; got {loss!r}")
     if isinstance(f_scale, bool) or not isinstance(f_scale, (int, float, np.floating, np.integer)):
@@ -346,13 +324,15 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
     points, whose blocks V_p (3 x 3 per point) are independent:
         S = A + lam D_y - E (V + lam D_p)^-1 E^T,  S dy = -g_y + E (V + lam D_p)^-1 g_p,
         dp = -(V + lam D_p)^-1 (g_p + E^T dy);
-    S is dense (6 x free cameras [+ 1]) and Cholesky-factored (``optim.linalg.cholesky_solve``); each damped point block is inverted from
-    its eigendecomposition with its eigenvalues floored at BA_POINT_EIG_FLOOR x the largest (a point
-    seen once, or along one ray, has a rank-2 block: the damping regularises it). A trial step is
-    accepted only if the true cost falls (a non-finite residual counts as an infinite cost; a failed
-    factorisation as a rejection). Nielsen's update of lam: after acceptance lam *= max(1/3, 1 - (2 rho
-    - 1)^3) with rho = actual / predicted decrease (the quadratic model of J^T W J), nu = 2; after a
-    rejection lam *= nu, nu *= 2. The rotation vectors are updated additively, as SciPy's are.
+    S is dense (6 x free cameras [+ 1]) and Cholesky-factored (``pose.linalg.cholesky_solve``); each
+    damped point block is inverted from its eigendecomposition with its eigenvalues floored at
+    BA_POINT_EIG_FLOOR x the largest (a point seen once, or along one ray, has a rank-2 block: the
+    damping regularises it). The damping and the acceptance are the shared ones of ``pose/lm.py``:
+    a trial step is accepted only if the true cost falls (a non-finite residual counts as an
+    infinite cost; a failed factorisation as a rejection); Nielsen's update of lam (``lm.Nielsen``):
+    after acceptance lam *= max(1/3, 1 - (2 rho - 1)^3) with rho = actual / predicted decrease (the
+    quadratic model of J^T W J), nu = 2; after a rejection lam *= nu, nu *= 2. The rotation vectors
+    are updated additively, as SciPy's are.
     Stops when an accepted step lowers the cost by less than tol x cost (status 2), when a step is
     below tol x (|x| + tol) (status 3), after max_nfev residual evaluations (status 0) or when lam
     reaches LM_DAMPING_MAX (status -2, no step lowers the cost).
@@ -400,9 +380,7 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
             cost = 0.5 * fs2 * float(np.sum(rho))
             if rp is not None:
                 cost += 0.5 * fs2 * float(np.sum(robust_loss((rp / f_scale) ** 2, loss)[0]))
-        if not np.isfinite(cost):
-            cost = np.inf
-        return cost, r, saved, rp, Jpr
+        return finite_or_inf(cost), r, saved, rp, Jpr
 
     def normal_equations(r, saved, rp, Jpr):
         d_cam, d_pt, n = _blocks(saved)
@@ -480,15 +458,15 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
     r0 = r
     nfev, iterations, status = 1, 0, 0
     cost_hist, sec_hist = [cost], [time.perf_counter() - t_start]
-    lam, nu = SCHUR_DAMPING_INIT, 2.0
+    damp, schedule = damping_start(SCHUR_DAMPING_INIT), Nielsen()
     ne = normal_equations(r, saved, rp, Jpr)
     while nfev < max_nfev:
-        step = damped_step(ne, lam)
+        step = damped_step(ne, damp.lam)
         if step is None:  # S not positive definite at this damping: more damping
-            if lam >= LM_DAMPING_MAX:
+            if at_damping_limit(damp):
                 status = -2
                 break
-            lam, nu = min(lam * nu, LM_DAMPING_MAX), 2.0 * nu
+            damp = schedule.rejected(damp)
             continue
         dy, dp = step
         pred = predicted_decrease(ne, dy, dp)
@@ -496,13 +474,11 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
         new = evaluate(y_new, pts_new)
         nfev += 1
         small_step = np.sqrt(dy @ dy + dp @ dp) <= tol * (np.sqrt(y @ y + np.sum(pts * pts)) + tol)
-        if new[0] < cost:
+        if accept_step(cost, new[0]):
             decrease = cost - new[0]
-            rho_gain = decrease / pred if pred > 0 else 1.0
             y, pts, (cost, r, saved, rp, Jpr) = y_new, pts_new, new
             iterations += 1
-            lam = min(max(lam * max(1.0 / 3.0, 1.0 - (2.0 * rho_gain - 1.0) ** 3), LM_DAMPING_MIN), LM_DAMPING_MAX)
-            nu = 2.0
+            damp = schedule.accepted(damp, decrease, pred)
             cost_hist.append(cost)
             sec_hist.append(time.perf_counter() - t_start)
             if decrease <= tol * cost:
@@ -518,14 +494,14 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
             if small_step:
                 status = 3
                 break
-            if lam >= LM_DAMPING_MAX:
+            if at_damping_limit(damp):
                 status = -2
                 break
-            lam, nu = min(lam * nu, LM_DAMPING_MAX), 2.0 * nu
+            damp = schedule.rejected(damp)
     cams, pts, f = unpack(y, pts)
     err = np.linalg.norm(r, axis=1)
     info = {"cost": float(cost), "nfev": int(nfev), "status": int(status), "solver": "schur",
-            "iterations": int(iterations), "damping": float(lam),
+            "iterations": int(iterations), "damping": float(damp.lam),
             "rms_px_start": float(np.sqrt(np.mean(r0 ** 2))) if O else 0.0,
             "median_px": float(np.median(err)) if err.size else 0.0,
             "rms_px": float(np.sqrt(np.mean(err ** 2))) if err.size else 0.0, "residual_px": err,

@@ -19,52 +19,17 @@ from __future__ import annotations
 import dataclasses
 import hashlib
 import json
-import numbers
-from dataclasses import dataclass, field
+from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
-from d2gs_np.pose.features import FeatureConfig, detect_features, match_keypoints
+from d2gs_np.pose.config import CorrespondConfig
+from d2gs_np.pose.features import detect_features, match_keypoints
 
-__all__ = ["CorrespondConfig", "PairMatches", "Correspondences", "correspondences", "cache_key"]
+__all__ = ["PairMatches", "Correspondences", "correspondences", "cache_key"]
 
 CACHE_PREFIX = "correspondences_"
-
-
-@dataclass(frozen=True)
-class CorrespondConfig:
-    """Which frame pairs are matched and how (``features``: detector, ratio, RANSAC)."""
-
-    # Detection tuned for small blurry frames: OpenCV's SIFT defaults (contrast 0.02 here already,
-    # sigma 1.6, ratio 0.75, 1 px) found 0-22 verified matches per pair on the 160 x 90 wall_disk
-    # suite scene (most pairs skipped); contrast 0.002, sigma 1.0, ratio 0.85 and 1.5 px found
-    # 32-99 per pair at inlier ratios 0.6-0.9 (measured once, the reason for these values).
-    features: FeatureConfig = field(default_factory=lambda: FeatureConfig(
-        contrast_threshold=0.002, sigma=1.0, ratio=0.85, ransac_threshold_px=1.5))
-    gaps: tuple = (1, 2)  # pairs (k, k + g): consecutive frames and frames two apart
-    min_pair_matches: int = 12  # a pair with fewer verified matches is skipped (and reported)
-    # Guided matching: a keypoint of frame k is matched only within max_flow_fraction x width x gap
-    # pixels of itself in frame k + gap (0 = anywhere). RANSAC on F cannot reject a wrong match
-    # along an epipolar line, and a sideways-moving camera has horizontal epipolar lines: on the
-    # wall_disk suite scene (repeating texture) ~46 % of the F-verified matches were off by ~50 px
-    # along x; with the window they are not proposed.
-    max_flow_fraction: float = 0.06
-
-    def __post_init__(self):
-        if not isinstance(self.features, FeatureConfig):
-            raise TypeError(f"CorrespondConfig.features must be a FeatureConfig; got {type(self.features).__name__}")
-        gaps = tuple(self.gaps) if isinstance(self.gaps, (tuple, list)) else None
-        if not gaps or not all(isinstance(g, numbers.Integral) and not isinstance(g, bool) and g >= 1 for g in gaps) \
-                or len(set(gaps)) != len(gaps):
-            raise ValueError(f"CorrespondConfig.gaps must be distinct ints >= 1, e.g. (1, 2); got {self.gaps!r}")
-        object.__setattr__(self, "gaps", gaps)
-        f = self.max_flow_fraction
-        if isinstance(f, bool) or not isinstance(f, numbers.Real) or not 0.0 <= f <= 1.0:
-            raise ValueError(f"CorrespondConfig.max_flow_fraction must be in [0, 1] (0 = no window); got {f!r}")
-        v = self.min_pair_matches
-        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
-            raise ValueError(f"CorrespondConfig.min_pair_matches must be an int >= 1; got {v!r}")
 
 
 @dataclass

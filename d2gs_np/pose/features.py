@@ -23,7 +23,6 @@ before every call, so results are deterministic.
 """
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass
 from typing import Optional
 
@@ -31,10 +30,9 @@ import cv2
 import numpy as np
 
 from d2gs_np.constants import PIXEL_CENTER_OFFSET
+from d2gs_np.pose.config import FeatureConfig
 
 __all__ = [
-    "DETECTORS",
-    "FeatureConfig",
     "Keypoints",
     "Matches",
     "to_gray_u8",
@@ -43,73 +41,6 @@ __all__ = [
     "match_keypoints",
     "match_images",
 ]
-
-# Feature detectors: SIFT is the default (docs/method.md §5); ORB and AKAZE give binary
-# descriptors, matched by Hamming distance.
-DETECTORS = ("sift", "orb", "akaze")
-
-# The 8-point/7-point solvers inside FM_RANSAC need at least 8 correspondences.
-_MIN_RANSAC_MATCHES = 8
-
-
-@dataclass(frozen=True)
-class FeatureConfig:
-    """Settings of detection, matching and geometric verification. Validated on construction."""
-
-    ratio: float = 0.75  # Lowe ratio: keep a match if d1 < ratio * d2
-    ransac_threshold_px: float = 1.0  # max distance (px) to the epipolar line for a RANSAC inlier
-    ransac_confidence: float = 0.999
-    ransac_max_iters: int = 2000
-    mask_dilation_px: int = 4  # radius (px) by which motion masks grow before excluding pixels
-    max_features: int = 0  # keep the best n keypoints per image (cv2 nfeatures); 0 = all
-    contrast_threshold: float = 0.02  # SIFT DoG contrast threshold; OpenCV's default 0.04 finds
-    # too few keypoints on small blurry frames (blur lowers DoG contrast)
-    edge_threshold: float = 10.0  # SIFT edge-response threshold (OpenCV default)
-    sigma: float = 1.6  # SIFT base blur (OpenCV default)
-    octave_layers: int = 3  # SIFT layers per octave (Lowe's and OpenCV's default)
-    min_matches: int = 8  # fewer ratio-test matches than this (>= 8) -> no matches are returned
-    seed: int = 0  # OpenCV RNG seed for RANSAC
-    detector: str = "sift"  # "sift" (float descriptors, L2), "orb" or "akaze" (binary, Hamming)
-    max_displacement_px: float = 0.0  # > 0: a keypoint is matched only to keypoints within this
-    # distance (px), before the ratio test (guided matching between nearby video frames); 0 = anywhere
-
-    def __post_init__(self):
-        if self.detector not in DETECTORS:
-            raise ValueError(f"FeatureConfig.detector must be one of {DETECTORS}; got {self.detector!r}")
-        for name in ("ratio", "ransac_threshold_px", "ransac_confidence", "contrast_threshold",
-                     "edge_threshold", "sigma", "max_displacement_px"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v):
-                raise TypeError(f"FeatureConfig.{name} must be a finite real number; got {v!r}")
-        for name in ("ransac_max_iters", "mask_dilation_px", "max_features", "min_matches", "seed", "octave_layers"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral):
-                raise TypeError(f"FeatureConfig.{name} must be an int; got {type(v).__name__} {v!r}")
-        if not 0.0 < self.ratio <= 1.0:
-            raise ValueError(f"FeatureConfig.ratio must be in (0, 1]; got {self.ratio}")
-        if self.ransac_threshold_px <= 0:
-            raise ValueError(f"FeatureConfig.ransac_threshold_px must be > 0; got {self.ransac_threshold_px}")
-        if not 0.0 < self.ransac_confidence < 1.0:
-            raise ValueError(f"FeatureConfig.ransac_confidence must be in (0, 1); got {self.ransac_confidence}")
-        if self.max_displacement_px < 0:
-            raise ValueError(f"FeatureConfig.max_displacement_px must be >= 0 (0 = no limit); got {self.max_displacement_px}")
-        if self.octave_layers < 1:
-            raise ValueError(f"FeatureConfig.octave_layers must be >= 1; got {self.octave_layers}")
-        if self.ransac_max_iters < 1:
-            raise ValueError(f"FeatureConfig.ransac_max_iters must be >= 1; got {self.ransac_max_iters}")
-        if self.mask_dilation_px < 0 or self.max_features < 0 or self.seed < 0:
-            raise ValueError(
-                "FeatureConfig.mask_dilation_px, max_features and seed must be >= 0; got "
-                f"{self.mask_dilation_px}, {self.max_features}, {self.seed}"
-            )
-        if self.contrast_threshold <= 0 or self.edge_threshold <= 0 or self.sigma <= 0:
-            raise ValueError("FeatureConfig.contrast_threshold, edge_threshold and sigma must be > 0")
-        if self.min_matches < _MIN_RANSAC_MATCHES:
-            raise ValueError(
-                f"FeatureConfig.min_matches must be >= {_MIN_RANSAC_MATCHES} (RANSAC on F needs 8 points); "
-                f"got {self.min_matches}"
-            )
-
 
 @dataclass
 class Keypoints:

@@ -19,29 +19,14 @@ rate does not depend on the scene's units. The pose with the lowest error seen i
 """
 from __future__ import annotations
 
-import numbers
-from dataclasses import dataclass
 
 import numpy as np
 
 from d2gs_np.geometry.se3 import check_rigid, matrix_grad_to_left_tangent, se3_exp, se3_inverse, se3_log
+from d2gs_np.pose.config import PoseFitConfig
 from d2gs_np.render import render_bwd, render_fwd
 
-__all__ = ["PoseFitConfig", "fit_pose"]
-
-
-@dataclass(frozen=True)
-class PoseFitConfig:
-    steps: int = 100
-    lr: float = 1e-3  # radians per step for rotation; times the median depth for translation
-    betas: tuple = (0.9, 0.999)
-    eps: float = 1e-12
-
-    def __post_init__(self):
-        if isinstance(self.steps, bool) or not isinstance(self.steps, numbers.Integral) or self.steps < 0:
-            raise ValueError(f"PoseFitConfig.steps must be an int >= 0; got {self.steps!r}")
-        if not (isinstance(self.lr, numbers.Real) and 0.0 < self.lr < float("inf")):
-            raise ValueError(f"PoseFitConfig.lr must be a finite number > 0; got {self.lr!r}")
+__all__ = ["fit_pose"]
 
 
 def fit_pose(render_inputs, pose0, K, width, height, target, background=None, config: PoseFitConfig = None,

@@ -32,25 +32,24 @@ project with K_k to p'' at camera depth ``z_k(p'')``::
 100 makes a 1 % depth error cost as much as a 1 px reprojection error. Depths are constants of
 the problem (read from a render at the current mid poses, refreshed between solver calls).
 
-Symbolic part (CasADi). Two ``casadi.Function`` objects, built once per process:
-``mid``: (x_k, T_s,k, T_e,k) -> (M_k as 12 numbers, dM_k/dx_k 12x12), with SO(3)/SE(3) exp and log
-written with explicit small-angle branches (``casadi.if_else``; the series of ``geometry/so3.py``
-below SERIES_ANGLE2, the closed forms above, with a dummy angle in the branch not taken so no
-NaN is ever formed); ``match``: (M_k, M_j, intrinsics, observation) -> (r 3, dr/dM_k 3x12,
-dr/dM_j 3x12). ``match.map(n)`` evaluates n matches in one call (cached per n). The chain rule
-dr/dx_k = dr/dM_k dM_k/dx_k is one matrix product per match: the Jacobian is exact.
+The mid poses, the match residuals and the prior rows, with their exact Jacobians, are CasADi
+functions (``pose/symbolic.py``); the chain rule dr/dx_k = dr/dM_k dM_k/dx_k is one matrix product
+per match.
 
-Robust loss (IRLS). Each data residual r_i (not the prior rows) carries
-rho(r) = r^2/2 (``none``), Huber ``r^2/2 if |r| <= d else d|r| - d^2/2`` or Cauchy
-``d^2/2 log(1 + (r/d)^2)``, with d = ``robust_scale``; elementwise, as ``least_squares``'s
-``loss="huber"`` / ``"cauchy"`` with ``f_scale = d``. Each iteration solves the weighted normal
-equations ``(H + lam D) dx = -g``, ``H = J^T W J``, ``g = J^T W r``, W the IRLS weights
-(``rho'(r)/r``), D = diag(H) floored at ``DAMPING_DIAG_FLOOR`` x max diag(H) (Marquardt scaling
-that still damps a column without data). A step is accepted only if the robust cost decreases,
-so the cost never rises; otherwise lam grows by ``damping_up`` up to ``LM_DAMPING_MAX`` (the
-system is solved as (H/lam + D) dx = -g/lam once lam > 1, so a huge lam stays finite and gives a
-tiny step). Stops when the relative cost decrease of an accepted step falls below ``ftol``, when
-the step is below ``xtol`` (relative to |x|), at ``max_iters``, or when lam reaches its limit.
+Robust loss and damping (IRLS; ``pose/lm.py``, shared with the bundle adjustment). Each data
+residual r_i (not the prior rows) carries rho(r) = r^2/2 (``none``), Huber
+``r^2/2 if |r| <= d else d|r| - d^2/2`` or Cauchy ``d^2/2 log(1 + (r/d)^2)``, with
+d = ``robust_scale``; elementwise, as ``least_squares``'s ``loss="huber"`` / ``"cauchy"`` with
+``f_scale = d`` (``lm.robust_cost``). Each iteration solves the weighted normal equations
+``(H + lam D) dx = -g``, ``H = J^T W J``, ``g = J^T W r``, W the IRLS weights (``rho'(r)/r``),
+D = diag(H) floored at ``DAMPING_DIAG_FLOOR`` x max(max diag(H), 1) (Marquardt scaling that still
+damps a column without data). A step is accepted only if the robust cost decreases
+(``lm.accept_step``), so the cost never rises; lam shrinks by ``damping_down`` after an accepted
+step and grows by ``damping_up`` after a rejected one, within [LM_DAMPING_MIN, LM_DAMPING_MAX]
+(``lm.FixedFactors``; the system is solved as (H/lam + D) dx = -g/lam once lam > 1, so a huge lam
+stays finite and gives a tiny step). Stops when the relative cost decrease of an accepted step
+falls below ``ftol``, when the step is below ``xtol`` (relative to |x|), at ``max_iters``, or when
+lam reaches its limit.
 
 Covariance. At the end, ``pinv(H)`` of the final normal equations (unit residual variance, prior
 rows included) over the free unknowns, with its numerical rank (singular values above
@@ -58,222 +57,29 @@ rows included) over the free unknowns, with its numerical rank (singular values 
 """
 from __future__ import annotations
 
-import functools
 import math
-import numbers
 import time
 from dataclasses import dataclass, field
 
-import casadi as ca
 import numpy as np
 from numba import njit
 
-from d2gs_np.constants import (  # noqa: F401 (LM_DAMPING_MAX is re-exported for tests)
-    COVARIANCE_RCOND,
-    DAMPING_DIAG_FLOOR,
-    GN_LOG_SERIES_SIN2,
-    GN_MIN_DEPTH,
-    LM_DAMPING_MAX,
-    LM_DAMPING_MIN,
-    SERIES_ANGLE2,
-)
+from d2gs_np.constants import COVARIANCE_RCOND, DAMPING_DIAG_FLOOR, GN_MIN_DEPTH
 from d2gs_np.geometry.se3 import check_rigid
-from d2gs_np.geometry.so3 import _A_COEFFS, _B_COEFFS, _C_COEFFS, _D_COEFFS
 from d2gs_np.geometry.sampling import bilinear_fwd
+from d2gs_np.pose.config import GaussNewtonConfig
 from d2gs_np.pose.linalg import cholesky_solve
+from d2gs_np.pose.lm import FixedFactors, accept_step, at_damping_limit, damping_start, finite_or_inf, robust_cost
+from d2gs_np.pose.symbolic import NUM_VARS, flat_to_pose, mapped, pose_to_flat
 
 __all__ = [
-    "ROBUST_LOSSES",
-    "GaussNewtonConfig",
     "PairObservations",
     "PoseProblem",
     "GaussNewtonResult",
     "sample_depth",
     "pair_observations",
     "solve",
-    "robust_cost",
-    "toy_problem",
 ]
-
-ROBUST_LOSSES = ("none", "huber", "cauchy")
-NUM_VARS = 12  # per frame: a (6) on the exposure start, b (6) on the exposure end
-
-
-@dataclass(frozen=True)
-class GaussNewtonConfig:
-    """Settings of the pose solver (module docstring)."""
-
-    max_iters: int = 40  # 15 before the pose prior; with its tight default, calls at 15 stopped at max_iters
-    # Weight of the relative depth residual: the paper's 100 reduced to 10, and the Cauchy loss at
-    # 1 px, as measured on the wall_disk suite scene (docs/method.md §5): on the initial model and on
-    # a model trained 93 steps, Cauchy / 1 px / beta 10 lowered ATE 0.069 -> 0.037 and 0.067 -> 0.046
-    # and RPE_r 0.94 -> 0.46 and 0.88 -> 0.58 deg, where Huber / 2 px / beta 100 gave 0.055 and 0.070
-    # (worse than the start) and RPE_r 0.90 and 1.03 deg.
-    beta: float = 10.0
-    robust: str = "cauchy"  # "none", "huber" or "cauchy" (IRLS)
-    robust_scale: float = 1.0  # d of the robust loss, in residual units (pixels)
-    spread_sigma: float = 1e-3  # prior: a change of the endpoint spread b - a by this costs 1/2
-    damping_init: float = 1e-3  # initial Levenberg-Marquardt lambda (relative to diag(H))
-    damping_up: float = 10.0  # lambda x this after a rejected step
-    damping_down: float = 0.3  # lambda x this after an accepted step
-    ftol: float = 1e-6  # stop when an accepted step lowers the cost by less than this fraction
-    xtol: float = 1e-10  # stop when |dx| < xtol (|x| + xtol)
-
-    def __post_init__(self):
-        for name in ("beta", "robust_scale", "spread_sigma", "damping_init", "damping_up", "damping_down", "ftol",
-                     "xtol"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
-                raise TypeError(f"GaussNewtonConfig.{name} must be a finite real number; got {v!r}")
-        if isinstance(self.max_iters, bool) or not isinstance(self.max_iters, numbers.Integral) or self.max_iters < 0:
-            raise ValueError(f"GaussNewtonConfig.max_iters must be an int >= 0; got {self.max_iters!r}")
-        if self.robust not in ROBUST_LOSSES:
-            raise ValueError(f"GaussNewtonConfig.robust must be one of {ROBUST_LOSSES}; got {self.robust!r}")
-        for name in ("beta", "robust_scale", "spread_sigma", "damping_init", "ftol", "xtol"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"GaussNewtonConfig.{name} must be > 0; got {getattr(self, name)}")
-        if self.damping_up <= 1.0 or not 0.0 < self.damping_down < 1.0:
-            raise ValueError(f"GaussNewtonConfig.damping_up must be > 1 and damping_down in (0, 1); got "
-                             f"{self.damping_up}, {self.damping_down}")
-
-
-# ---------------------------------------------------------------------------------------------
-# Symbolic SE(3) (CasADi), following geometry/se3.py: xi = (rho, phi), left perturbations
-# ---------------------------------------------------------------------------------------------
-
-
-def _hat(v):
-    return ca.vertcat(ca.horzcat(0, -v[2], v[1]), ca.horzcat(v[2], 0, -v[0]), ca.horzcat(-v[1], v[0], 0))
-
-
-def _horner(t2, coeffs):
-    out = coeffs[-1]
-    for c in coeffs[-2::-1]:
-        out = out * t2 + c
-    return out
-
-
-def _coef(t2, coeffs, closed):
-    """Series below SERIES_ANGLE2, closed form (a function of theta) above; the closed form sees
-    a dummy angle 1 where the series is taken, so neither branch ever forms NaN."""
-    small = t2 < SERIES_ANGLE2
-    safe = ca.if_else(small, 1.0, t2)
-    return ca.if_else(small, _horner(t2, coeffs), closed(ca.sqrt(safe)))
-
-
-def _so3_exp_sym(phi):
-    t2 = ca.dot(phi, phi)
-    A = _coef(t2, _A_COEFFS, lambda t: ca.sin(t) / t)
-    B = _coef(t2, _B_COEFFS, lambda t: (1 - ca.cos(t)) / (t * t))
-    C = _coef(t2, _C_COEFFS, lambda t: (t - ca.sin(t)) / (t * t * t))
-    P = _hat(phi)
-    P2 = ca.mtimes(P, P)
-    return ca.SX.eye(3) + A * P + B * P2, ca.SX.eye(3) + B * P + C * P2  # R, J_l
-
-
-def _se3_exp_sym(xi):
-    R, Jl = _so3_exp_sym(xi[3:6])
-    return R, ca.mtimes(Jl, xi[0:3])
-
-
-def _se3_log_sym(R, t):
-    """(R, t) near the identity -> xi (6). The angle comes from atan2(|w|, c) with w the skew part
-    and c = (tr R - 1) / 2; below |w|^2 = GN_LOG_SERIES_SIN2 (and c > 0) theta / sin(theta) is its
-    series in sin^2. Valid for rotation angles below pi (the solver only takes the log of
-    T_s^-1 T_e, the small endpoint spread)."""
-    w = 0.5 * ca.vertcat(R[2, 1] - R[1, 2], R[0, 2] - R[2, 0], R[1, 0] - R[0, 1])
-    c = 0.5 * (R[0, 0] + R[1, 1] + R[2, 2] - 1)
-    s2 = ca.dot(w, w)
-    small = ca.logic_and(s2 < GN_LOG_SERIES_SIN2, c > 0)
-    safe = ca.if_else(small, 1.0, s2)
-    s = ca.sqrt(safe)
-    factor = ca.if_else(small, 1 + s2 / 6 + 3 * s2 * s2 / 40 + 5 * s2 * s2 * s2 / 112, ca.atan2(s, c) / s)
-    phi = factor * w
-    t2 = ca.dot(phi, phi)
-    D = _coef(t2, _D_COEFFS, lambda th: 1 / (th * th) - (1 + ca.cos(th)) / (2 * th * ca.sin(th)))
-    P = _hat(phi)
-    Jl_inv = ca.SX.eye(3) - 0.5 * P + D * ca.mtimes(P, P)
-    return ca.vertcat(ca.mtimes(Jl_inv, t), phi)
-
-
-def _pose_sym(m):
-    """12 numbers (R row-major, t) -> (R 3x3, t 3)."""
-    return ca.reshape(m[0:9], 3, 3).T, m[9:12]
-
-
-def _pose_flat(R, t):
-    return ca.vertcat(ca.reshape(R.T, 9, 1), t)
-
-
-def pose_to_flat(T):
-    """(..., 4, 4) -> (..., 12): R row-major, then t (the symbolic functions' pose layout)."""
-    T = np.asarray(T, dtype=np.float64)
-    return np.concatenate([T[..., :3, :3].reshape(T.shape[:-2] + (9,)), T[..., :3, 3]], axis=-1)
-
-
-def flat_to_pose(m):
-    m = np.asarray(m, dtype=np.float64)
-    T = np.zeros(m.shape[:-1] + (4, 4))
-    T[..., :3, :3] = m[..., :9].reshape(m.shape[:-1] + (3, 3))
-    T[..., :3, 3] = m[..., 9:12]
-    T[..., 3, 3] = 1.0
-    return T
-
-
-@functools.lru_cache(maxsize=None)
-def _mid_function() -> ca.Function:
-    """(x 12, T_s 12, T_e 12) -> (mid pose 12, d mid / dx 12x12, start 12, end 12)."""
-    x, ms, me = ca.SX.sym("x", NUM_VARS), ca.SX.sym("Ts", 12), ca.SX.sym("Te", 12)
-    Rs0, ts0 = _pose_sym(ms)
-    Re0, te0 = _pose_sym(me)
-    Ra, ta = _se3_exp_sym(x[0:6])
-    Rb, tb = _se3_exp_sym(x[6:12])
-    Rs, ts = ca.mtimes(Ra, Rs0), ca.mtimes(Ra, ts0) + ta  # exp(a) T_s
-    Re, te = ca.mtimes(Rb, Re0), ca.mtimes(Rb, te0) + tb  # exp(b) T_e
-    Rd = ca.mtimes(Rs.T, Re)  # T_s^-1 T_e
-    td = ca.mtimes(Rs.T, te - ts)
-    half = 0.5 * _se3_log_sym(Rd, td)
-    Rh, th = _se3_exp_sym(half)
-    Rm, tm = ca.mtimes(Rs, Rh), ca.mtimes(Rs, th) + ts  # T_s exp(xi / 2)
-    mid = _pose_flat(Rm, tm)
-    return ca.Function("gn_mid", [x, ms, me], [mid, ca.jacobian(mid, x), _pose_flat(Rs, ts), _pose_flat(Re, te)],
-                       ["x", "Ts", "Te"], ["mid", "dmid", "start", "end"])
-
-
-@functools.lru_cache(maxsize=None)
-def _match_function() -> ca.Function:
-    """(M_k 12, M_j 12, cam 8 = fx_k fy_k cx_k cy_k fx_j fy_j cx_j cy_j, obs 7 = u v u' v' D_k D_j beta)
-    -> (r 3, dr/dM_k 3x12, dr/dM_j 3x12)."""
-    mk, mj, cam, obs = ca.SX.sym("Mk", 12), ca.SX.sym("Mj", 12), ca.SX.sym("cam", 8), ca.SX.sym("obs", 7)
-    Rk, tk = _pose_sym(mk)
-    Rj, tj = _pose_sym(mj)
-    u, v, u1, v1, Dk, Dj, beta = (obs[i] for i in range(7))
-    Xj = Dj * ca.vertcat((u1 - cam[6]) / cam[4], (v1 - cam[7]) / cam[5], 1)  # lifted in camera j
-    Xw = ca.mtimes(Rj.T, Xj - tj)
-    Xk = ca.mtimes(Rk, Xw) + tk
-    z = Xk[2]
-    r = ca.vertcat(cam[0] * Xk[0] / z + cam[2] - u, cam[1] * Xk[1] / z + cam[3] - v, beta * (z - Dk) / Dk)
-    return ca.Function("gn_match", [mk, mj, cam, obs], [r, ca.jacobian(r, mk), ca.jacobian(r, mj)],
-                       ["Mk", "Mj", "cam", "obs"], ["r", "dr_dMk", "dr_dMj"])
-
-
-@functools.lru_cache(maxsize=None)
-def _prior_function() -> ca.Function:
-    """(M 12, G 12, sigma 2 = sigma_t sigma_r) -> (r 6, dr/dM 6x12): the pose prior rows of the
-    module docstring, camera centres c = -R^T t first, then the rotation log."""
-    m, g, sig = ca.SX.sym("M", 12), ca.SX.sym("G", 12), ca.SX.sym("sigma", 2)
-    Rm, tm = _pose_sym(m)
-    Rg, tg = _pose_sym(g)
-    dc = -ca.mtimes(Rm.T, tm) + ca.mtimes(Rg.T, tg)
-    phi = _se3_log_sym(ca.mtimes(Rm, Rg.T), ca.SX.zeros(3))[3:6]
-    r = ca.vertcat(dc / sig[0], phi / sig[1])
-    return ca.Function("gn_prior", [m, g, sig], [r, ca.jacobian(r, m)], ["M", "G", "sigma"], ["r", "dr_dM"])
-
-
-@functools.lru_cache(maxsize=64)
-def _mapped(kind: str, n: int) -> ca.Function:
-    base = {"mid": _mid_function, "match": _match_function, "prior": _prior_function}[kind]()
-    return base.map(n, "serial")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -413,7 +219,7 @@ class PoseProblem:
     def poses(self, x_free):
         """(starts, ends, mids) (N, 4, 4) each at the unknowns x."""
         x = self.full_x(x_free)
-        f = _mapped("mid", self.num_frames)
+        f = mapped("mid", self.num_frames)
         mid, _, s, e = f(x.T, self._flat_s.T, self._flat_e.T)
         return flat_to_pose(np.array(s).T), flat_to_pose(np.array(e).T), flat_to_pose(np.array(mid).T)
 
@@ -428,7 +234,7 @@ class PoseProblem:
         then (with ``prior_poses``) P = 6 pose-prior rows per free frame."""
         N, F, M, P = self.num_frames, len(self.free), self.num_matches, self.num_prior_rows
         x = self.full_x(x_free)
-        mid, dmid, _, _ = _mapped("mid", N)(x.T, self._flat_s.T, self._flat_e.T)
+        mid, dmid, _, _ = mapped("mid", N)(x.T, self._flat_s.T, self._flat_e.T)
         mid = np.array(mid).T  # (N, 12)
         dmid = np.array(dmid).reshape(12, N, 12).transpose(1, 0, 2)  # (N, 12 out, 12 in)
         xf = x[self.free]
@@ -437,12 +243,12 @@ class PoseProblem:
         r[3 * M:3 * M + 6 * F] = prior.reshape(-1)
         if P:
             sig = np.tile(np.asarray(self.prior_sigma, dtype=np.float64)[:, None], (1, F))
-            rp, jp = _mapped("prior", F)(mid[self.free].T, pose_to_flat(self.prior_poses[self.free]).T, sig)
+            rp, jp = mapped("prior", F)(mid[self.free].T, pose_to_flat(self.prior_poses[self.free]).T, sig)
             r[3 * M + 6 * F:] = np.array(rp).T.reshape(-1)
         J = None
         if M:
             obs = np.concatenate([self._obs, np.full((M, 1), float(beta))], axis=1)
-            rr, jk, jj = _mapped("match", M)(mid[self._ks].T, mid[self._js].T, self._cam.T, obs.T)
+            rr, jk, jj = mapped("match", M)(mid[self._ks].T, mid[self._js].T, self._cam.T, obs.T)
             r[:3 * M] = np.array(rr).T.reshape(-1)
         if not jacobian:
             return r, None
@@ -475,38 +281,18 @@ class PoseProblem:
 
 
 # ---------------------------------------------------------------------------------------------
-# Robust loss
+# The solver
 # ---------------------------------------------------------------------------------------------
 
 
-def robust_cost(r, kind, scale):
-    """sum_i rho(r_i) (module docstring) and the IRLS weights rho'(r_i) / r_i."""
-    r = np.asarray(r, dtype=np.float64)
-    a = np.abs(r)
-    if kind == "none":
-        return 0.5 * float(np.sum(r * r)), np.ones_like(r)
-    if kind == "huber":
-        inside = a <= scale
-        rho = np.where(inside, 0.5 * r * r, scale * a - 0.5 * scale * scale)
-        w = np.where(inside, 1.0, scale / np.maximum(a, scale))
-        return float(np.sum(rho)), w
-    if kind == "cauchy":
-        q = (r / scale) ** 2
-        return float(np.sum(0.5 * scale * scale * np.log1p(q))), 1.0 / (1.0 + q)
-    raise ValueError(f"robust loss must be one of {ROBUST_LOSSES}; got {kind!r}")
-
-
 def _cost(problem, r, config):
+    """The robust cost of the data rows plus the plain squares of the prior rows (+inf if not finite),
+    and the IRLS weight of every row (1 on the prior rows)."""
     n = 3 * problem.num_matches
     data, w = robust_cost(r[:n], config.robust, config.robust_scale)
     with np.errstate(over="ignore", invalid="ignore"):
         total = data + 0.5 * float(np.sum(r[n:] ** 2))
-    return (total if np.isfinite(total) else math.inf), np.concatenate([w, np.ones(len(r) - n)])
-
-
-# ---------------------------------------------------------------------------------------------
-# The solver
-# ---------------------------------------------------------------------------------------------
+    return finite_or_inf(total), np.concatenate([w, np.ones(len(r) - n)])
 
 
 @dataclass
@@ -609,25 +395,25 @@ def solve(problem: PoseProblem, config: GaussNewtonConfig = None, x0=None) -> Ga
         raise ValueError("the initial residuals are not finite (a lifted point behind a camera?); check the poses "
                          "and depths the problem was built with")
     costs, times, damping = [cost], [time.perf_counter() - t0], []
-    lam = min(max(float(config.damping_init), LM_DAMPING_MIN), LM_DAMPING_MAX)
+    damp, schedule = damping_start(config.damping_init), FixedFactors(config.damping_up, config.damping_down)
     status, iters, accepted = ("no_unknowns" if n == 0 else "max_iters"), 0, 0
     while n and iters < config.max_iters:
         iters += 1
         H, g = _normal_equations(J, w, r)
         step_ok = False
         while True:
-            dx = _solve_damped(H, g, lam)
+            dx = _solve_damped(H, g, damp.lam)
             x_new = x + dx
             r_new, J_new = problem.residuals(x_new, *args)
             cost_new, w_new = _cost(problem, r_new, config)
-            if cost_new < cost:
+            if accept_step(cost, cost_new):
                 step_ok = True
-                lam = max(lam * config.damping_down, LM_DAMPING_MIN)
+                damp = schedule.accepted(damp)
                 break
-            if lam >= LM_DAMPING_MAX:
+            if at_damping_limit(damp):
                 break
-            lam = min(lam * config.damping_up, LM_DAMPING_MAX)
-        damping.append(lam)
+            damp = schedule.rejected(damp)
+        damping.append(damp.lam)
         if not step_ok:
             costs.append(cost)
             times.append(time.perf_counter() - t0)
@@ -651,46 +437,3 @@ def solve(problem: PoseProblem, config: GaussNewtonConfig = None, x0=None) -> Ga
                              times=times, damping=damping, iterations=iters, accepted=accepted, covariance=cov,
                              rank=rank, num_params=n, num_matches=problem.num_matches, dropped=problem.dropped,
                              free=problem.free.copy())
-
-
-# ---------------------------------------------------------------------------------------------
-# A synthetic problem with known answer (examples/gn_vs_scipy.py, notebooks/05_pose_refinement)
-# ---------------------------------------------------------------------------------------------
-
-
-def toy_problem(num_frames=4, num_points=150, pixel_noise=0.0, outlier_fraction=0.0, rot_error=0.01,
-                trans_error=0.03, spread=1e-3, gaps=(1, 2), seed=0, width=160, height=90):
-    """(problem, true mid poses (N, 4, 4)): a camera sliding sideways past points 4-7 units away,
-    matches of pairs (k, k + g) with exact depths, ``pixel_noise`` px of noise on p, a fraction of
-    p replaced by uniform outliers, and every free frame's endpoints moved by one random left
-    perturbation (rotation std ``rot_error`` rad, translation std ``trans_error``)."""
-    from d2gs_np.geometry.se3 import se3_exp
-
-    rng = np.random.default_rng(seed)
-    f = 0.75 * width
-    K = np.array([[f, 0.0, width / 2], [0.0, f, height / 2], [0.0, 0.0, 1.0]])
-    mids = np.stack([se3_exp(np.r_[0.15 * k, 0.02 * k, 0.0, 0.0, 0.03 * k, 0.01 * k]) for k in range(num_frames)])
-    d = rng.normal(0, spread, (num_frames, 6))
-    starts, ends = se3_exp(-d) @ mids, se3_exp(d) @ mids
-    X = np.c_[rng.uniform(-2.5, 2.5, (num_points, 2)), rng.uniform(4.0, 7.0, num_points)]
-
-    def project(T):
-        Xc = X @ T[:3, :3].T + T[:3, 3]
-        p = Xc @ K.T
-        return p[:, :2] / p[:, 2:], Xc[:, 2]
-
-    pairs = []
-    for k in range(num_frames):
-        for g in gaps:
-            j = k + g
-            if j >= num_frames:
-                continue
-            pk, dk = project(mids[k])
-            pj, dj = project(mids[j])
-            pk = pk + rng.normal(0, pixel_noise, pk.shape) if pixel_noise else pk
-            bad = rng.random(num_points) < outlier_fraction
-            pk[bad] = rng.uniform([0, 0], [width, height], (int(bad.sum()), 2))
-            pairs.append(pair_observations(k, j, pk, pj, dk, dj))
-    P = np.stack([np.eye(4) if k == 0 else se3_exp(np.r_[rng.normal(0, trans_error, 3), rng.normal(0, rot_error, 3)])
-                  for k in range(num_frames)])
-    return PoseProblem(P @ starts, P @ ends, np.stack([K] * num_frames), pairs), mids

@@ -11,10 +11,10 @@ unknowns of the same problem. The video importer's (``video/``) recovers the sui
 from the blurry frames alone to 0.1-0.9 % of the scene depth, where the given poses are off by
 1.5 %. So before training, when the poses are not trusted:
 
-1. tracks through the blurry frames (KLT, ``video/tracks.py``), none inside the motion masks;
+1. tracks through the blurry frames (KLT, ``pose/tracks.py``), none inside the motion masks;
 2. each track with ``min_views`` observations or more triangulated with the *given* poses (linear,
    all its views), kept if in front of every camera and seen under at least ``min_parallax_deg``;
-3. a robust bundle adjustment (``video/bundle.py``: Levenberg-Marquardt with the points eliminated,
+3. a robust bundle adjustment (``pose/bundle.py``: Levenberg-Marquardt with the points eliminated,
    or SciPy's trust region, ``solver``; soft-L1 loss) over every
    camera and every point, started at the given poses, with a prior that holds each camera near
    its given pose (``prior_rot_deg``, ``prior_trans_rel``: it fixes the world frame and scale of
@@ -32,82 +32,17 @@ poses as the initial trajectory.
 """
 from __future__ import annotations
 
-import numbers
 import time
-from dataclasses import dataclass, field
 
 import numpy as np
 
 from d2gs_np.geometry.camera import camera_center
 from d2gs_np.geometry.so3 import so3_log
 from d2gs_np.pose.bundle import BundleProblem, bundle_adjust, params_to_poses, poses_to_params
-from d2gs_np.pose.tracks import TrackConfig, klt_tracks
+from d2gs_np.pose.config import PoseInitConfig
+from d2gs_np.pose.tracks import klt_tracks
 
-__all__ = ["PoseInitConfig", "triangulate_tracks", "adjust_given_poses", "initial_poses", "track_reprojection_rms"]
-
-_MODES = ("auto", "on", "off")
-_SOLVERS = ("schur", "scipy")  # video.bundle.SOLVERS
-
-
-@dataclass(frozen=True)
-class PoseInitConfig:
-    """Bundle adjustment of the given poses before training (module docstring).
-
-    mode: "auto" runs it when the pose solver runs (poses not trusted); "on" / "off" force it.
-    """
-
-    mode: str = "auto"
-    # The tracker without its retry window (video.tracks.TrackConfig.retry_window_px): the retry keeps
-    # more tracks through streaked frames, which the importer needs to connect a video, but they
-    # are less precise, and this adjustment starts from poses that already connect the frames.
-    # Measured (the suite's noisy poses, seeds 0 / 1, ATE after the adjustment, retry on -> off):
-    # photo_room 0.0208 / 0.0155 -> 0.0155 / 0.0093, cube_sign 0.0373 / 0.0087 -> 0.0221 / 0.0070,
-    # big_mover 0.0184 / 0.0101 -> 0.0126 / 0.0072, wall_disk (seed 0) 0.0042 -> 0.0041, crossing
-    # 0.0532 / 0.0189 -> 0.0571 / 0.0190. The pose solver's track check uses the same tracks. Trained
-    # 600 s (seed 0, README): the trained ATE better on 4 of 5 scenes, deblurred +0.09 dB on average.
-    tracks: TrackConfig = field(default_factory=lambda: TrackConfig(retry_window_px=0))
-    min_views: int = 3  # a track needs this many frames to be triangulated
-    min_parallax_deg: float = 1.0  # how far its rays open (triangulate_tracks)
-    min_points: int = 50  # fewer triangulated tracks: the given poses are kept
-    # A frame with fewer observations (of triangulated tracks; counted again after the outliers are
-    # dropped) is held at its given pose: the prior alone did not hold it. Crossing seed 0 (noisy
-    # poses, tracks with the retry window): frame 9, seen by 6 observations in the streaked frames,
-    # was turned 3.0 deg off the truth (0.3 deg given) and the adjustment raised the ATE from 0.070
-    # to 0.094 (held: 0.053). 10 observations are 20 equations for a pose's 6 unknowns.
-    min_frame_observations: int = 10
-    outlier_px: float = 3.0  # observations further than this from their projection are dropped (round 2)
-    robust_px: float = 1.0  # soft-L1 scale of the adjustment
-    # "schur": Levenberg-Marquardt with the points eliminated (video.bundle._schur_lm); "scipy":
-    # SciPy's trust region (least_squares, LSMR). Same cost, same unknowns, same prior.
-    solver: str = "schur"
-    max_nfev: int = 60  # residual evaluations per round (either solver: one per trial step)
-    # The prior on the given poses (``video.bundle.pose_prior_fwd``): it holds the gauge (the
-    # world frame and scale of the given poses) and the slow drift the tracks do not determine
-    # (a scene whose tracks are short). sigma_t = prior_trans_rel x the median depth of the points.
-    prior_rot_deg: float = 1.0
-    prior_trans_rel: float = 0.02
-    max_rms_px: float = 1.5  # an adjustment with a larger residual (inliers) is not kept
-    max_change_deg: float = 5.0  # nor one that turns a camera by more than this from the given pose
-    max_change_rel: float = 0.1  # nor one that moves a centre by more than this x the median point depth
-
-    def __post_init__(self):
-        if self.mode not in _MODES:
-            raise ValueError(f"PoseInitConfig.mode must be one of {_MODES}; got {self.mode!r}")
-        if self.solver not in _SOLVERS:
-            raise ValueError(f"PoseInitConfig.solver must be one of {_SOLVERS}; got {self.solver!r}")
-        if not isinstance(self.tracks, TrackConfig):
-            raise TypeError(f"PoseInitConfig.tracks must be a TrackConfig; got {type(self.tracks).__name__}")
-        for name in ("min_views", "max_nfev", "min_points", "min_frame_observations"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < (2 if name == "min_views" else 1):
-                raise ValueError(f"PoseInitConfig.{name} must be an int >= {2 if name == 'min_views' else 1}; "
-                                 f"got {v!r}")
-        for name in ("min_parallax_deg", "outlier_px", "robust_px", "max_rms_px", "max_change_deg", "max_change_rel",
-                     "prior_rot_deg", "prior_trans_rel"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v) or v <= 0:
-                raise ValueError(f"PoseInitConfig.{name} must be a finite number > 0; got {v!r}")
-
+__all__ = ["triangulate_tracks", "adjust_given_poses", "initial_poses", "track_reprojection_rms"]
 
 def triangulate_tracks(cam_T_world, K, obs_frame, obs_track, obs_uv, num_tracks, min_views=3,
                        min_parallax_deg=1.0):
@@ -311,7 +246,7 @@ def track_reprojection_rms(cam_T_world, K, tracks, min_views=3, min_parallax_deg
     (``triangulate_tracks``) and reprojected; the RMS of the pixel errors, each clipped at
     ``clip_px`` (a mismatch counts as a bad observation, not as an unbounded one).
 
-    tracks: (obs_frame, obs_track, obs_uv, num_tracks) as ``video.tracks.klt_tracks`` returns.
+    tracks: (obs_frame, obs_track, obs_uv, num_tracks) as ``pose.tracks.klt_tracks`` returns.
     Depends on no rendered depth: the pose solver's independent check (``PoseSolverConfig.
     track_check``). Returns (rms_px, observations used); (nan, 0) when no track qualifies.
     """

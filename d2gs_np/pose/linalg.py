@@ -1,4 +1,4 @@
-"""Small dense linear algebra shared by the solvers (``optim/gauss_newton.py``, ``video/bundle.py``).
+"""Small dense linear algebra shared by the solvers (``pose/gauss_newton.py``, ``pose/bundle.py``).
 
 Their normal equations are small (6 x frames, or 6 x cameras + 1) and solved many times per call.
 A plain single-threaded Numba factorisation is used on purpose: on a 2-core machine whose cores

@@ -23,59 +23,15 @@ Coordinates leave this module in our pixel convention (OpenCV's + 0.5, docs/conv
 """
 from __future__ import annotations
 
-import numbers
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from d2gs_np.constants import PIXEL_CENTER_OFFSET
+from d2gs_np.pose.config import TrackConfig
 from d2gs_np.pose.features import static_detector_mask, to_gray_u8
 
-__all__ = ["TrackConfig", "klt_tracks"]
-
-
-@dataclass(frozen=True)
-class TrackConfig:
-    """Settings of the KLT tracker. Validated on construction."""
-
-    # points per frame: 240x135 suite frames have 500-600 Shi-Tomasi corners at quality 0.005
-    max_corners: int = 600
-    quality: float = 0.005  # Shi-Tomasi quality (share of the best corner's score): low, blur lowers corner scores
-    min_distance_px: int = 5  # corners (new and active) at least this far apart
-    window_px: int = 15  # Lucas-Kanade window; 15 px: a few px of blur fits inside
-    # points that fail (step 1) with window_px are tracked again with this window (0: no retry). The
-    # fast shake of the suite's crossing, seed 1, streaks its star field along a turning direction:
-    # with 15 px alone only 11-14 static tracks span frames 10-12, the static world cannot be
-    # registered across them, and the registration bridged them on the crossing card (relative
-    # rotation errors of 4.7 deg per frame in frames 12-16). Retrying at 21 px keeps 50-60 there.
-    # Import accuracy (examples/import_accuracy.py, seeds 0 / 1), ATE/depth and mask IoU, 0 -> 21:
-    # crossing 0.99 / 1.91 % -> 0.91 / 1.57 %, IoU 0.47 / 0.27 -> 0.58 / 0.60; cube_sign ATE 0.40 /
-    # 0.18 % -> 1.49 / 0.19 %; the rest within 0.14 % ATE and 0.02 IoU; the static photo_room marks
-    # 0.5 / 1.1 -> 0.5 / 2.2 % of its pixels. A 21 px window for every point instead: big_mover seed 1
-    # fails (ATE 3.9 %), photo_room marks 2.4 / 4.0 %
-    retry_window_px: int = 21
-    levels: int = 3  # pyramid levels (3: displacements of ~30 px between neighbouring frames)
-    fb_px: float = 0.5  # forward-backward error above which a track ends
-    ransac_px: float = 1.0  # distance to the epipolar line (F between neighbouring frames) for an inlier
-    mask_dilation_px: int = 4  # as FeatureConfig.mask_dilation_px: keep off the border of a mover
-
-    def __post_init__(self):
-        for name in ("max_corners", "min_distance_px", "window_px", "levels", "mask_dilation_px", "retry_window_px"):
-            v = getattr(self, name)
-            lo = 0 if name in ("levels", "mask_dilation_px", "retry_window_px") else 1
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < lo:
-                raise ValueError(f"TrackConfig.{name} must be an int >= {lo}; got {v!r}")
-        if self.window_px < 3:
-            raise ValueError(f"TrackConfig.window_px must be >= 3; got {self.window_px}")
-        if 0 < self.retry_window_px < 3:
-            raise ValueError(f"TrackConfig.retry_window_px must be 0 (no retry) or >= 3; got {self.retry_window_px}")
-        for name in ("quality", "fb_px", "ransac_px"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v) or v <= 0:
-                raise ValueError(f"TrackConfig.{name} must be a finite number > 0; got {v!r}")
-        if self.quality >= 1:
-            raise ValueError(f"TrackConfig.quality must be in (0, 1); got {self.quality}")
+__all__ = ["klt_tracks"]
 
 
 def _lk_window(a, b, pts, window, cfg):

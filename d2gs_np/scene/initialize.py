@@ -84,7 +84,8 @@ import cv2
 import numpy as np
 
 from d2gs_np.constants import MAD_TO_SIGMA, ONE_DEPTH_RANGE_FACTOR, PIXEL_CENTER_OFFSET
-from d2gs_np.pose.features import FeatureConfig, detect_features, match_keypoints, static_detector_mask
+from d2gs_np.pose.config import FeatureConfig
+from d2gs_np.pose.features import detect_features, match_keypoints, static_detector_mask
 from d2gs_np.geometry.camera import camera_center, check_intrinsics, project_points, unproject_points
 from d2gs_np.geometry.se3 import check_rigid
 from d2gs_np.scene.stereo import StereoConfig, plane_sweep_depth

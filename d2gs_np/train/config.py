@@ -16,9 +16,7 @@ from pathlib import Path
 from typing import Optional
 
 from d2gs_np.blur.render import BlurConfig
-from d2gs_np.pose.correspond import CorrespondConfig
-from d2gs_np.pose.gauss_newton import GaussNewtonConfig
-from d2gs_np.pose.given import PoseInitConfig
+from d2gs_np.pose.config import CorrespondConfig, GaussNewtonConfig, PoseInitConfig
 from d2gs_np.render.config import RenderConfig
 from d2gs_np.scene.deformation import DeformConfig
 from d2gs_np.scene.initialize import InitConfig

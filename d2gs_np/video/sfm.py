@@ -44,12 +44,13 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
-from d2gs_np.pose.features import FeatureConfig, detect_features, match_keypoints
+from d2gs_np.pose.config import FeatureConfig, TrackConfig
+from d2gs_np.pose.features import detect_features, match_keypoints
 from d2gs_np.geometry.camera import project_points
 from d2gs_np.geometry.so3 import so3_orthonormalize
 from d2gs_np.scene.initialize import triangulate_matches
 from d2gs_np.pose.bundle import BundleProblem, bundle_adjust, params_to_poses, poses_to_params
-from d2gs_np.pose.tracks import TrackConfig, klt_tracks
+from d2gs_np.pose.tracks import klt_tracks
 
 __all__ = ["SfmConfig", "SfmResult", "register_video", "build_tracks", "NoParallaxError"]
 

@@ -1,16 +1,13 @@
-"""The Schur-complement Levenberg-Marquardt bundle adjustment (video.bundle.bundle_adjust(solver="schur")):
+"""The Schur-complement Levenberg-Marquardt bundle adjustment (d2gs_np/pose/bundle.py, solver="schur"):
 the same optimum as SciPy's trust region, a cost that never rises, exact recovery, stiff cases, bad input."""
 import numpy as np
 import pytest
-from scipy.optimize import least_squares
 
 from d2gs_np.geometry.se3 import se3_exp
-from d2gs_np.evaluation.metrics import ate
-from d2gs_np.pose.linalg import cholesky_solve
-from d2gs_np.pose.given import PoseInitConfig
 from d2gs_np.pose import bundle as B
 from d2gs_np.pose.bundle import (BundleProblem, bundle_adjust, params_to_poses, pose_prior_fwd, poses_to_params,
-                                  reprojection_fwd, robust_loss)
+                                  reprojection_fwd)
+from d2gs_np.pose.lm import robust_loss
 
 F, CX, CY = 200.0, 120.0, 80.0
 
@@ -44,41 +41,6 @@ def _cost(cams, pts, f, ci, pi, uv, loss, f_scale, prior=None):
     if prior is not None:
         r = np.r_[r, pose_prior_fwd(cams, prior[0], prior[1], prior[2])[0].ravel()]
     return 0.5 * f_scale ** 2 * float(np.sum(robust_loss((r / f_scale) ** 2, loss)[0]))
-
-
-@pytest.mark.parametrize("loss", B.LOSSES)
-def test_robust_loss_is_scipys(loss):
-    # rho against SciPy's own cost (least_squares with a constant residual stops at once and reports
-    # 0.5 f^2 sum rho(z) there); rho' against central differences (h = 1e-6 on z in [0, 9]: truncation
-    # ~h^2 |rho'''| < 1e-11, rounding ~1e-16 / 1e-6 = 1e-10, so 1e-8 absolute)
-    r = np.array([0.0, 0.3, -0.9, 1.0, 1.7, -4.0, 25.0])
-    fs = 1.3
-    res = least_squares(lambda x: r + 0.0 * x[0], x0=[0.0], loss=loss, f_scale=fs, max_nfev=1)
-    z = (r / fs) ** 2
-    rho, drho = robust_loss(z, loss)
-    assert 0.5 * fs ** 2 * np.sum(rho) == pytest.approx(res.cost, rel=1e-12)
-    zz = np.linspace(0.05, 9.0, 40)
-    h = 1e-6
-    num = (robust_loss(zz + h, loss)[0] - robust_loss(zz - h, loss)[0]) / (2 * h)
-    np.testing.assert_allclose(robust_loss(zz, loss)[1], num, atol=1e-8)
-
-
-def test_cholesky_solve_matches_numpy_and_flags_indefinite_matrices():
-    # against np.linalg.solve on SPD matrices of the camera system's size (cond up to ~1e8: the relative
-    # error of a backward-stable solve is ~cond x 1e-16 = 1e-8, so 1e-7 relative)
-    rng = np.random.default_rng(30)
-    for n, cond in ((1, 1.0), (7, 10.0), (145, 1e8)):
-        Q, _ = np.linalg.qr(rng.standard_normal((n, n)))
-        S = (Q * np.geomspace(1.0, 1.0 / cond, n)) @ Q.T
-        b = rng.standard_normal(n)
-        x, ok = cholesky_solve(S, b)
-        assert ok
-        ref = np.linalg.solve(S, b)
-        assert np.abs(x - ref).max() <= 1e-7 * np.abs(ref).max()
-    S = np.diag([1.0, -1e-3, 2.0])
-    assert not cholesky_solve(S, np.ones(3))[1]
-    assert not cholesky_solve(np.diag([1.0, np.nan]), np.ones(2))[1]
-    assert not cholesky_solve(np.diag([np.inf, 1.0]), np.ones(2))[1]  # an infinite pivot too
 
 
 def _noisy_problem(seed, C=6, P=150, outliers=0.2):
@@ -345,8 +307,6 @@ def test_bad_solver_arguments_are_named():
         bundle_adjust(prob, solver="schur", max_nfev=0)
     with pytest.raises(ValueError, match="prior cams must have the shape"):
         bundle_adjust(prob, solver="schur", prior=(np.zeros((2, 6)), 1.0, 1.0))
-    with pytest.raises(ValueError, match="PoseInitConfig.solver must be one of"):
-        PoseInitConfig(solver="lm")
 
 
 def test_pose_init_solver_round_trips_through_the_experiment_config():

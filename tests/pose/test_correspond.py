@@ -3,7 +3,7 @@ import numpy as np
 import pytest
 
 from d2gs_np.pose import correspond as cs
-from d2gs_np.pose.features import FeatureConfig
+from d2gs_np.pose.config import CorrespondConfig, FeatureConfig
 
 
 def _texture(seed=0, H=120, W=200):
@@ -48,7 +48,7 @@ def test_masked_pixels_carry_no_match():
 def test_a_pair_with_too_few_matches_is_reported_and_skipped():
     frames = _video(3)
     frames[2] = np.full_like(frames[2], 0.5)  # a featureless frame (lens cap, fog)
-    c = cs.correspondences(frames, config=cs.CorrespondConfig(min_pair_matches=12))
+    c = cs.correspondences(frames, config=CorrespondConfig(min_pair_matches=12))
     by = {(p.k, p.j): p for p in c.pairs}
     assert by[(0, 1)].used
     assert not by[(1, 2)].used and not by[(0, 2)].used
@@ -64,10 +64,10 @@ def test_cache_is_read_back_and_keyed_by_config_and_frames(tmp_path):
     for p, q in zip(a.pairs, b.pairs):
         assert (p.k, p.j, p.used, p.num_tentative) == (q.k, q.j, q.used, q.num_tentative)
         assert np.array_equal(p.pts_k, q.pts_k) and np.array_equal(p.pts_j, q.pts_j)
-    c = cs.correspondences(frames, config=cs.CorrespondConfig(gaps=(1,)), cache_dir=tmp_path)
+    c = cs.correspondences(frames, config=CorrespondConfig(gaps=(1,)), cache_dir=tmp_path)
     assert not c.from_cache and c.key != a.key
     frames[1] = frames[1] * 0.9
-    assert cs.cache_key(frames, [None] * 3, cs.CorrespondConfig()) != a.key
+    assert cs.cache_key(frames, [None] * 3, CorrespondConfig()) != a.key
 
 
 @pytest.mark.parametrize("detector", ["orb", "akaze"])
@@ -75,17 +75,13 @@ def test_binary_detectors_are_selectable(detector):
     big = _texture(W=400, H=300)
     frames = [np.ascontiguousarray(big[20:260, k * 4:k * 4 + 320]) for k in range(2)]
     fc = FeatureConfig(detector=detector, ratio=0.85)
-    c = cs.correspondences(frames, config=cs.CorrespondConfig(features=fc, gaps=(1,), min_pair_matches=8))
+    c = cs.correspondences(frames, config=CorrespondConfig(features=fc, gaps=(1,), min_pair_matches=8))
     p = c.pairs[0]
     assert p.used, c.report()
     assert np.median(np.abs(p.pts_k[:, 0] - p.pts_j[:, 0] - 4.0)) < 1.0
 
 
 def test_bad_inputs_are_named():
-    with pytest.raises(ValueError, match="gaps"):
-        cs.CorrespondConfig(gaps=(0,))
-    with pytest.raises(ValueError, match="detector"):
-        FeatureConfig(detector="surf")
     with pytest.raises(ValueError, match="images"):
         cs.correspondences([np.zeros((8, 8, 3))])
     with pytest.raises(ValueError, match=r"masks\[0\]"):

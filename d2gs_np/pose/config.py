@@ -1,0 +1,287 @@
+"""Settings of the pose package, validated on construction: plain frozen dataclasses.
+
+Each solver module imports its config from here, and so does the experiment config
+(``train/config.py``): reading a config loads neither OpenCV, CasADi nor Numba (only NumPy and
+the constants), so a config file can be checked, diffed or written without the solvers.
+"""
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass, field
+
+import numpy as np
+
+__all__ = [
+    "DETECTORS",
+    "ROBUST_LOSSES",
+    "BUNDLE_SOLVERS",
+    "FeatureConfig",
+    "CorrespondConfig",
+    "TrackConfig",
+    "PoseInitConfig",
+    "GaussNewtonConfig",
+    "PoseFitConfig",
+]
+
+# Feature detectors: SIFT is the default (docs/method.md §5); ORB and AKAZE give binary
+# descriptors, matched by Hamming distance.
+DETECTORS = ("sift", "orb", "akaze")
+# The 8-point/7-point solvers inside FM_RANSAC need at least 8 correspondences.
+_MIN_RANSAC_MATCHES = 8
+# The pose solver's robust losses on its data residuals (pose/lm.py ``robust_cost``).
+ROBUST_LOSSES = ("none", "huber", "cauchy")
+# The bundle adjustment's solvers (pose/bundle.py ``bundle_adjust(solver=...)``).
+BUNDLE_SOLVERS = ("scipy", "schur")
+_MODES = ("auto", "on", "off")  # PoseInitConfig.mode
+
+
+@dataclass(frozen=True)
+class FeatureConfig:
+    """Settings of detection, matching and geometric verification (``pose/features.py``). Validated on construction."""
+
+    ratio: float = 0.75  # Lowe ratio: keep a match if d1 < ratio * d2
+    ransac_threshold_px: float = 1.0  # max distance (px) to the epipolar line for a RANSAC inlier
+    ransac_confidence: float = 0.999
+    ransac_max_iters: int = 2000
+    mask_dilation_px: int = 4  # radius (px) by which motion masks grow before excluding pixels
+    max_features: int = 0  # keep the best n keypoints per image (cv2 nfeatures); 0 = all
+    contrast_threshold: float = 0.02  # SIFT DoG contrast threshold; OpenCV's default 0.04 finds
+    # too few keypoints on small blurry frames (blur lowers DoG contrast)
+    edge_threshold: float = 10.0  # SIFT edge-response threshold (OpenCV default)
+    sigma: float = 1.6  # SIFT base blur (OpenCV default)
+    octave_layers: int = 3  # SIFT layers per octave (Lowe's and OpenCV's default)
+    min_matches: int = 8  # fewer ratio-test matches than this (>= 8) -> no matches are returned
+    seed: int = 0  # OpenCV RNG seed for RANSAC
+    detector: str = "sift"  # "sift" (float descriptors, L2), "orb" or "akaze" (binary, Hamming)
+    max_displacement_px: float = 0.0  # > 0: a keypoint is matched only to keypoints within this
+    # distance (px), before the ratio test (guided matching between nearby video frames); 0 = anywhere
+
+    def __post_init__(self):
+        if self.detector not in DETECTORS:
+            raise ValueError(f"FeatureConfig.detector must be one of {DETECTORS}; got {self.detector!r}")
+        for name in ("ratio", "ransac_threshold_px", "ransac_confidence", "contrast_threshold",
+                     "edge_threshold", "sigma", "max_displacement_px"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v):
+                raise TypeError(f"FeatureConfig.{name} must be a finite real number; got {v!r}")
+        for name in ("ransac_max_iters", "mask_dilation_px", "max_features", "min_matches", "seed", "octave_layers"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral):
+                raise TypeError(f"FeatureConfig.{name} must be an int; got {type(v).__name__} {v!r}")
+        if not 0.0 < self.ratio <= 1.0:
+            raise ValueError(f"FeatureConfig.ratio must be in (0, 1]; got {self.ratio}")
+        if self.ransac_threshold_px <= 0:
+            raise ValueError(f"FeatureConfig.ransac_threshold_px must be > 0; got {self.ransac_threshold_px}")
+        if not 0.0 < self.ransac_confidence < 1.0:
+            raise ValueError(f"FeatureConfig.ransac_confidence must be in (0, 1); got {self.ransac_confidence}")
+        if self.max_displacement_px < 0:
+            raise ValueError(f"FeatureConfig.max_displacement_px must be >= 0 (0 = no limit); got {self.max_displacement_px}")
+        if self.octave_layers < 1:
+            raise ValueError(f"FeatureConfig.octave_layers must be >= 1; got {self.octave_layers}")
+        if self.ransac_max_iters < 1:
+            raise ValueError(f"FeatureConfig.ransac_max_iters must be >= 1; got {self.ransac_max_iters}")
+        if self.mask_dilation_px < 0 or self.max_features < 0 or self.seed < 0:
+            raise ValueError(
+                "FeatureConfig.mask_dilation_px, max_features and seed must be >= 0; got "
+                f"{self.mask_dilation_px}, {self.max_features}, {self.seed}"
+            )
+        if self.contrast_threshold <= 0 or self.edge_threshold <= 0 or self.sigma <= 0:
+            raise ValueError("FeatureConfig.contrast_threshold, edge_threshold and sigma must be > 0")
+        if self.min_matches < _MIN_RANSAC_MATCHES:
+            raise ValueError(
+                f"FeatureConfig.min_matches must be >= {_MIN_RANSAC_MATCHES} (RANSAC on F needs 8 points); "
+                f"got {self.min_matches}"
+            )
+
+
+@dataclass(frozen=True)
+class CorrespondConfig:
+    """Which frame pairs are matched and how (``pose/correspond.py``; ``features``: detector, ratio, RANSAC)."""
+
+    # Detection tuned for small blurry frames: OpenCV's SIFT defaults (contrast 0.02 here already,
+    # sigma 1.6, ratio 0.75, 1 px) found 0-22 verified matches per pair on the 160 x 90 wall_disk
+    # suite scene (most pairs skipped); contrast 0.002, sigma 1.0, ratio 0.85 and 1.5 px found
+    # 32-99 per pair at inlier ratios 0.6-0.9 (measured once, the reason for these values).
+    features: FeatureConfig = field(default_factory=lambda: FeatureConfig(
+        contrast_threshold=0.002, sigma=1.0, ratio=0.85, ransac_threshold_px=1.5))
+    gaps: tuple = (1, 2)  # pairs (k, k + g): consecutive frames and frames two apart
+    min_pair_matches: int = 12  # a pair with fewer verified matches is skipped (and reported)
+    # Guided matching: a keypoint of frame k is matched only within max_flow_fraction x width x gap
+    # pixels of itself in frame k + gap (0 = anywhere). RANSAC on F cannot reject a wrong match
+    # along an epipolar line, and a sideways-moving camera has horizontal epipolar lines: on the
+    # wall_disk suite scene (repeating texture) ~46 % of the F-verified matches were off by ~50 px
+    # along x; with the window they are not proposed.
+    max_flow_fraction: float = 0.06
+
+    def __post_init__(self):
+        if not isinstance(self.features, FeatureConfig):
+            raise TypeError(f"CorrespondConfig.features must be a FeatureConfig; got {type(self.features).__name__}")
+        gaps = tuple(self.gaps) if isinstance(self.gaps, (tuple, list)) else None
+        if not gaps or not all(isinstance(g, numbers.Integral) and not isinstance(g, bool) and g >= 1 for g in gaps) \
+                or len(set(gaps)) != len(gaps):
+            raise ValueError(f"CorrespondConfig.gaps must be distinct ints >= 1, e.g. (1, 2); got {self.gaps!r}")
+        object.__setattr__(self, "gaps", gaps)
+        f = self.max_flow_fraction
+        if isinstance(f, bool) or not isinstance(f, numbers.Real) or not 0.0 <= f <= 1.0:
+            raise ValueError(f"CorrespondConfig.max_flow_fraction must be in [0, 1] (0 = no window); got {f!r}")
+        v = self.min_pair_matches
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+            raise ValueError(f"CorrespondConfig.min_pair_matches must be an int >= 1; got {v!r}")
+
+
+@dataclass(frozen=True)
+class TrackConfig:
+    """Settings of the KLT tracker (``pose/tracks.py``). Validated on construction."""
+
+    # points per frame: 240x135 suite frames have 500-600 Shi-Tomasi corners at quality 0.005
+    max_corners: int = 600
+    quality: float = 0.005  # Shi-Tomasi quality (share of the best corner's score): low, blur lowers corner scores
+    min_distance_px: int = 5  # corners (new and active) at least this far apart
+    window_px: int = 15  # Lucas-Kanade window; 15 px: a few px of blur fits inside
+    # points that fail (step 1) with window_px are tracked again with this window (0: no retry). The
+    # fast shake of the suite's crossing, seed 1, streaks its star field along a turning direction:
+    # with 15 px alone only 11-14 static tracks span frames 10-12, the static world cannot be
+    # registered across them, and the registration bridged them on the crossing card (relative
+    # rotation errors of 4.7 deg per frame in frames 12-16). Retrying at 21 px keeps 50-60 there.
+    # Import accuracy (examples/import_accuracy.py, seeds 0 / 1), ATE/depth and mask IoU, 0 -> 21:
+    # crossing 0.99 / 1.91 % -> 0.91 / 1.57 %, IoU 0.47 / 0.27 -> 0.58 / 0.60; cube_sign ATE 0.40 /
+    # 0.18 % -> 1.49 / 0.19 %; the rest within 0.14 % ATE and 0.02 IoU; the static photo_room marks
+    # 0.5 / 1.1 -> 0.5 / 2.2 % of its pixels. A 21 px window for every point instead: big_mover seed 1
+    # fails (ATE 3.9 %), photo_room marks 2.4 / 4.0 %
+    retry_window_px: int = 21
+    levels: int = 3  # pyramid levels (3: displacements of ~30 px between neighbouring frames)
+    fb_px: float = 0.5  # forward-backward error above which a track ends
+    ransac_px: float = 1.0  # distance to the epipolar line (F between neighbouring frames) for an inlier
+    mask_dilation_px: int = 4  # as FeatureConfig.mask_dilation_px: keep off the border of a mover
+
+    def __post_init__(self):
+        for name in ("max_corners", "min_distance_px", "window_px", "levels", "mask_dilation_px", "retry_window_px"):
+            v = getattr(self, name)
+            lo = 0 if name in ("levels", "mask_dilation_px", "retry_window_px") else 1
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < lo:
+                raise ValueError(f"TrackConfig.{name} must be an int >= {lo}; got {v!r}")
+        if self.window_px < 3:
+            raise ValueError(f"TrackConfig.window_px must be >= 3; got {self.window_px}")
+        if 0 < self.retry_window_px < 3:
+            raise ValueError(f"TrackConfig.retry_window_px must be 0 (no retry) or >= 3; got {self.retry_window_px}")
+        for name in ("quality", "fb_px", "ransac_px"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v) or v <= 0:
+                raise ValueError(f"TrackConfig.{name} must be a finite number > 0; got {v!r}")
+        if self.quality >= 1:
+            raise ValueError(f"TrackConfig.quality must be in (0, 1); got {self.quality}")
+
+
+@dataclass(frozen=True)
+class PoseInitConfig:
+    """Bundle adjustment of the given poses before training (``pose/given.py``).
+
+    mode: "auto" runs it when the pose solver runs (poses not trusted); "on" / "off" force it.
+    """
+
+    mode: str = "auto"
+    # The tracker without its retry window (TrackConfig.retry_window_px): the retry keeps
+    # more tracks through streaked frames, which the importer needs to connect a video, but they
+    # are less precise, and this adjustment starts from poses that already connect the frames.
+    # Measured (the suite's noisy poses, seeds 0 / 1, ATE after the adjustment, retry on -> off):
+    # photo_room 0.0208 / 0.0155 -> 0.0155 / 0.0093, cube_sign 0.0373 / 0.0087 -> 0.0221 / 0.0070,
+    # big_mover 0.0184 / 0.0101 -> 0.0126 / 0.0072, wall_disk (seed 0) 0.0042 -> 0.0041, crossing
+    # 0.0532 / 0.0189 -> 0.0571 / 0.0190. The pose solver's track check uses the same tracks. Trained
+    # 600 s (seed 0, README): the trained ATE better on 4 of 5 scenes, deblurred +0.09 dB on average.
+    tracks: TrackConfig = field(default_factory=lambda: TrackConfig(retry_window_px=0))
+    min_views: int = 3  # a track needs this many frames to be triangulated
+    min_parallax_deg: float = 1.0  # how far its rays open (triangulate_tracks)
+    min_points: int = 50  # fewer triangulated tracks: the given poses are kept
+    # A frame with fewer observations (of triangulated tracks; counted again after the outliers are
+    # dropped) is held at its given pose: the prior alone did not hold it. Crossing seed 0 (noisy
+    # poses, tracks with the retry window): frame 9, seen by 6 observations in the streaked frames,
+    # was turned 3.0 deg off the truth (0.3 deg given) and the adjustment raised the ATE from 0.070
+    # to 0.094 (held: 0.053). 10 observations are 20 equations for a pose's 6 unknowns.
+    min_frame_observations: int = 10
+    outlier_px: float = 3.0  # observations further than this from their projection are dropped (round 2)
+    robust_px: float = 1.0  # soft-L1 scale of the adjustment
+    # "schur": Levenberg-Marquardt with the points eliminated (pose.bundle._schur_lm); "scipy":
+    # SciPy's trust region (least_squares, LSMR). Same cost, same unknowns, same prior.
+    solver: str = "schur"
+    max_nfev: int = 60  # residual evaluations per round (either solver: one per trial step)
+    # The prior on the given poses (``pose.bundle.pose_prior_fwd``): it holds the gauge (the
+    # world frame and scale of the given poses) and the slow drift the tracks do not determine
+    # (a scene whose tracks are short). sigma_t = prior_trans_rel x the median depth of the points.
+    prior_rot_deg: float = 1.0
+    prior_trans_rel: float = 0.02
+    max_rms_px: float = 1.5  # an adjustment with a larger residual (inliers) is not kept
+    max_change_deg: float = 5.0  # nor one that turns a camera by more than this from the given pose
+    max_change_rel: float = 0.1  # nor one that moves a centre by more than this x the median point depth
+
+    def __post_init__(self):
+        if self.mode not in _MODES:
+            raise ValueError(f"PoseInitConfig.mode must be one of {_MODES}; got {self.mode!r}")
+        if self.solver not in BUNDLE_SOLVERS:
+            raise ValueError(f"PoseInitConfig.solver must be one of {BUNDLE_SOLVERS}; got {self.solver!r}")
+        if not isinstance(self.tracks, TrackConfig):
+            raise TypeError(f"PoseInitConfig.tracks must be a TrackConfig; got {type(self.tracks).__name__}")
+        for name in ("min_views", "max_nfev", "min_points", "min_frame_observations"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < (2 if name == "min_views" else 1):
+                raise ValueError(f"PoseInitConfig.{name} must be an int >= {2 if name == 'min_views' else 1}; "
+                                 f"got {v!r}")
+        for name in ("min_parallax_deg", "outlier_px", "robust_px", "max_rms_px", "max_change_deg", "max_change_rel",
+                     "prior_rot_deg", "prior_trans_rel"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v) or v <= 0:
+                raise ValueError(f"PoseInitConfig.{name} must be a finite number > 0; got {v!r}")
+
+
+@dataclass(frozen=True)
+class GaussNewtonConfig:
+    """Settings of the pose solver (``pose/gauss_newton.py``; its robust loss and damping: ``pose/lm.py``)."""
+
+    max_iters: int = 40  # 15 before the pose prior; with its tight default, calls at 15 stopped at max_iters
+    # Weight of the relative depth residual: the paper's 100 reduced to 10, and the Cauchy loss at
+    # 1 px, as measured on the wall_disk suite scene (docs/method.md §5): on the initial model and on
+    # a model trained 93 steps, Cauchy / 1 px / beta 10 lowered ATE 0.069 -> 0.037 and 0.067 -> 0.046
+    # and RPE_r 0.94 -> 0.46 and 0.88 -> 0.58 deg, where Huber / 2 px / beta 100 gave 0.055 and 0.070
+    # (worse than the start) and RPE_r 0.90 and 1.03 deg.
+    beta: float = 10.0
+    robust: str = "cauchy"  # "none", "huber" or "cauchy" (IRLS)
+    robust_scale: float = 1.0  # d of the robust loss, in residual units (pixels)
+    spread_sigma: float = 1e-3  # prior: a change of the endpoint spread b - a by this costs 1/2
+    damping_init: float = 1e-3  # initial Levenberg-Marquardt lambda (relative to diag(H))
+    damping_up: float = 10.0  # lambda x this after a rejected step
+    damping_down: float = 0.3  # lambda x this after an accepted step
+    ftol: float = 1e-6  # stop when an accepted step lowers the cost by less than this fraction
+    xtol: float = 1e-10  # stop when |dx| < xtol (|x| + xtol)
+
+    def __post_init__(self):
+        for name in ("beta", "robust_scale", "spread_sigma", "damping_init", "damping_up", "damping_down", "ftol",
+                     "xtol"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
+                raise TypeError(f"GaussNewtonConfig.{name} must be a finite real number; got {v!r}")
+        if isinstance(self.max_iters, bool) or not isinstance(self.max_iters, numbers.Integral) or self.max_iters < 0:
+            raise ValueError(f"GaussNewtonConfig.max_iters must be an int >= 0; got {self.max_iters!r}")
+        if self.robust not in ROBUST_LOSSES:
+            raise ValueError(f"GaussNewtonConfig.robust must be one of {ROBUST_LOSSES}; got {self.robust!r}")
+        for name in ("beta", "robust_scale", "spread_sigma", "damping_init", "ftol", "xtol"):
+            if getattr(self, name) <= 0:
+                raise ValueError(f"GaussNewtonConfig.{name} must be > 0; got {getattr(self, name)}")
+        if self.damping_up <= 1.0 or not 0.0 < self.damping_down < 1.0:
+            raise ValueError(f"GaussNewtonConfig.damping_up must be > 1 and damping_down in (0, 1); got "
+                             f"{self.damping_up}, {self.damping_down}")
+
+
+@dataclass(frozen=True)
+class PoseFitConfig:
+    """Settings of the single-pose fit (``pose/fit.py``): Adam steps in the tangent at the current pose."""
+
+    steps: int = 100
+    lr: float = 1e-3  # radians per step for rotation; times the median depth for translation
+    betas: tuple = (0.9, 0.999)
+    eps: float = 1e-12
+
+    def __post_init__(self):
+        if isinstance(self.steps, bool) or not isinstance(self.steps, numbers.Integral) or self.steps < 0:
+            raise ValueError(f"PoseFitConfig.steps must be an int >= 0; got {self.steps!r}")
+        if not (isinstance(self.lr, numbers.Real) and 0.0 < self.lr < float("inf")):
+            raise ValueError(f"PoseFitConfig.lr must be a finite number > 0; got {self.lr!r}")
