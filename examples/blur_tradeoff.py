@@ -31,7 +31,8 @@ from pathlib import Path
 
 import numpy as np
 
-from d2gs_np.blur.render import BlurConfig, blur_render_bwd, blur_render_fwd
+from d2gs_np.blur.config import BlurConfig
+from d2gs_np.blur.render import blur_render_bwd, blur_render_fwd
 from d2gs_np.geometry.camera import look_at, make_intrinsics
 from d2gs_np.evaluation.metrics import psnr
 from d2gs_np.scene.deformation import DeformConfig

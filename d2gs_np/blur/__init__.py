@@ -1,1 +1,3 @@
-"""Blur formation: the exposure's virtual views and poses, the blurred render, the exposure length, the endpoint models (docs/method.md §4)."""
+"""Blur formation (docs/method.md §4): the settings (config), how many virtual views a render uses
+(views), the virtual poses and sub-frame times of an exposure (virtual_poses), the blurred render
+(render), the exposure length (exposure) and the endpoint models (endpoints)."""

@@ -3,8 +3,9 @@
 Frame k has an estimated mid-exposure pose ``T̂_k`` (cam_T_world, 4x4) and the exposure
 endpoints are its LEFT perturbations ``T_s,k = exp(xi_s,k) T̂_k``, ``T_e,k = exp(xi_e,k) T̂_k``
 with xi = (rho, phi) in se(3), translation first (d2gs_np.geometry.se3). This module produces the
-endpoint tangents (xi_s, xi_e) of a batch of frames from trainable blocks; d2gs_np.blur.render turns
-them into virtual poses and a blurry render. Two parametrisations:
+endpoint tangents (xi_s, xi_e) of a batch of frames from trainable blocks; d2gs_np.blur.virtual_poses
+turns them into virtual poses and d2gs_np.blur.render into a blurry render. Two parametrisations
+(``TrajectoryConfig.kind``, d2gs_np.blur.config):
 
 ``direct``  blocks ``camera.xi_start`` (N, 6) and ``camera.xi_end`` (N, 6), one row per frame.
 
@@ -36,27 +37,24 @@ gradient method started there never grows any blur. A tiny random spread (s ~ 1e
 any pose error that matters) breaks the symmetry, so the spread receives a gradient; the mid
 pose exp(-s d) -> exp(+s d) still has its geodesic midpoint exactly at T̂_k.
 
-Public API: ``TrajectoryConfig``, ``init_trajectory``, ``endpoints_fwd``, ``endpoints_bwd``,
-``trajectory_block_names``.
+Public API: ``init_trajectory``, ``endpoints_fwd``, ``endpoints_bwd``, ``trajectory_block_names``
+(the settings: ``TrajectoryConfig`` in d2gs_np.blur.config).
 """
 from __future__ import annotations
 
 import numbers
-from dataclasses import dataclass
 
 import numpy as np
 
+from d2gs_np.blur.config import TrajectoryConfig
 from d2gs_np.constants import POSENET_INPUT_STD_MIN
 from d2gs_np.geometry.se3 import check_rigid, se3_inverse, se3_log
 
 __all__ = [
-    "TRAJECTORY_KINDS",
     "CAMERA",
     "POSENET",
     "XI_START",
     "XI_END",
-    "ACTIVATIONS",
-    "TrajectoryConfig",
     "trajectory_block_names",
     "check_trajectory",
     "init_trajectory",
@@ -65,78 +63,12 @@ __all__ = [
     "posenet_inputs",
 ]
 
-TRAJECTORY_KINDS = ("direct", "posenet")
-CAMERA = "camera"  # block-name prefix of the per-frame camera blocks (and blur.EXPOSURE_BLOCK)
+CAMERA = "camera"  # block-name prefix of the per-frame camera blocks (and blur.exposure.EXPOSURE_BLOCK)
 POSENET = "posenet"  # block-name prefix of the PoseNet weights
 XI_START = f"{CAMERA}.xi_start"  # (N, 6) direct model: one row per frame
 XI_END = f"{CAMERA}.xi_end"
-ACTIVATIONS = ("tanh", "softplus")
 _NUM_INPUTS = 7  # log T̂ (6) and t (1)
 _NUM_OUTPUTS = 12  # xi_s (6) and xi_e (6)
-
-
-@dataclass(frozen=True)
-class TrajectoryConfig:
-    """Endpoint parametrisation.
-
-    kind: "direct" (per-frame xi blocks) or "posenet" (MLP of Eq. 8).
-    init_spread: s, half the initial endpoint spread (xi_s = -s d, xi_e = +s d, |d| = 1); must
-        be > 0 (zero spread is a critical point, see the module docstring).
-    hidden_layers, hidden_width: PoseNet size (docs/method.md §4: 2 hidden layers of 64).
-    activation: "tanh" or "softplus" (PoseNet hidden layers).
-    output_init_scale: PoseNet output-layer weight scale at initialisation (see module docstring).
-    init: "velocity" (default): the direct endpoints start on the camera's motion, estimated from
-        the neighbouring estimated poses (``velocity_endpoints``), with init_spread only as a
-        floor; "random": a tiny spread in a random direction. The velocity start matters: with a
-        tiny random spread the endpoints open far too slowly (measured on the dynamic preset:
-        learned exposure rotations 0.03-0.57 deg against 0.6-1.6 deg true after 2000 steps).
-    velocity_window: h, the frames k-h..k+h the "velocity" start reads: 1 is the central
-        difference of the two neighbours; h >= 2 fits a quadratic in time to the tangents of those
-        frames relative to frame k by least squares (``velocity_endpoints``), which averages the
-        independent part of a pose error over more frames at the cost of a bias where the path
-        bends within the window (docs/method.md §4).
-    centre: "auto" (default): when the scene flags its poses as exact (``poses_trusted``), the
-        exposure stays centred on the given pose, xi_start = -xi_end, and only its spread is
-        learned (at ``LearningRates.camera_spread``): trusted poses get no pose refinement, from
-        the solver or from Adam; otherwise both endpoints are free. "on" / "off" force it
-        ("on" needs kind "direct"). Measured, docs/method.md §4.
-    """
-
-    kind: str = "direct"
-    init_spread: float = 1e-4
-    hidden_layers: int = 2
-    hidden_width: int = 64
-    activation: str = "tanh"
-    output_init_scale: float = 1e-5
-    init: str = "velocity"
-    velocity_window: int = 1
-    centre: str = "auto"
-
-    def __post_init__(self):
-        if self.centre not in ("auto", "on", "off"):
-            raise ValueError(f"TrajectoryConfig.centre must be 'auto', 'on' or 'off'; got {self.centre!r}")
-        if self.centre == "on" and self.kind != "direct":
-            raise ValueError("TrajectoryConfig.centre = 'on' needs kind 'direct' (a PoseNet's endpoints cannot be "
-                             "tied row by row); use centre 'auto' or 'off'")
-        v = self.velocity_window
-        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
-            raise ValueError(f"TrajectoryConfig.velocity_window must be an int >= 1 (frames on each side); got {v!r}")
-        if self.init not in ("velocity", "random"):
-            raise ValueError(f"TrajectoryConfig.init must be 'velocity' or 'random'; got {self.init!r}")
-        if self.kind not in TRAJECTORY_KINDS:
-            raise ValueError(f"TrajectoryConfig.kind must be one of {TRAJECTORY_KINDS}; got {self.kind!r}")
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(f"TrajectoryConfig.activation must be one of {ACTIVATIONS}; got {self.activation!r}")
-        for name in ("hidden_layers", "hidden_width"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
-                raise ValueError(f"TrajectoryConfig.{name} must be an int >= 1; got {v!r}")
-        if not (isinstance(self.init_spread, numbers.Real) and 0.0 < self.init_spread < 1.0):
-            raise ValueError(
-                f"TrajectoryConfig.init_spread must be in (0, 1) (a tiny symmetry-breaking spread; "
-                f"0 is a critical point); got {self.init_spread!r}")
-        if not (isinstance(self.output_init_scale, numbers.Real) and self.output_init_scale >= 0.0):
-            raise ValueError(f"TrajectoryConfig.output_init_scale must be >= 0; got {self.output_init_scale!r}")
 
 
 def trajectory_block_names(config):

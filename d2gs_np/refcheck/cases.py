@@ -246,7 +246,7 @@ def _many_on_one_pixel(n=100_000, o=0.01):
 def _blur():
     """A blurry frame: n = 8 virtual views on the SE(3) geodesic between exp(xi_start) T and
     exp(xi_end) T, the mean of 8 renders; every sub-frame render keeps margin >= 1e-5."""
-    from d2gs_np.blur.render import virtual_poses
+    from d2gs_np.blur.virtual_poses import virtual_poses
 
     rng = np.random.default_rng(5)
     W = H = 24

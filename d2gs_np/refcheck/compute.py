@@ -91,7 +91,8 @@ class _RenderLayoutScene:
 
 
 def _compute_blur(inputs, cot, dtype, renderer):
-    from d2gs_np.blur.render import BlurConfig, blur_render_bwd, blur_render_fwd
+    from d2gs_np.blur.config import BlurConfig
+    from d2gs_np.blur.render import blur_render_bwd, blur_render_fwd
     from d2gs_np.scene.deformation import DeformConfig
 
     cast = lambda k: np.ascontiguousarray(inputs[k], dtype=dtype)  # noqa: E731

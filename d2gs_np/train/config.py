@@ -15,7 +15,7 @@ from dataclasses import dataclass, field
 from pathlib import Path
 from typing import Optional
 
-from d2gs_np.blur.render import BlurConfig
+from d2gs_np.blur.config import BlurConfig, TrajectoryConfig
 from d2gs_np.pose.config import CorrespondConfig, GaussNewtonConfig, PoseInitConfig
 from d2gs_np.render.config import RenderConfig
 from d2gs_np.scene.deformation import DeformConfig
@@ -24,7 +24,6 @@ from d2gs_np.scene.motion_init import MotionInitConfig
 from d2gs_np.train.densify import DensifyConfig
 from d2gs_np.train.prune import PruneConfig
 from d2gs_np.train.schedule import ScheduleConfig
-from d2gs_np.blur.endpoints import TrajectoryConfig
 
 _AUTO = ("auto", "on", "off")
 

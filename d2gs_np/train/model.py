@@ -36,9 +36,10 @@ from typing import Optional
 
 import numpy as np
 
-from d2gs_np.blur import render as blur_model
 from d2gs_np.blur import endpoints as traj_model
-from d2gs_np.blur.render import EXPOSURE_BLOCK, _blur_render_fwd, blur_render_bwd
+from d2gs_np.blur.exposure import EXPOSURE_BLOCK, exposure_bwd, exposure_from_scene, exposure_fwd, init_exposure
+from d2gs_np.blur.render import _blur_render_fwd, blur_render_bwd
+from d2gs_np.blur.views import backward_subset, frame_views
 from d2gs_np.geometry.camera import check_intrinsics
 from d2gs_np.geometry.se3 import check_rigid, se3_exp, se3_interpolate
 from d2gs_np.render import render_fwd
@@ -46,7 +47,6 @@ from d2gs_np.render.api import _render_bwd, _render_fwd
 from d2gs_np.scene import gaussians
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
 from d2gs_np.scene.initialize import initialize_points, pixel_scale_cap
-from d2gs_np.scene.deformation import _deform_fwd
 from d2gs_np.scene.render_inputs import RENDER_FIELDS, _render_inputs_bwd, _render_inputs_fwd, render_inputs_fwd
 from d2gs_np.scene.motion_init import initialize_deformation
 from d2gs_np.train.components import Components
@@ -120,7 +120,7 @@ class Model:
                 config.trajectory, poses, times, rng,
                 exposure_fraction=None if components.learn_exposure else components.exposure_fraction))
             if components.learn_exposure:
-                params.update(blur_model.init_exposure())
+                params.update(init_exposure())
         return cls(params=params, config=config, components=components, times=times, poses_est=given,
                    poses_ref=poses.copy(), Ks=np.stack([np.asarray(f.K, dtype=np.float64) for f in frames]),
                    widths=tuple(int(f.width) for f in frames),
@@ -190,7 +190,7 @@ class Model:
             traj_model.check_trajectory(self.params, self.config.trajectory, self.poses_ref, self.times)
             if self.components.learn_exposure:
                 camera.append(EXPOSURE_BLOCK)
-                blur_model.exposure_fwd(self.params, N)
+                exposure_fwd(self.params, N)
         extra = sorted(set(self.params) - set(scene) - set(camera))
         if extra:
             raise ValueError(f"params has blocks {extra} that this model ({self.components}) does not use; a new "
@@ -220,8 +220,8 @@ class Model:
         if not self.components.blur:
             return 0.0
         if self.components.learn_exposure:
-            return float(blur_model.exposure_fwd(self.params, self.num_frames)[0])
-        return blur_model.exposure_from_scene(self.components.exposure_fraction, self.num_frames)
+            return float(exposure_fwd(self.params, self.num_frames)[0])
+        return exposure_from_scene(self.components.exposure_fraction, self.num_frames)
 
     def mid_pose(self, k: int) -> np.ndarray:
         """Mid-exposure cam_T_world (4, 4) of training frame k: the geodesic midpoint of its
@@ -279,10 +279,10 @@ def frame_render_fwd(model: Model, k: int, K, width: int, height: int, static_on
     """What frame k's target is compared with, at one size of the progressive schedule.
 
     With the blur model the mean of n renders along the exposure (docs/method.md §4; fewer at a
-    small render scale with ``blur.n_schedule = "scale"``, ``blur.views_at_scale``), else one
+    small render scale with ``blur.n_schedule = "scale"``, ``blur.views.frame_views``), else one
     sharp render at the reference pose. ``static_only`` renders only the static set (warm-up).
     K (3, 3) is the frame's intrinsics scaled to width x height. Trusts a validated model (module
-    docstring). Returns (out, saved): out as ``blur.blur_render_fwd`` / ``render.render_fwd``.
+    docstring). Returns (out, saved): out as ``blur.render.blur_render_fwd`` / ``render.render_fwd``.
     """
     cfg, params = model.config, model.params
     prefixes = (f"{STATIC}.",) if static_only else SCENE_PREFIXES
@@ -294,11 +294,12 @@ def frame_render_fwd(model: Model, k: int, K, width: int, height: int, static_on
             params, cfg.trajectory, np.array([k], dtype=np.int64), model.poses_ref, model.times)
         saved["exposure"] = None
         if model.components.learn_exposure:
-            tau, saved["exposure"] = blur_model.exposure_fwd(params, model.num_frames)
+            tau, saved["exposure"] = exposure_fwd(params, model.num_frames)
             tau = float(tau)
         else:
-            tau = blur_model.exposure_from_scene(model.components.exposure_fraction, model.num_frames)
-        n = frame_views(model, k, scene, xs[0], xe[0], tau, K, width, height)
+            tau = exposure_from_scene(model.components.exposure_fraction, model.num_frames)
+        n = frame_views(scene, t, tau, model.poses_ref[k], xs[0], xe[0], K, width, height, model.widths[k], cfg.blur,
+                        cfg.deform)
         out, saved["render"] = _blur_render_fwd(
             scene, t, tau, model.poses_ref[k], xs[0], xe[0], K, width, height, model.background, n,
             cfg.deform, cfg.render, (_render_fwd, _render_bwd), (_render_inputs_fwd, _render_inputs_bwd))
@@ -310,37 +311,13 @@ def frame_render_fwd(model: Model, k: int, K, width: int, height: int, static_on
     return out, saved
 
 
-def frame_views(model: Model, k: int, scene, xi_start, xi_end, tau, K, width, height) -> int:
-    """Virtual views of frame k's blurry render at width x height (``blur.n_schedule``): n
-    ("fixed"), by render scale ("scale") or by the blur's current length in render pixels
-    ("length": the static means through the current endpoint poses, and the dynamic set's
-    deformed means at the first and last sub-frame times; the longer of the two blurs)."""
-    bc = model.config.blur
-    if bc.n_schedule != "length":
-        return blur_model.views_at_scale(bc.num_virtual, min(1.0, width / model.widths[k]), bc.n_schedule)
-    T = np.asarray(model.poses_ref[k], dtype=np.float64)
-    Ts, Te = se3_exp(np.asarray(xi_start, np.float64)) @ T, se3_exp(np.asarray(xi_end, np.float64)) @ T
-    m = scene[f"{STATIC}.means"]
-    length = blur_model.blur_length_px(m, m, Ts, Te, K, width, height)
-    if f"{DYNAMIC}.means" in scene and scene[f"{DYNAMIC}.means"].shape[0] > 0:
-        t = float(model.times[k])
-        ends = []
-        for ti in (t - 0.5 * tau, t + 0.5 * tau):
-            (dm, _, _), _ = _deform_fwd(*(scene[f"{DYNAMIC}.{f}"] for f in
-                                          ("means", "quats", "colors", "deform_means", "deform_quats",
-                                           "deform_colors")), ti, model.config.deform)
-            ends.append(dm)
-        length = max(length, blur_model.blur_length_px(ends[0], ends[1], Ts, Te, K, width, height))
-    return blur_model.views_for_length(bc.num_virtual, length, bc.view_spacing_px)
-
-
 def frame_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth=None, rng=None):
     """Backward of ``frame_render_fwd``: (v_params, aux). v_params is keyed by block (every block
     the forward used, dense); aux["v_means2d"] (M, 2) is the screen-space gradient of each rendered
     Gaussian's mean in full-resolution pixels (summed over sub-frames), for densification.
 
     With ``blur.backward_views = m`` (0 < m < the forward's n views) the backward runs through m
-    views drawn by ``blur.backward_subset`` from ``rng`` (a numpy Generator; required then): an
+    views drawn by ``blur.views.backward_subset`` from ``rng`` (a numpy Generator; required then): an
     unbiased estimate of the gradient at about m / n of the backward's cost."""
     cot = (v_image, v_alpha, v_depth, v_expected_depth)
     if saved["blur"]:
@@ -350,14 +327,14 @@ def frame_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_dept
             if rng is None:
                 raise ValueError(f"blur.backward_views = {m} of n = {n} views: frame_render_bwd needs rng, a numpy "
                                  "Generator that draws the views (the trainer seeds one per step)")
-            views = blur_model.backward_subset(n, m, rng)
+            views = backward_subset(n, m, rng)
         v_p, v_xs, v_xe, v_tau, aux = blur_render_bwd(saved["render"], *cot, return_aux=True, views=views)
         v_means2d = aux["v_means2d"].sum(axis=0) * saved["ratio"]
         v_means2d_abs = aux["v_means2d_abs"].sum(axis=0) * saved["ratio"]
         v_p = dict(v_p)
         v_p.update(traj_model.endpoints_bwd(saved["trajectory"], v_xs[None], v_xe[None]))
         if saved["exposure"] is not None:
-            v_p.update(blur_model.exposure_bwd(saved["exposure"], v_tau))
+            v_p.update(exposure_bwd(saved["exposure"], v_tau))
     else:
         g = _render_bwd(saved["render"], *cot)
         v_means2d = g["means2d"] * saved["ratio"]

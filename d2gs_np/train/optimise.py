@@ -25,7 +25,7 @@ import dataclasses
 
 import numpy as np
 
-from d2gs_np.blur.render import EXPOSURE_BLOCK
+from d2gs_np.blur.exposure import EXPOSURE_BLOCK
 from d2gs_np.optim import adam
 from d2gs_np.blur.endpoints import CAMERA, POSENET, XI_END, XI_START
 from d2gs_np.train.config import LearningRates

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from d2gs_np.geometry import se3_exp, se3_log
+from d2gs_np.blur.config import TrajectoryConfig
 from d2gs_np.blur.endpoints import (
-    TrajectoryConfig,
     endpoints_bwd,
     endpoints_fwd,
     init_trajectory,
@@ -159,10 +159,6 @@ def test_float32_stays_float32():
 def test_validation():
     rng = np.random.default_rng(7)
     poses, times = _trajectory(rng)
-    with pytest.raises(ValueError, match="kind must be one of"):
-        TrajectoryConfig(kind="spline")
-    with pytest.raises(ValueError, match="init_spread"):
-        TrajectoryConfig(init_spread=0.0)
     config = TrajectoryConfig()
     params = init_trajectory(config, poses, times, rng)
     with pytest.raises(ValueError, match="frame_indices must be in"):
@@ -190,15 +186,11 @@ def test_velocity_endpoints_recover_a_constant_velocity_exposure():
 
 
 def test_velocity_init_is_used_and_falls_back_to_random_spread_for_a_still_camera():
-    from d2gs_np.blur.endpoints import TrajectoryConfig, init_trajectory
-
     rng = np.random.default_rng(0)
     still = np.tile(np.eye(4), (5, 1, 1))
     p = init_trajectory(TrajectoryConfig(), still, np.linspace(0, 1, 5), rng, exposure_fraction=0.5)
     spread = np.linalg.norm(p["camera.xi_end"] - p["camera.xi_start"], axis=1)
     np.testing.assert_allclose(spread, 2e-4, rtol=1e-12)  # the tiny symmetry-breaking spread
-    with pytest.raises(ValueError, match="init"):
-        TrajectoryConfig(init="zeros")
 
 
 @pytest.mark.parametrize("kind", ["direct", "posenet"])
@@ -264,12 +256,8 @@ def test_velocity_window_averages_independent_pose_noise():
 
 
 def test_velocity_window_validation_and_default_is_the_central_difference():
-    from d2gs_np.blur.endpoints import TrajectoryConfig, init_trajectory
-
     from d2gs_np.blur.endpoints import velocity_endpoints as _ve
     for bad in (0, -1, 1.5, True):
-        with pytest.raises(ValueError, match="velocity_window"):
-            TrajectoryConfig(velocity_window=bad)
         with pytest.raises(ValueError, match="window must be an int"):
             _ve(np.tile(np.eye(4), (3, 1, 1)), np.linspace(0, 1, 3), 0.5, window=bad)
     rng = np.random.default_rng(1)

@@ -1,6 +1,6 @@
-"""Tests of the blur formation model (d2gs_np.blur.render): virtual poses and their exact derivative,
-the blurry render against sharp renders, its gradients against central finite differences, and
-the exposure-length helpers.
+"""Tests of the blurred render (d2gs_np.blur.render): the blurry render against sharp renders, its
+gradients against central finite differences, the Numba renderer against the reference, and the
+backward through a subset of the views.
 
 Finite differences. The blurry render averages n sharp renders, each piecewise smooth in its
 inputs (docs/conventions.md §8). FD test scenes are redrawn until EVERY sub-frame render (each virtual
@@ -17,26 +17,11 @@ import pytest
 
 import render_fixtures as rf
 from d2gs_np import reference
-from d2gs_np.blur.render import (
-    EXPOSURE_BLOCK,
-    BlurConfig,
-    backward_subset,
-    blur_render_bwd,
-    blur_render_fwd,
-    exposure_bwd,
-    exposure_from_scene,
-    exposure_fwd,
-    exposure_offsets,
-    init_exposure,
-    subframe_times,
-    virtual_poses,
-    virtual_poses_bwd,
-    virtual_poses_fwd,
-    blur_length_px,
-    views_at_scale,
-    views_for_length,
-)
-from d2gs_np.geometry import matrix_grad_to_left_tangent, se3_exp, se3_interpolate, se3_inverse, se3_log
+from d2gs_np.blur.config import BlurConfig
+from d2gs_np.blur.exposure import EXPOSURE_BLOCK
+from d2gs_np.blur.render import blur_render_bwd, blur_render_fwd
+from d2gs_np.blur.views import backward_subset
+from d2gs_np.blur.virtual_poses import subframe_times, virtual_poses
 from d2gs_np.scene.deformation import DeformConfig
 from d2gs_np.scene.gaussians import logit
 from d2gs_np.scene.render_inputs import render_inputs_fwd
@@ -54,12 +39,6 @@ FD_STEP = 1e-7
 MARGIN_MIN = 1e-4
 # |grad - fd| <= FD_RTOL * (scale of the gradient block): 100x the FD round-off estimate.
 FD_RTOL = 1e-5
-# Virtual poses: smooth closed forms of O(1); step 1e-6 gives truncation ~1e-12 and round-off
-# ~1e-10 on a loss of size ~10; wrong Jacobian terms are O(1e-2..1).
-POSE_FD_STEP = 1e-6
-POSE_FD_ATOL = 1e-8
-# Geodesic identities evaluated two ways in float64 (exp/log round trips of O(1) matrices).
-POSE_ATOL = 1e-12
 # Blurry render with the Numba renderer against the float64 reference (render contract: they
 # agree to ~1e-10 relative; averaging n renders and summing gradients keeps that order).
 FAST_RTOL = 1e-8
@@ -135,110 +114,6 @@ def _render(case, renderer=reference, **overrides):
 def _loss(case, cot, **overrides):
     out, _ = _render(case, **overrides)
     return rf.weighted_loss(out, cot)
-
-
-# ---------------------------------------------------------------------------------------------
-# Virtual poses
-# ---------------------------------------------------------------------------------------------
-
-
-def _random_pose(rng):
-    return se3_exp(rng.normal(size=6))
-
-
-def test_offsets_and_times():
-    np.testing.assert_array_equal(exposure_offsets(1), [0.5])
-    np.testing.assert_array_equal(exposure_offsets(5), [0.0, 0.25, 0.5, 0.75, 1.0])
-    np.testing.assert_allclose(subframe_times(0.3, 0.2, 3), [0.2, 0.3, 0.4], rtol=0, atol=1e-15)
-    np.testing.assert_array_equal(subframe_times(0.3, 0.2, 1), [0.3])
-
-
-def test_virtual_poses_endpoints_and_midpoint():
-    rng = np.random.default_rng(1)
-    T_hat = _random_pose(rng)
-    xs, xe = 0.3 * rng.normal(size=6), 0.3 * rng.normal(size=6)
-    T_s, T_e = se3_exp(xs) @ T_hat, se3_exp(xe) @ T_hat
-    n = 9
-    poses = virtual_poses(T_hat, xs, xe, n)
-    assert poses.shape == (n, 4, 4)
-    np.testing.assert_allclose(poses[0], T_s, atol=POSE_ATOL)  # u = 0
-    np.testing.assert_allclose(poses[-1], T_e, atol=POSE_ATOL)  # u = 1
-    mid = poses[n // 2]  # u = 0.5: equidistant along the geodesic
-    np.testing.assert_allclose(se3_log(se3_inverse(mid) @ T_s), -se3_log(se3_inverse(mid) @ T_e), atol=POSE_ATOL)
-    # every virtual pose is Eq. 9, T_s exp(u log(T_s^-1 T_e)), evaluated by the geometry module
-    np.testing.assert_allclose(poses, se3_interpolate(T_s, T_e, exposure_offsets(n)), atol=POSE_ATOL)
-
-
-def test_virtual_poses_n1_and_zero_spread_are_the_estimate():
-    rng = np.random.default_rng(2)
-    T_hat = _random_pose(rng)
-    xs, xe = rng.normal(size=6), rng.normal(size=6)
-    np.testing.assert_array_equal(virtual_poses(T_hat, xs, xe, 1), T_hat[None])  # xi ignored
-    zero = np.zeros(6)
-    np.testing.assert_array_equal(virtual_poses(T_hat, zero, zero, 8), np.broadcast_to(T_hat, (8, 4, 4)))
-    v_s, v_e = virtual_poses_bwd(virtual_poses_fwd(T_hat, xs, xe, 1)[1], rng.normal(size=(1, 6)))
-    np.testing.assert_array_equal(v_s, 0.0)
-    np.testing.assert_array_equal(v_e, 0.0)
-
-
-def _axis(rng):
-    a = rng.normal(size=3)
-    return a / np.linalg.norm(a)
-
-
-def _pose_cases():
-    rng = np.random.default_rng(3)
-    x = 0.4 * rng.normal(size=6)
-    a = _axis(rng)
-    half = 0.5 * (np.pi - 1e-3)  # start and end 1e-3 rad short of a half turn apart
-    return {
-        "generic": (0.4 * rng.normal(size=6), 0.4 * rng.normal(size=6)),
-        "zero_length": (x, x.copy()),
-        "zero": (np.zeros(6), np.zeros(6)),
-        "tiny": (x, x + 1e-9 * rng.normal(size=6)),
-        "near_pi": (np.r_[0.2 * rng.normal(size=3), -half * a], np.r_[0.2 * rng.normal(size=3), half * a]),
-        "large_endpoints": (np.r_[rng.normal(size=3), 2.5 * _axis(rng)], np.r_[rng.normal(size=3), 2.0 * _axis(rng)]),
-    }
-
-
-@pytest.mark.parametrize("name", list(_pose_cases()))
-@pytest.mark.parametrize("n", [2, 5, 8])
-def test_virtual_poses_gradient_matches_fd(name, n):
-    xs, xe = _pose_cases()[name]
-    rng = np.random.default_rng(4)
-    T_hat = _random_pose(rng)
-    if name == "near_pi":  # the relative rotation really is ~pi (not wrapped to a short way round)
-        delta = se3_log(se3_inverse(se3_exp(xs)) @ se3_exp(xe))
-        assert abs(np.linalg.norm(delta[3:]) - (np.pi - 1e-3)) < 1e-9
-    Wt = rng.normal(size=(n, 4, 4))
-    Wt[:, 3, :] = 0.0  # loss = sum_i <Wt_i, T(u_i)> over the rigid part
-
-    def loss(a, b):
-        return float(np.sum(Wt * virtual_poses(T_hat, a, b, n)))
-
-    poses, saved = virtual_poses_fwd(T_hat, xs, xe, n)
-    g = np.stack([matrix_grad_to_left_tangent(poses[i], Wt[i]) for i in range(n)])
-    v_s, v_e = virtual_poses_bwd(saved, g)
-    fd_s = rf.central_fd(lambda a: loss(a, xe), xs, POSE_FD_STEP)
-    fd_e = rf.central_fd(lambda b: loss(xs, b), xe, POSE_FD_STEP)
-    np.testing.assert_allclose(v_s, fd_s, rtol=0, atol=POSE_FD_ATOL * max(1.0, np.abs(fd_s).max()))
-    np.testing.assert_allclose(v_e, fd_e, rtol=0, atol=POSE_FD_ATOL * max(1.0, np.abs(fd_e).max()))
-    assert np.all(np.isfinite(v_s)) and np.all(np.isfinite(v_e))
-
-
-def test_virtual_poses_input_validation():
-    T = np.eye(4)
-    z = np.zeros(6)
-    with pytest.raises(ValueError, match="xi_start must have shape"):
-        virtual_poses(T, np.zeros(5), z, 4)
-    with pytest.raises(ValueError, match="n .* must be an int >= 1"):
-        virtual_poses(T, z, z, 0)
-    with pytest.raises(TypeError, match="xi_end must have dtype"):
-        virtual_poses(T, z, z.astype(np.float32), 4)
-    with pytest.raises(ValueError, match="not rigid"):
-        virtual_poses(2.0 * T, z, z, 4)
-    with pytest.raises(ValueError, match="num_virtual"):
-        BlurConfig(num_virtual=0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -443,39 +318,6 @@ def test_unvalidated_fast_path_is_bitwise_the_public_one():
 SUBSET_RTOL = 1e-12
 
 
-@pytest.mark.parametrize("n, m", [(8, 2), (8, 3), (7, 3), (5, 2), (2, 1), (9, 4)])
-def test_backward_subset_draws_one_view_per_run_weighted_by_the_run(n, m):
-    rng = np.random.default_rng(0)
-    edges = (np.arange(m + 1) * n) // m
-    counts = np.zeros(n)
-    for _ in range(400):
-        idx, w = backward_subset(n, m, rng)
-        assert idx.shape == w.shape == (m,)
-        for j in range(m):  # one view from each run of neighbours, weighted by the run's share
-            assert edges[j] <= idx[j] < edges[j + 1]
-            assert w[j] == pytest.approx((edges[j + 1] - edges[j]) / n, rel=1e-15)
-        assert w.sum() == pytest.approx(1.0, rel=1e-15)
-        counts[idx] += 1
-    assert np.all(counts > 0)  # every view is drawn sometimes
-    assert set(np.diff(edges)) <= {n // m, -(-n // m)}  # runs as equal as they can be
-
-
-@pytest.mark.parametrize("m", [0, 8, 11])
-def test_backward_subset_of_all_views_is_the_exact_backward(m):
-    idx, w = backward_subset(8, m, np.random.default_rng(0))
-    np.testing.assert_array_equal(idx, np.arange(8))
-    np.testing.assert_array_equal(w, np.full(8, 1 / 8))
-
-
-def test_backward_subset_and_config_refuse_bad_counts():
-    rng = np.random.default_rng(0)
-    for bad in (-1, 1.5, True, "2"):
-        with pytest.raises(ValueError, match="views in the backward"):
-            backward_subset(8, bad, rng)
-        with pytest.raises(ValueError, match="backward_views"):
-            BlurConfig(backward_views=bad)
-
-
 def test_views_of_every_view_with_equal_weights_reproduce_the_exact_backward():
     case = make_case(34, n=5, margin=0.0)
     _, saved = blur_render_fwd(**case)
@@ -529,118 +371,3 @@ def test_subset_backward_refuses_bad_views():
                 (np.array([0, 2]), np.array([np.nan, 0.5])), "views"):
         with pytest.raises(ValueError, match="views must be"):
             blur_render_bwd(saved, v, views=bad)
-
-
-# ---------------------------------------------------------------------------------------------
-# Exposure length
-# ---------------------------------------------------------------------------------------------
-
-
-def test_exposure_from_scene():
-    assert exposure_from_scene(0.5, 11) == pytest.approx(0.05, rel=1e-15)
-    assert exposure_from_scene(1.0, 2) == 1.0
-    assert exposure_from_scene(0.7, 1) == 0.0
-    with pytest.raises(ValueError, match="exposure_fraction must be in"):
-        exposure_from_scene(1.5, 10)
-
-
-def test_learned_exposure_init_range_and_gradient():
-    params = init_exposure()
-    np.testing.assert_array_equal(params[EXPOSURE_BLOCK], [0.0])
-    tau, _ = exposure_fwd(params, 21)
-    assert tau == pytest.approx(0.5 / 20, rel=1e-15)
-    for logit_value in (-30.0, -2.0, 0.3, 4.0, 30.0):  # always inside (0, 1) of the frame interval
-        p = {EXPOSURE_BLOCK: np.array([logit_value])}
-        tau, saved = exposure_fwd(p, 21)
-        assert 0.0 <= tau * 20 <= 1.0
-        g = exposure_bwd(saved, 1.0)[EXPOSURE_BLOCK]
-        fd = rf.central_fd(lambda x: exposure_fwd({EXPOSURE_BLOCK: x}, 21)[0], p[EXPOSURE_BLOCK], 1e-6)
-        # tau ~ 0.05: FD round-off ~1e-16 * 0.05 / 1e-6 ~ 1e-11, truncation ~h^2 ~ 1e-12
-        np.testing.assert_allclose(g, fd, rtol=1e-7, atol=1e-10)
-    assert exposure_fwd(init_exposure(0.25), 5)[0] == pytest.approx(0.25 / 4, rel=1e-14)
-
-
-# ---------------------------------------------------------------------------------------------
-# Virtual views per render scale (BlurConfig.n_schedule)
-# ---------------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("n", [2, 3, 5, 8, 16, 33])
-def test_views_at_scale_keep_the_pixel_spacing_of_full_resolution(n):
-    for r in np.linspace(0.05, 1.0, 96):
-        m = views_at_scale(n, float(r), "scale")
-        assert 2 <= m <= n
-        # spacing of m views over a blur r*L long is at most the full-resolution spacing L / (n - 1) ...
-        assert r / (m - 1) <= 1.0 / (n - 1) + 1e-12
-        # ... and one view fewer would not be (m is the least such count), except at the floor of 2
-        if m > 2:
-            assert r / (m - 2) > 1.0 / (n - 1)
-    assert views_at_scale(n, 1.0, "scale") == n
-    assert views_at_scale(n, 0.3, "fixed") == n
-
-
-def test_views_at_scale_examples_and_errors():
-    assert [views_at_scale(8, r, "scale") for r in (0.2, 0.5, 1.0)] == [3, 5, 8]
-    assert views_at_scale(1, 0.2, "scale") == 1  # no blur model stays a single sharp view
-    for bad in (0.0, -0.1, 1.5, float("nan")):
-        with pytest.raises(ValueError, match="scale"):
-            views_at_scale(8, bad, "scale")
-    with pytest.raises(ValueError, match="n schedule"):
-        views_at_scale(8, 0.5, "linear")
-    with pytest.raises(ValueError, match="n_schedule"):
-        BlurConfig(n_schedule="sometimes")
-
-
-# ---------------------------------------------------------------------------------------------
-# Virtual views per blur length (BlurConfig.n_schedule = "length")
-# ---------------------------------------------------------------------------------------------
-
-
-@pytest.mark.parametrize("n", [3, 5, 8, 16])
-@pytest.mark.parametrize("spacing", [0.5, 1.0, 2.5])
-def test_views_for_length_keep_neighbouring_views_within_the_spacing(n, spacing):
-    for L in np.linspace(0.0, 40.0, 161):
-        m = views_for_length(n, float(L), spacing)
-        assert 2 <= m <= n
-        if m < n:  # not capped: the gap is at most the spacing, and one view fewer would exceed it
-            assert L / (m - 1) <= spacing + 1e-12
-            if m > 2:
-                assert L / (m - 2) > spacing
-    assert views_for_length(n, 1e6, spacing) == n
-
-
-def test_views_for_length_examples_and_errors():
-    assert [views_for_length(8, L, 1.0) for L in (0.0, 1.0, 2.5, 7.0, 20.0)] == [2, 2, 4, 8, 8]
-    assert views_for_length(1, 50.0) == 1 and views_for_length(2, 50.0) == 2
-    for bad in (-1.0, float("nan"), float("inf")):
-        with pytest.raises(ValueError, match="length_px"):
-            views_for_length(8, bad)
-    with pytest.raises(ValueError, match="spacing_px"):
-        views_for_length(8, 3.0, 0.0)
-    with pytest.raises(ValueError, match="view_spacing_px"):
-        BlurConfig(n_schedule="length", view_spacing_px=0.0)
-    with pytest.raises(ValueError, match="views_for_length"):
-        views_at_scale(8, 0.5, "length")
-
-
-def test_blur_length_of_a_sideways_camera_shift_is_f_times_shift_over_depth():
-    K = np.array([[100.0, 0.0, 40.0], [0.0, 100.0, 30.0], [0.0, 0.0, 1.0]])
-    rng = np.random.default_rng(0)
-    pts = np.c_[rng.uniform(-0.3, 0.3, (500, 2)), np.full(500, 2.0)]  # a fronto-parallel plane, depth 2
-    Ts, Te = np.eye(4), np.eye(4)
-    Te[0, 3] = 0.05  # 5 cm sideways: every point moves f * 0.05 / 2 = 2.5 px
-    assert blur_length_px(pts, pts, Ts, Te, K, 80, 60) == pytest.approx(2.5, rel=1e-12)
-    assert blur_length_px(pts, pts, Ts, Ts, K, 80, 60) == 0.0  # zero-length exposure
-    # an object moving 0.1 to the side under a still camera: 5 px
-    assert blur_length_px(pts, pts + [0.1, 0.0, 0.0], Ts, Ts, K, 80, 60) == pytest.approx(5.0, rel=1e-12)
-    # points behind either camera or outside the image do not count; none left gives 0
-    behind = pts * [1, 1, -1]
-    assert blur_length_px(behind, behind, Ts, Te, K, 80, 60) == 0.0
-    far_off = pts + [10.0, 0.0, 0.0]
-    assert blur_length_px(far_off, far_off, Ts, Te, K, 80, 60) == 0.0
-    assert blur_length_px(np.zeros((0, 3)), np.zeros((0, 3)), Ts, Te, K, 80, 60) == 0.0
-    # one stray point at the camera does not decide the length (99th percentile)
-    stray = np.vstack([pts, [[0.0, 0.0, 1e-3]]])
-    assert blur_length_px(stray, stray, Ts, Te, K, 80, 60) == pytest.approx(2.5, rel=1e-9)
-    with pytest.raises(ValueError, match="means_start"):
-        blur_length_px(pts, pts[:3], Ts, Te, K, 80, 60)

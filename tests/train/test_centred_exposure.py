@@ -10,7 +10,8 @@ from d2gs_np.train.components import decide_components
 from d2gs_np.train.config import ExperimentConfig, LearningRates, TrainConfig
 from d2gs_np.train.optimise import block_learning_rate, centre_endpoint_grads
 from d2gs_np.train.trainer import Trainer
-from d2gs_np.blur.endpoints import XI_END, XI_START, TrajectoryConfig
+from d2gs_np.blur.config import TrajectoryConfig
+from d2gs_np.blur.endpoints import XI_END, XI_START
 
 TINY = dict(width=48, height=27, num_frames=6)
 

@@ -212,7 +212,7 @@ def test_the_prior_and_held_scale_keep_the_trajectory_near_the_given_poses(noisy
 def test_posenet_mid_poses_move_to_first_order(noisy_scene):
     # PoseNet reads log T̂ as input, so writing T̂' moves its endpoints a little: the written mid pose
     # is the target only to first order in (pose change) x (endpoint spread)
-    from d2gs_np.blur.endpoints import TrajectoryConfig
+    from d2gs_np.blur.config import TrajectoryConfig
 
     cfg = _config().replace(trajectory=TrajectoryConfig(kind="posenet"))
     model = Model.from_scene(noisy_scene, cfg, decide_components(noisy_scene, cfg))

@@ -27,9 +27,11 @@ from pathlib import Path
 import numpy as np
 import pytest
 
-from d2gs_np.blur import render as blur_model
 from d2gs_np.evaluation import metrics
 from d2gs_np.blur import endpoints as traj_model
+from d2gs_np.blur.exposure import exposure_from_scene
+from d2gs_np.blur.render import blur_render_bwd, blur_render_fwd
+from d2gs_np.blur.views import backward_subset
 from d2gs_np.data.synthetic import make_scene
 from d2gs_np.evaluation.runs import evaluate, load_run
 from d2gs_np.geometry.se3 import se3_exp, se3_interpolate
@@ -169,10 +171,10 @@ def test_one_step_equals_the_public_functions_written_out(scene, tmp_path):
     poses = np.stack([g.cam_T_world for g in scene.frames]).astype(np.float64)
     times = np.array([g.time for g in scene.frames], dtype=np.float64)
     (xs, xe), tsaved = traj_model.endpoints_fwd(params, cfg.trajectory, np.array([k]), poses, times)
-    tau = blur_model.exposure_from_scene(scene.exposure_fraction, len(times))
+    tau = exposure_from_scene(scene.exposure_fraction, len(times))
     bg = np.asarray(cfg.train.background, dtype=np.float64)
-    out, bsaved = blur_model.blur_render_fwd(params, f.time, tau, poses[k], xs[0], xe[0], np.asarray(f.K, np.float64),
-                                             f.width, f.height, bg, cfg.blur, cfg.deform, cfg.render)
+    out, bsaved = blur_render_fwd(params, f.time, tau, poses[k], xs[0], xe[0], np.asarray(f.K, np.float64),
+                                  f.width, f.height, bg, cfg.blur, cfg.deform, cfg.render)
     loss, lsaved = photometric_fwd(out["image"], f.image, cfg.loss.lambda_ssim)
     # the default L_freq: the method's weight, on the frame's static pixels (the moving ones masked out)
     assert cfg.loss.lambda_freq > 0 and cfg.loss.freq_static_only and f.mask.any()
@@ -180,9 +182,9 @@ def test_one_step_equals_the_public_functions_written_out(scene, tmp_path):
     total = 1.0 * loss + cfg.loss.lambda_freq * fval
     v_image = photometric_bwd(lsaved, 1.0) + frequency_bwd(fsaved, cfg.loss.lambda_freq)
     # the trainer's backward runs through blur.backward_views of the n views, drawn from (seed, step)
-    views = blur_model.backward_subset(bsaved["n"], cfg.blur.backward_views, backward_views_rng(cfg.train.seed, 0))
+    views = backward_subset(bsaved["n"], cfg.blur.backward_views, backward_views_rng(cfg.train.seed, 0))
     assert 0 < cfg.blur.backward_views < bsaved["n"]  # so the draw is exercised (else the exact backward runs)
-    v_p, v_xs, v_xe, _ = blur_model.blur_render_bwd(bsaved, v_image, views=views)
+    v_p, v_xs, v_xe, _ = blur_render_bwd(bsaved, v_image, views=views)
     grads = dict(v_p)
     grads.update(traj_model.endpoints_bwd(tsaved, v_xs[None], v_xe[None]))
     rows = {n: grads.pop(n) for n in ("camera.xi_start", "camera.xi_end")}

@@ -129,14 +129,14 @@ def test_a_training_step_runs_no_validation(scene, tmp_path, monkeypatch):
     def forbidden(*a, **k):
         raise AssertionError("validation inside the training step")
 
-    import d2gs_np.blur.render as blur
     import d2gs_np.render.api as api
     import d2gs_np.scene.deformation as deformation
     import d2gs_np.scene.render_inputs as scene_model
     import d2gs_np.blur.endpoints as trajectory
+    import d2gs_np.blur.virtual_poses as virtual_poses
 
     for module, name in ((api, "_validate_inputs"), (api, "_check_cotangent"), (scene_model, "validate_params"),
-                         (deformation, "_check_block"), (blur, "check_rigid"), (trajectory, "check_rigid"),
+                         (deformation, "_check_block"), (virtual_poses, "check_rigid"), (trajectory, "check_rigid"),
                          (trajectory, "_check_params")):
         monkeypatch.setattr(module, name, forbidden)
     info = tr.step(0)

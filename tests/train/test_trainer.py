@@ -8,7 +8,8 @@ import json
 import numpy as np
 import pytest
 
-from d2gs_np.blur import render as blur_model
+from d2gs_np.blur.render import _blur_render_fwd
+from d2gs_np.blur.views import views_at_scale, views_for_length
 from d2gs_np.data.synthetic import make_scene
 from d2gs_np.scene import deformation
 from d2gs_np.train.config import ExperimentConfig, LearningRates, TrainConfig
@@ -54,9 +55,10 @@ def test_sharp_scene_leaves_out_blur_and_never_calls_it(sharp_scene, tmp_path, m
     def forbidden(*a, **k):
         raise AssertionError("blur model called for a sharp scene")
 
+    import d2gs_np.blur.render as blur_render
     import d2gs_np.train.model as train_model
-    monkeypatch.setattr(blur_model, "blur_render_fwd", forbidden)
-    monkeypatch.setattr(blur_model, "_blur_render_fwd", forbidden)
+    monkeypatch.setattr(blur_render, "blur_render_fwd", forbidden)
+    monkeypatch.setattr(blur_render, "_blur_render_fwd", forbidden)
     monkeypatch.setattr(train_model, "_blur_render_fwd", forbidden)  # the name the training forward calls
     tr = Trainer(sharp_scene, _config(iters=4), tmp_path / "run")
     tr.run()
@@ -173,7 +175,7 @@ def test_pruning_keeps_optimizer_state_in_step(dynamic_scene, tmp_path):
 
 
 def test_posenet_trajectory_and_learned_exposure_train(dynamic_scene, tmp_path):
-    from d2gs_np.blur.endpoints import TrajectoryConfig
+    from d2gs_np.blur.config import TrajectoryConfig
 
     scene = dataclasses.replace(dynamic_scene, exposure_fraction=None)  # exposure unknown -> learned
     cfg = _config(iters=8).replace(trajectory=TrajectoryConfig(kind="posenet"))
@@ -521,7 +523,7 @@ def test_size_extent_follows_the_scene_when_the_camera_barely_moves():
 
 def test_n_schedule_renders_fewer_views_at_small_scales_and_n_at_full(dynamic_scene, tmp_path, monkeypatch):
     calls = []
-    real = blur_model._blur_render_fwd
+    real = _blur_render_fwd
 
     def spy(*args, **kwargs):
         calls.append((args[7], args[10]))  # (render width, n)
@@ -536,13 +538,13 @@ def test_n_schedule_renders_fewer_views_at_small_scales_and_n_at_full(dynamic_sc
     width = dynamic_scene.frames[0].width
     assert calls, "the blur model was never called"
     for w, n in calls:
-        assert n == blur_model.views_at_scale(8, min(1.0, w / width), "scale")
+        assert n == views_at_scale(8, min(1.0, w / width), "scale")
     assert min(n for _, n in calls) < 8 and calls[-1] == (width, 8)
 
 
 def test_length_schedule_gives_each_frame_the_views_its_blur_length_needs(dynamic_scene, tmp_path, monkeypatch):
     calls = []
-    real = blur_model._blur_render_fwd
+    real = _blur_render_fwd
 
     def spy(*args, **kwargs):
         calls.append(args[10])  # n
@@ -551,13 +553,14 @@ def test_length_schedule_gives_each_frame_the_views_its_blur_length_needs(dynami
     from d2gs_np.train import model as model_module
     monkeypatch.setattr(model_module, "_blur_render_fwd", spy)
     lengths = []
-    real_length = blur_model.blur_length_px
+    from d2gs_np.blur import views
+    real_length = views.blur_length_px
 
     def length_spy(*args, **kwargs):
         lengths.append(real_length(*args, **kwargs))
         return lengths[-1]
 
-    monkeypatch.setattr(blur_model, "blur_length_px", length_spy)
+    monkeypatch.setattr(views, "blur_length_px", length_spy)  # the name frame_views calls
     cfg = _config(iters=10, warmup_fraction=0.0, deform_fraction=0.0)
     cfg = cfg.replace(blur=dataclasses.replace(cfg.blur, n_schedule="length", view_spacing_px=1.0))
     run = tmp_path / "run"
@@ -565,7 +568,7 @@ def test_length_schedule_gives_each_frame_the_views_its_blur_length_needs(dynami
     assert len(calls) == 10
     # two lengths per step (static set, dynamic set at the sub-frame times); n from the longer
     per_step = [max(lengths[2 * i], lengths[2 * i + 1]) for i in range(10)]
-    assert calls == [blur_model.views_for_length(8, L, 1.0) for L in per_step]
+    assert calls == [views_for_length(8, L, 1.0) for L in per_step]
     assert len(set(calls)) > 1 or 2 < calls[0] < 8, "the blur lengths of this scene should not all clip"
     with open(run / "log.csv") as fh:
         logged = {int(r["step"]): int(r["views"]) for r in csv.DictReader(fh)}

@@ -1,0 +1,169 @@
+"""Settings of the blur model (docs/method.md §4): ``BlurConfig`` (the virtual views of a blurry
+render) and ``TrajectoryConfig`` (the exposure endpoint model), with the argument checks they
+share with the blur modules.
+
+Plain data: importing this module imports neither the Numba renderer nor OpenCV nor CasADi, so
+reading an experiment config (``train/config.py``) stays light.
+"""
+from __future__ import annotations
+
+import math
+import numbers
+from dataclasses import dataclass
+
+import numpy as np
+
+__all__ = [
+    "N_SCHEDULES",
+    "BlurConfig",
+    "TRAJECTORY_KINDS",
+    "ACTIVATIONS",
+    "TrajectoryConfig",
+]
+
+N_SCHEDULES = ("fixed", "scale", "length")  # BlurConfig.n_schedule (d2gs_np.blur.views)
+
+
+@dataclass(frozen=True)
+class BlurConfig:
+    """Blur formation settings.
+
+    num_virtual: n, number of virtual sub-frames averaged per blurry frame (>= 1; 1 = sharp
+        camera at the estimated pose, d2gs_np.blur.virtual_poses). Default 8 (docs/method.md §4).
+    n_schedule: how many of them a training render at render scale r uses
+        (d2gs_np.blur.views, ``views_at_scale``): "fixed", n at every scale; "scale", fewer while the progressive
+        schedule renders small images, so the virtual views stay as far apart in pixels as n
+        views are at full resolution (the blur's length in pixels scales with r); "length", per
+        frame and step from the blur's current length in render pixels (``blur_length_px`` of
+        the current endpoints and scene, ``views_for_length``): just enough views to keep
+        neighbouring views at most ``view_spacing_px`` render pixels apart, at most n. It
+        follows the render scale too, and gives a short blur few views. The default: on the
+        five suite scenes (blurry input, true poses, 600 s, one thread, two runs at a time) it
+        made 1.10-1.70x the steps of "fixed" and deblurred as well or better on every scene
+        (+0.05 to +1.02 dB; docs/method.md §4).
+    view_spacing_px: the largest gap, in render pixels, between neighbouring virtual views of
+        the "length" schedule (> 0).
+    backward_views: m, how many of a step's virtual views its backward runs through (0: all).
+        The forward always renders and averages every view, so the loss is exact; with
+        0 < m < n views the gradient is the unbiased stratified estimate of
+        ``backward_subset``: the views are cut into m runs of neighbours, one view of each run
+        is drawn at random and carries its run's share of the weight. The backward costs about
+        twice the forward, so the backward of m = 2 of n = 8 views costs a quarter of the
+        exact one. Views of one exposure see the scene from poses a few pixels apart, so their
+        gradients are nearly the same and the estimate's noise is small. Default 2: on the
+        five suite scenes (blurry input, true poses, 600 s) it made 1.20-1.37x the steps of the
+        exact backward and deblurred better on every scene (+0.16 to +0.62 dB); m = 1 lost
+        0.47 dB against m = 2 on cube_sign (docs/method.md §4).
+    """
+
+    num_virtual: int = 8
+    n_schedule: str = "length"
+    view_spacing_px: float = 1.0
+    backward_views: int = 2
+
+    def __post_init__(self):
+        _check_n(self.num_virtual, "BlurConfig.num_virtual")
+        if self.n_schedule not in N_SCHEDULES:
+            raise ValueError(f"BlurConfig.n_schedule must be one of {N_SCHEDULES}; got {self.n_schedule!r}")
+        d = self.view_spacing_px
+        if isinstance(d, bool) or not isinstance(d, numbers.Real) or not (0.0 < d < float("inf")):
+            raise ValueError(f"BlurConfig.view_spacing_px must be a finite number of pixels > 0; got {d!r}")
+        _check_backward_views(self.backward_views, "BlurConfig.backward_views")
+
+
+TRAJECTORY_KINDS = ("direct", "posenet")
+ACTIVATIONS = ("tanh", "softplus")  # PoseNet hidden layers
+
+
+@dataclass(frozen=True)
+class TrajectoryConfig:
+    """Endpoint parametrisation.
+
+    kind: "direct" (per-frame xi blocks) or "posenet" (MLP of Eq. 8).
+    init_spread: s, half the initial endpoint spread (xi_s = -s d, xi_e = +s d, |d| = 1); must
+        be > 0 (zero spread is a critical point, see d2gs_np.blur.endpoints).
+    hidden_layers, hidden_width: PoseNet size (docs/method.md §4: 2 hidden layers of 64).
+    activation: "tanh" or "softplus" (PoseNet hidden layers).
+    output_init_scale: PoseNet output-layer weight scale at initialisation (d2gs_np.blur.endpoints).
+    init: "velocity" (default): the direct endpoints start on the camera's motion, estimated from
+        the neighbouring estimated poses (``velocity_endpoints``), with init_spread only as a
+        floor; "random": a tiny spread in a random direction. The velocity start matters: with a
+        tiny random spread the endpoints open far too slowly (measured on the dynamic preset:
+        learned exposure rotations 0.03-0.57 deg against 0.6-1.6 deg true after 2000 steps).
+    velocity_window: h, the frames k-h..k+h the "velocity" start reads: 1 is the central
+        difference of the two neighbours; h >= 2 fits a quadratic in time to the tangents of those
+        frames relative to frame k by least squares (``velocity_endpoints``), which averages the
+        independent part of a pose error over more frames at the cost of a bias where the path
+        bends within the window (docs/method.md §4).
+    centre: "auto" (default): when the scene flags its poses as exact (``poses_trusted``), the
+        exposure stays centred on the given pose, xi_start = -xi_end, and only its spread is
+        learned (at ``LearningRates.camera_spread``): trusted poses get no pose refinement, from
+        the solver or from Adam; otherwise both endpoints are free. "on" / "off" force it
+        ("on" needs kind "direct"). Measured, docs/method.md §4.
+    """
+
+    kind: str = "direct"
+    init_spread: float = 1e-4
+    hidden_layers: int = 2
+    hidden_width: int = 64
+    activation: str = "tanh"
+    output_init_scale: float = 1e-5
+    init: str = "velocity"
+    velocity_window: int = 1
+    centre: str = "auto"
+
+    def __post_init__(self):
+        if self.centre not in ("auto", "on", "off"):
+            raise ValueError(f"TrajectoryConfig.centre must be 'auto', 'on' or 'off'; got {self.centre!r}")
+        if self.centre == "on" and self.kind != "direct":
+            raise ValueError("TrajectoryConfig.centre = 'on' needs kind 'direct' (a PoseNet's endpoints cannot be "
+                             "tied row by row); use centre 'auto' or 'off'")
+        v = self.velocity_window
+        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+            raise ValueError(f"TrajectoryConfig.velocity_window must be an int >= 1 (frames on each side); got {v!r}")
+        if self.init not in ("velocity", "random"):
+            raise ValueError(f"TrajectoryConfig.init must be 'velocity' or 'random'; got {self.init!r}")
+        if self.kind not in TRAJECTORY_KINDS:
+            raise ValueError(f"TrajectoryConfig.kind must be one of {TRAJECTORY_KINDS}; got {self.kind!r}")
+        if self.activation not in ACTIVATIONS:
+            raise ValueError(f"TrajectoryConfig.activation must be one of {ACTIVATIONS}; got {self.activation!r}")
+        for name in ("hidden_layers", "hidden_width"):
+            v = getattr(self, name)
+            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
+                raise ValueError(f"TrajectoryConfig.{name} must be an int >= 1; got {v!r}")
+        if not (isinstance(self.init_spread, numbers.Real) and 0.0 < self.init_spread < 1.0):
+            raise ValueError(
+                f"TrajectoryConfig.init_spread must be in (0, 1) (a tiny symmetry-breaking spread; "
+                f"0 is a critical point); got {self.init_spread!r}")
+        if not (isinstance(self.output_init_scale, numbers.Real) and self.output_init_scale >= 0.0):
+            raise ValueError(f"TrajectoryConfig.output_init_scale must be >= 0; got {self.output_init_scale!r}")
+
+
+# ---------------------------------------------------------------------------------------------
+# Argument checks shared by the configs and the blur modules
+# ---------------------------------------------------------------------------------------------
+
+
+def _check_n(n, what="n (number of virtual poses)"):
+    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
+        raise ValueError(f"{what} must be an int >= 1; got {n!r}")
+    return int(n)
+
+
+def _check_backward_views(m, what):
+    if isinstance(m, bool) or not isinstance(m, numbers.Integral) or m < 0:
+        raise ValueError(f"{what} must be an int >= 0 (0: every view); got {m!r}")
+
+
+def _check_real(x, name, low=None):
+    if isinstance(x, np.ndarray) and x.shape == ():
+        x = x[()]
+    if isinstance(x, (bool, np.bool_)) or not isinstance(x, numbers.Real):
+        raise TypeError(f"{name} must be a real scalar; got {type(x).__name__}")
+    x = float(x)
+    if not math.isfinite(x):
+        raise ValueError(f"{name} must be finite; got {x}")
+    if low is not None and x < low:
+        raise ValueError(f"{name} must be >= {low}; got {x}")
+    return x
+
