@@ -15,15 +15,15 @@ then a log row, a checkpoint every ``checkpoint_every`` steps or ``checkpoint_se
 clock, and a clean stop when the time budget is spent. A checkpoint holds the model, Adam's state,
 per-row statistics, the schedule clock, every plugin's ``state_dict`` and the scene's record
 (``data.fingerprint``), so a resumed run continues bitwise as if never interrupted, and only on
-the frames it was trained on.
+the frames it was trained on. New parts plug in without changing this loop: a regulariser is a
+loss term, a pose solver or a neighbour refresh a plugin, an initialisation rule
+``Model.from_scene``, a budget schedule a change of ``schedule.schedule_step``.
 
 The run folder is written only once setup is done (``Trainer._open_run_folder``): a new run's
 first act is its step-0 checkpoint, and only then are an earlier run's results in the folder
 (``overwrite``) removed; so a failed or interrupted setup leaves the folder as it was, and at no
 moment does it hold neither the old result nor a checkpoint of the new run. Ctrl-C during the
-steps finishes the step, writes a checkpoint and raises ``TrainingInterrupted``. New parts plug in without changing this loop: a regulariser is a loss term, a pose
-solver or a neighbour refresh a plugin, an initialisation rule ``Model.from_scene``, a budget
-schedule a change of ``schedule.schedule_step``.
+steps finishes the step, writes a checkpoint and raises ``TrainingInterrupted``.
 """
 from __future__ import annotations
 
@@ -62,8 +62,8 @@ FINAL_NAME = "final.npz"
 CONFIG_NAME = "config.json"
 METRICS_NAME = "metrics.json"  # written by evaluate.evaluate_run
 REPORT_NAME = "report.html"  # d2gs report's default output
-# An earlier run's results that a new run in the same folder removes (after its first checkpoint);
-# the checkpoint, config.json and the log it rewrites.
+# Files of an earlier run that a new run in the same folder removes once its first checkpoint is
+# written (checkpoint.npz, config.json and the log it rewrites).
 REPLACED_RESULTS = (FINAL_NAME, METRICS_NAME, HISTORY_FILE, REPORT_NAME)
 PLUGINS_KEY = "plugins/"
 _BACKWARD_VIEWS_STREAM = 0xB1  # the seed stream of blur.backward_views' draws (apart from the frame order's)
@@ -132,7 +132,7 @@ def check_scene_of_run(meta: dict, scene: Scene, run_dir, action: str, fix: str,
                          + (f" ({saved_root})" if saved_root else "") + f": {'; '.join(diffs)}; {fix}")
     notes = []
     if meta.get("scene_digest") is None:
-        notes.append(f"the run's checkpoint records no image digest (an older run): the scene was checked on frame "
+        notes.append("the run's checkpoint records no image digest (an older run): the scene was checked on frame "
                      "count, times and image sizes only")
     elif scene.root is not None and saved_root and Path(scene.root).resolve() != Path(saved_root):
         notes.append(f"scene folder {Path(scene.root).resolve()} is not the run's ({saved_root}) but holds the same "
@@ -153,9 +153,10 @@ class TrainingInterrupted(KeyboardInterrupt):
 def _interrupt_after_the_step():
     """A first SIGINT (Ctrl-C) sets the flag yielded (a list, non-empty once set), which the loop
     reads after each step; a second raises KeyboardInterrupt at once. Signal handlers live in the
-    main thread only: elsewhere (a worker) Ctrl-C is not delivered and nothing changes."""
+    main thread only: elsewhere (a worker) nothing changes; nor where SIGINT is ignored (a
+    background job)."""
     flag = []
-    if threading.current_thread() is not threading.main_thread():
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
         yield flag
         return
 
