@@ -250,26 +250,28 @@ def _d2gs(*args):
     return [sys.executable, "-m", "d2gs_np", *map(str, args)]
 
 
-def _wait_for_step(proc, run, step, timeout=120.0):
-    """Wait until ``proc`` has logged a row of ``step`` or later in ``run`` (a log.csv written since
-    it started: an earlier process's rows do not count)."""
-    t0, started = time.monotonic(), time.time()
+def _wait_for_step(proc, run, step, started, timeout=120.0):
+    """Wait until ``proc`` (started at ``started``, ``time.time()``) has logged a row of ``step`` or
+    later in ``run``; ``step`` -1: until it has written the log's header (its first write into the
+    run folder follows its first checkpoint). An earlier process's rows do not count."""
+    t0 = time.monotonic()
     while time.monotonic() - t0 < timeout and proc.poll() is None:
         try:
             if (run / "log.csv").stat().st_mtime >= started and max(_logged_steps(run), default=-1) >= step:
                 return
         except (FileNotFoundError, ValueError):  # not there yet, or a row being written
             pass
-        time.sleep(0.05)
+        time.sleep(0.01)
     raise AssertionError(f"no log row of step {step} in {run} after {timeout:.0f}s (exit {proc.poll()})")
 
 
 def test_case4_ctrl_c_while_training_writes_a_checkpoint_and_says_how_to_resume(trained, tmp_path):
     root, scene, run, cfg = trained
     run = tmp_path / "run"
+    started = time.time()
     proc = subprocess.Popen(_d2gs("train", scene, "--out", run, "--iters", 500, "--config", cfg, "--quiet"),
                             env=_env(), stdout=subprocess.PIPE, stderr=subprocess.PIPE, text=True)
-    _wait_for_step(proc, run, 2)
+    _wait_for_step(proc, run, 2, started)
     proc.send_signal(signal.SIGINT)
     out, err = proc.communicate(timeout=120)
     assert proc.returncode == 130, err
@@ -354,35 +356,42 @@ def test_sigkill_at_random_moments_then_resume_loses_at_most_one_checkpoint_peri
     cfg.write_text(json.dumps({**FAST, "train": {**FAST["train"], "checkpoint_every": every,
                                                   "checkpoint_seconds": 0}}))
     run = tmp_path / "run"
+    # The ten moments, drawn up front, in a random order: one in the start-up (imports, setup),
+    # two just after the run's first write into its folder (its first checkpoint, config and log),
+    # seven within the step k steps after the resumed one. A kill lets a process get a few steps
+    # further at most, so ten fit in the schedule.
     rng = np.random.default_rng(41)
+    plan = ([("start-up", rng.uniform(0.0, 1.0))] + [("opened", rng.uniform(0.0, 0.05)) for _ in range(2)]
+            + [("step", int(rng.integers(0, 4)), rng.uniform(0.0, 0.05)) for _ in range(7)])
+    plan = [plan[i] for i in rng.permutation(len(plan))]
     kills = []
-    while len(kills) < 10:
-        resume = trainer_module.latest_checkpoint(run) is not None if run.exists() else False
-        start = _step_of(trainer_module.latest_checkpoint(run)) if resume else 0
-        how = ["--resume"] if resume else (["--overwrite"] if run.exists() else [])
+    for moment in plan:
+        latest = trainer_module.latest_checkpoint(run) if run.exists() else None
+        start = _step_of(latest) if latest is not None else 0
+        how = ["--resume"] if latest is not None else (["--overwrite"] if run.exists() else [])
+        started = time.time()
         proc = subprocess.Popen(_d2gs("train", scene, "--out", run, "--iters", iters, "--config", cfg, "--quiet",
                                       *how), env=_env(), stdout=subprocess.DEVNULL, stderr=subprocess.PIPE)
-        if rng.random() < 0.2:
-            time.sleep(rng.uniform(0.0, 3.0))  # anywhere from start-up into the first steps
+        if moment[0] == "start-up":
+            time.sleep(moment[1])
         else:
-            _wait_for_step(proc, run, start)  # in the steps
-            time.sleep(rng.uniform(0.0, 1.5))
-        if proc.poll() is not None:  # finished before the kill: the schedule is too short for ten kills
-            raise AssertionError(f"the run ended (exit {proc.returncode}) before kill {len(kills) + 1}: "
-                                 f"{proc.stderr.read().decode()}")
+            _wait_for_step(proc, run, -1 if moment[0] == "opened" else start + moment[1], started)
+            time.sleep(moment[-1])
+        assert proc.poll() is None, f"the run ended (exit {proc.returncode}) before its kill: {proc.stderr.read()}"
         proc.kill()
         proc.wait()
         proc.stderr.close()
         done = max(_logged_steps(run), default=-1) + 1 if (run / "log.csv").exists() else 0
         latest = trainer_module.latest_checkpoint(run) if run.exists() else None
         kept = _step_of(latest) if latest is not None else 0
-        kills.append((start, done, kept))
-        # nothing lost beyond the last checkpoint period; never a step backwards from the resumed state
+        kills.append((moment[0], start, done, kept))
+        # never behind the state it resumed from; nothing lost beyond the last checkpoint period
         assert start <= kept and done - kept <= every, kills
+    assert sum(done > start for _, start, done, _ in kills) >= 5, f"too few kills came after a step: {kills}"
+    print("kills (moment, resumed from, steps done, checkpoint kept):", kills)
     finish = subprocess.run(_d2gs("train", scene, "--out", run, "--iters", iters, "--config", cfg, "--quiet",
                                   "--resume"), env=_env(), capture_output=True, text=True, timeout=600)
     assert finish.returncode == 0, finish.stderr
-    assert any(done > start for start, done, _ in kills), "no kill came after a step"
     assert _logged_steps(run) == list(range(iters))  # each step once, in order
     assert [r["step"] for r in json.loads((run / "log.json").read_text())["rows"]] == list(range(iters))
     assert _step_of(run / "final.npz") == iters
@@ -392,6 +401,7 @@ def test_sigkill_at_random_moments_then_resume_loses_at_most_one_checkpoint_peri
                  "--quiet"]) == 0
     a, _ = load_checkpoint(run / "final.npz")
     b, _ = load_checkpoint(tmp_path / "once" / "final.npz")
+    assert sorted(a) == sorted(b)
     for name in b:
         if name.startswith("params/"):
             np.testing.assert_array_equal(a[name], b[name], err_msg=name)
