@@ -180,7 +180,7 @@ def evaluate_run(run_dir, scene_dir=None, test_pose_steps: int = 0, note=None) -
     scene = load_scene(scene_dir)
     fix = ("evaluate with the run's own scene (leave out --scene) or a copy of it" if given else
            "the folder has changed since training; evaluate with the scene as it was (--scene COPY)")
-    for line in check_scene_of_run(run.meta, scene, run_dir, "--scene" if given else "eval", fix):
+    for line in check_scene_of_run(run.meta, scene, run_dir, "--scene" if given else "the run's own scene", fix):
         if note is not None:
             note(line)
     result = evaluate(run, scene, test_pose_steps)

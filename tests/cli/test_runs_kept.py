@@ -343,7 +343,7 @@ def test_case6_eval_refuses_the_runs_scene_folder_rewritten_since_training(train
     _make_scene(moved, 5, "--overwrite")  # the folder the run was trained on now holds other frames
     before = _snapshot(run)
     assert main(["eval", str(run)]) == 2
-    _one_line_error(capsys, "d2gs eval: error: eval", "its images differ", "changed since training")
+    _one_line_error(capsys, "d2gs eval: error: the run's own scene", "its images differ", "changed since training")
     assert _snapshot(run) == before
 
 
