@@ -528,7 +528,10 @@ class CheckFailed(Exception):
 
 
 def main(argv=None):
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:  # argparse's refusal (one line, status 2) or --help (0): a status, as below
+        return e.code
     command = " ".join(c for c in (args.command, getattr(args, "refcheck_command", None)) if c)
     try:
         args.func(args)

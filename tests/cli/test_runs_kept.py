@@ -98,8 +98,8 @@ def test_case1_train_into_a_finished_run_is_refused_before_the_scene_is_read(tra
     assert _snapshot(run) == before
 
 
-@pytest.mark.parametrize("bad, names", [(["--seed", "-1"], "seed"), (["--time-budget", "nan"], "time_budget"),
-                                        (["--time-budget", "-5"], "time_budget"), (["--iters", "0"], "iters")])
+@pytest.mark.parametrize("bad, names", [(["--seed", "-1"], "--seed"), (["--time-budget", "nan"], "--time-budget"),
+                                        (["--time-budget", "-5"], "--time-budget"), (["--iters", "0"], "--iters")])
 def test_case1_a_typo_with_overwrite_leaves_the_run_as_it_was(trained, capsys, bad, names):
     root, scene, run, cfg = trained
     before = _snapshot(run)
