@@ -94,7 +94,7 @@ def _cmd_make_scene(args):
 
 
 def _load_config(args):
-    from d2gs_np.train.config import ExperimentConfig, TrainConfig
+    from d2gs_np.train.config import ExperimentConfig
     import dataclasses
 
     cfg = ExperimentConfig.load(args.config) if getattr(args, "config", None) else ExperimentConfig()
@@ -124,21 +124,43 @@ def _load_config(args):
 
 def _cmd_train(args):
     from d2gs_np.data.io import load_scene
-    from d2gs_np.train.trainer import Trainer
+    from d2gs_np.train.trainer import Trainer, TrainingInterrupted, check_run_folder
 
     check_output_path(args.out, "--out")
     cfg = _load_config(args)  # config errors before the scene is read
-    scene = load_scene(args.scene)
-    trainer = Trainer(scene, cfg, args.out, resume=args.resume)
-    result = trainer.run()
+    overwrite = getattr(args, "overwrite", False)
+    # a finished run in --out, or --resume without a checkpoint: refused before the scene is read
+    check_run_folder(args.out, args.resume, overwrite, flags=("--resume", "--overwrite"))
+    try:
+        scene = load_scene(args.scene)
+        trainer = Trainer(scene, cfg, args.out, resume=args.resume, overwrite=overwrite)
+        result = trainer.run()
+    except TrainingInterrupted as e:
+        raise KeyboardInterrupt(f"{e}; continue with: {_resume_command(args)}") from None
+    except KeyboardInterrupt:  # before the first write into the run folder (Trainer._open_run_folder)
+        raise KeyboardInterrupt(f"before training started; nothing in {args.out} was changed") from None
     print(f"trained {result['steps']} steps in {result['train_seconds']:.1f}s; run in {args.out}")
     return trainer
+
+
+def _resume_command(args) -> str:
+    """The ``d2gs train`` command that continues the run ``args`` started: its options, --resume."""
+    import shlex
+
+    words = ["d2gs", "train", str(args.scene), "--out", str(args.out)]
+    for flag in ("config", "iters", "time_budget", "seed", "blur", "dynamic", "n", "pose_solver", "pose_every"):
+        value = getattr(args, flag, None)
+        if value is not None:
+            words += ["--" + flag.replace("_", "-"), str(value)]
+    words += ["--resume"] + (["--quiet"] if getattr(args, "quiet", False) else [])
+    return shlex.join(words)
 
 
 def _cmd_eval(args):
     from d2gs_np.evaluation.runs import evaluate_run
 
-    result = evaluate_run(args.run, args.scene, test_pose_steps=args.test_pose_opt)
+    result = evaluate_run(args.run, args.scene, test_pose_steps=args.test_pose_opt,
+                          note=lambda line: print(f"d2gs eval: note: {line}", file=sys.stderr))
     print(json.dumps(result, indent=2))
     print(f"wrote {Path(args.run) / 'metrics.json'}")
 
@@ -255,7 +277,7 @@ def _cmd_demo(args):
     scene_dir = out / "scene"
     ns = argparse.Namespace(scene=str(scene_dir), out=str(out / "run"), config=args.config, iters=iters,
                             time_budget=budget, seed=args.seed, quiet=False, blur=None, dynamic=None,
-                            n=None, resume=False)
+                            n=None, resume=False, overwrite=True)
     _load_config(ns)  # a bad --config fails here, before the scene is made
     t0 = time.perf_counter()
     if args.preset in SUITE:
@@ -398,9 +420,14 @@ def build_parser() -> argparse.ArgumentParser:
     t = sub.add_parser("train", help="train on a scene folder (docs/method.md §7-8)",
                        description="Train on a scene folder (docs/dataset_format.md). Stages, progressive "
                                    "resolution and the rest of the schedule: docs/method.md §7-8; what is left "
-                                   "out and why: docs/method.md §9.")
+                                   "out and why: docs/method.md §9. The run folder must be new or empty unless "
+                                   "--resume or --overwrite is given. Checkpoints (atomic) are written every "
+                                   "train.checkpoint_every steps and every train.checkpoint_seconds of wall clock "
+                                   "(default 500 steps, 300 s); Ctrl-C finishes the step, writes one and prints the "
+                                   "command that resumes (exit status 130).")
     t.add_argument("scene", help="scene folder (docs/dataset_format.md)")
-    t.add_argument("--out", required=True, help="run folder (checkpoints, logs)")
+    t.add_argument("--out", required=True,
+                   help="run folder (checkpoints, logs); new or empty, unless --resume or --overwrite")
     t.add_argument("--config", default=None, help="experiment config JSON (see ExperimentConfig)")
     t.add_argument("--iters", type=_COUNT, default=None)
     t.add_argument("--time-budget", type=_SECONDS, default=None, help="seconds of training before a clean stop")
@@ -413,7 +440,12 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--pose-solver", choices=["auto", "on", "off"], default=None,
                    help="pose refinement between Adam steps (docs/method.md §5); auto: unless the poses are trusted")
     t.add_argument("--pose-every", type=_COUNT, default=None, help="schedule steps between pose solver calls")
-    t.add_argument("--resume", action="store_true", help="continue from RUN/checkpoint.npz")
+    t.add_argument("--resume", action="store_true",
+                   help="continue the run in --out from its latest checkpoint, on the same scene with the same "
+                        "options (only --iters, --time-budget and --quiet may change)")
+    t.add_argument("--overwrite", action="store_true",
+                   help="replace the run in a non-empty --out; its files stay until the new run's first "
+                        "checkpoint, written once setup is done")
     t.add_argument("--quiet", action="store_true")
     t.set_defaults(func=_cmd_train)
 
@@ -422,7 +454,9 @@ def build_parser() -> argparse.ArgumentParser:
                                    "deblurring and novel view synthesis, trajectory errors (docs/method.md §10, "
                                    "docs/dataset_format.md §6).")
     e.add_argument("run")
-    e.add_argument("--scene", default=None, help="scene folder (default: the one the run was trained on)")
+    e.add_argument("--scene", default=None,
+                   help="scene folder (default: the one the run was trained on); it must hold the frames the run "
+                        "was trained on (a copy of that folder will do)")
     e.add_argument("--test-pose-opt", type=_int_at_least(0), default=0, metavar="N",
                    help="also score novel views after refining each test pose on the frozen scene for N steps "
                         "(the BARF / BAD-Gaussians protocol; reported as nvs_pose_opt beside nvs). Default 0: off")
@@ -492,7 +526,10 @@ def build_parser() -> argparse.ArgumentParser:
 def main(argv=None):
     from d2gs_np.refcheck.cli import CheckFailed
 
-    args = build_parser().parse_args(argv)
+    try:
+        args = build_parser().parse_args(argv)
+    except SystemExit as e:  # argparse's refusal (one line, status 2) or --help (0): a status, as below
+        return e.code
     command = " ".join(c for c in (args.command, getattr(args, "refcheck_command", None)) if c)
     try:
         args.func(args)
@@ -502,6 +539,9 @@ def main(argv=None):
     except (ValueError, TypeError, OSError) as e:  # OSError: FileNotFoundError, PermissionError, a full disk ...
         print(f"d2gs {command}: error: {e}", file=sys.stderr)
         return 2
+    except KeyboardInterrupt as e:  # Ctrl-C: one line (what was kept, how to go on), the shell's status
+        print(f"d2gs {command}: interrupted" + (f": {e}" if str(e) else ""), file=sys.stderr)
+        return 130
     return 0
 
 

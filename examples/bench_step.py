@@ -67,7 +67,7 @@ def main(argv=None):
     try:
         scene = make_scene("dynamic", 0, **SCENE)
         t0 = time.perf_counter()
-        trainer = Trainer(scene, config(args.iters), out / "run")
+        trainer = Trainer(scene, config(args.iters), out / "run", overwrite=True)
         t_init = time.perf_counter() - t0
         result = trainer.run()
         run = load_run(out / "run")

@@ -48,7 +48,7 @@ def main():
     results = {}
     for name, cfg in runs.items():
         run_dir = out / ("blur" if name.startswith("blur") else "noblur")
-        Trainer(scene, cfg, run_dir).run()
+        Trainer(scene, cfg, run_dir, overwrite=True).run()
         results[name] = evaluate_run(run_dir)
         print(f"\n## {name}\n\n```json\n{json.dumps(results[name], indent=1)}\n```\n")
         print(error_vs_time_table(run_dir))

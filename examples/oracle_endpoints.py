@@ -29,7 +29,7 @@ def main():
     scene = load_scene(args.scene)
     if any(f.gt_exposure_start is None or f.gt_exposure_end is None for f in scene.frames):
         raise SystemExit("the scene has no gt_exposure_start/end; use a synthetic scene")
-    tr = Trainer(scene, ExperimentConfig(train=TrainConfig(iters=args.iters, quiet=True)), args.out)
+    tr = Trainer(scene, ExperimentConfig(train=TrainConfig(iters=args.iters, quiet=True)), args.out, overwrite=True)
     if not tr.components.blur:
         raise SystemExit("the blur model is off for this scene (sharp input?)")
     # Left perturbations of the estimate that land on the true endpoints: xi = log(T_true T_est^-1).

@@ -89,7 +89,8 @@ def main():
         args += ["--stride", a.stride] + (["--size", a.size] if a.size else [])
         args += (["--max-frames", a.max_frames] if a.max_frames else [])
         args += (["--start", a.start] if a.start else []) + (["--end", a.end] if a.end else [])
-    for cmd in (args, ["train", str(out / "scene"), "--out", str(out / "run"), "--time-budget", a.time_budget],
+    for cmd in (args, ["train", str(out / "scene"), "--out", str(out / "run"), "--time-budget", a.time_budget,
+                 "--overwrite"],
                 ["eval", str(out / "run")], ["report", str(out / "run")]):
         print("d2gs " + " ".join(cmd), flush=True)
         rc = d2gs(cmd)

@@ -30,7 +30,7 @@ from d2gs_np.pose.fit import fit_pose
 from d2gs_np.scene.render_inputs import render_inputs_fwd
 from d2gs_np.train.checkpoint import atomic_write_text, check_output_path, load_checkpoint
 from d2gs_np.train.model import SCENE_PREFIXES, Model
-from d2gs_np.train.trainer import CHECKPOINT_NAME, FINAL_NAME
+from d2gs_np.train.trainer import CHECKPOINT_NAME, FINAL_NAME, METRICS_NAME, check_scene_of_run
 
 
 @dataclass
@@ -169,15 +169,24 @@ def _trajectory_and_nvs(run: LoadedRun, scene, mids, test_pose_steps=0) -> dict:
     return out
 
 
-def evaluate_run(run_dir, scene_dir=None, test_pose_steps: int = 0) -> dict:
+def evaluate_run(run_dir, scene_dir=None, test_pose_steps: int = 0, note=None) -> dict:
     """Load a run and its scene, evaluate, write RUN/metrics.json atomically, return the metrics.
-    ``test_pose_steps`` > 0 adds novel views after test-pose refinement (``nvs_pose_opt``)."""
+    ``test_pose_steps`` > 0 adds novel views after test-pose refinement (``nvs_pose_opt``).
+    A scene other than the one the run was trained on (frames, sizes, times or image content,
+    ``data.fingerprint``) is refused before any work; ``note(line)`` hears of a copy of it in
+    another folder."""
     run = load_run(run_dir)
     check_output_path(Path(run_dir) / "metrics.json", "metrics file", is_file=True)  # before the evaluation
+    given = scene_dir is not None
     scene_dir = scene_dir or run.meta.get("scene_root")
     if scene_dir is None:
         raise ValueError("the run does not record its scene folder; pass it explicitly (d2gs eval RUN --scene SCENE)")
     scene = load_scene(scene_dir)
+    fix = ("evaluate with the run's own scene (leave out --scene) or a copy of it" if given else
+           "the folder has changed since training; evaluate with the scene as it was (--scene COPY)")
+    for line in check_scene_of_run(run.meta, scene, run_dir, "--scene" if given else "the run's own scene", fix):
+        if note is not None:
+            note(line)
     result = evaluate(run, scene, test_pose_steps)
-    atomic_write_text(Path(run_dir) / "metrics.json", json.dumps(result, indent=2, allow_nan=False))
+    atomic_write_text(Path(run_dir) / METRICS_NAME, json.dumps(result, indent=2, allow_nan=False))
     return result

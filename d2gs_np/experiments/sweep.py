@@ -273,7 +273,7 @@ def run_cell(out, scene, variant: Variant, seed, budget=None, iters=None, size=1
         tmp.write_text(json.dumps(settings, indent=1) + "\n")
         tmp.replace(settings_path)
         t0 = time.perf_counter()
-        Trainer(load_scene(sdir), cfg, run_dir).run()
+        Trainer(load_scene(sdir), cfg, run_dir, overwrite=True).run()  # a retried cell starts over
         wall = time.perf_counter() - t0
         result = evaluate_run(run_dir)
         result["wall_seconds"] = wall

@@ -157,6 +157,9 @@ class TrainConfig:
     log_every: int = 10
     eval_every: int = 250
     checkpoint_every: int = 500
+    # also a checkpoint when this many seconds of wall clock have passed since the last (0 = never):
+    # a slow step (seconds with the blur model) would otherwise put many minutes at risk
+    checkpoint_seconds: float = 300.0
     prune_every: int = 250
     prune_opacity: float = 0.005
     time_budget: Optional[float] = None  # seconds of training; stops cleanly when exceeded
@@ -190,6 +193,12 @@ class TrainConfig:
             raise ValueError(f"TrainConfig.prune_opacity must be in [0, 1); got {self.prune_opacity}")
         if self.time_budget is not None and not 0 < self.time_budget < math.inf:  # NaN fails too
             raise ValueError(f"TrainConfig.time_budget must be a finite number of seconds > 0; got {self.time_budget}")
+        if self.seed < 0:
+            raise ValueError(f"TrainConfig.seed must be >= 0 (a NumPy seed); got {self.seed}")
+        c = self.checkpoint_seconds
+        if isinstance(c, bool) or not isinstance(c, (int, float)) or not 0.0 <= c < float("inf"):
+            raise ValueError(f"TrainConfig.checkpoint_seconds must be finite seconds >= 0 (0 = no wall-clock "
+                             f"checkpoints); got {c!r}")
 
 
 @dataclass(frozen=True)

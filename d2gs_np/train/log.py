@@ -51,18 +51,17 @@ class RunLog:
 
     def __init__(self, run_dir, quiet: bool = False, resume: bool = False, extra_fields=()):
         self.run_dir = Path(run_dir)
-        self.run_dir.mkdir(parents=True, exist_ok=True)
         self.fields = tuple(LOG_FIELDS) + tuple(f for f in extra_fields if f not in LOG_FIELDS)
         self.rows: list = []
         self.notes: list = []  # (seconds, message): what was left out and why, stage changes, ...
         self.quiet = quiet
         self._csv_path = self.run_dir / "log.csv"
+        # Nothing is written until the first row or ``truncate`` (the trainer's first write into
+        # the run folder): a setup that fails leaves an earlier run's log as it was.
+        self._started = False
         if resume and (self.run_dir / "log.json").exists():
             data = json.loads((self.run_dir / "log.json").read_text())
             self.rows, self.notes = data.get("rows", []), data.get("notes", [])
-        if not resume or not self._csv_path.exists():
-            with open(self._csv_path, "w", newline="") as f:
-                csv.writer(f).writerow(self.fields)
 
     def note(self, message: str):
         """A decision or event in words (also printed)."""
@@ -72,6 +71,8 @@ class RunLog:
 
     def row(self, **values):
         row = {k: values.get(k) for k in self.fields}
+        if not self._started:
+            self.truncate(row["step"])
         self.rows.append(row)
         with open(self._csv_path, "a", newline="") as f:
             csv.writer(f).writerow(["" if row[k] is None else row[k] for k in self.fields])
@@ -96,8 +97,11 @@ class RunLog:
             sys.stdout.write("\n")
 
     def truncate(self, step: int):
-        """Forget rows at or after ``step`` (a resumed run redoes them) and rewrite log.csv to match."""
+        """Forget rows at or after ``step`` (a resumed run redoes them) and rewrite log.csv to match
+        (with ``step`` 0: a new log.csv of the header alone)."""
         self.rows = [r for r in self.rows if r["step"] is not None and r["step"] < step]
+        self._started = True
+        self.run_dir.mkdir(parents=True, exist_ok=True)
         with open(self._csv_path, "w", newline="") as f:
             w = csv.writer(f)
             w.writerow(self.fields)

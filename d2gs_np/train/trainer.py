@@ -11,21 +11,33 @@ One step (``Trainer.step``, then the plugins in ``Trainer.run``):
   plugins    ``on_step(state) -> state`` on the training state (``train/state.py``): held-out
              evaluation, densification statistics, pruning, densification, then any plugin
              passed in (``train/plugins.py``);
-then a log row, a checkpoint every ``checkpoint_every`` steps and a clean stop when the time
-budget is spent. A checkpoint holds the model, Adam's state, per-row statistics, the schedule
-clock and every plugin's ``state_dict``, so a resumed run continues bitwise as if never
-interrupted. New parts plug in without changing this loop: a regulariser is a loss term, a pose
-solver or a neighbour refresh a plugin, an initialisation rule ``Model.from_scene``, a budget
-schedule a change of ``schedule.schedule_step``.
+then a log row, a checkpoint every ``checkpoint_every`` steps or ``checkpoint_seconds`` of wall
+clock, and a clean stop when the time budget is spent. A checkpoint holds the model, Adam's state,
+per-row statistics, the schedule clock, every plugin's ``state_dict`` and the scene's record
+(``data.fingerprint``), so a resumed run continues bitwise as if never interrupted, and only on
+the frames it was trained on. New parts plug in without changing this loop: a regulariser is a
+loss term, a pose solver or a neighbour refresh a plugin, an initialisation rule
+``Model.from_scene``, a budget schedule a change of ``schedule.schedule_step``.
+
+The run folder is written only once setup is done (``Trainer._open_run_folder``): a new run's
+first act is its step-0 checkpoint, and only then are an earlier run's results in the folder
+(``overwrite``) removed; so a failed or interrupted setup leaves the folder as it was, and at no
+moment does it hold neither the old result nor a checkpoint of the new run. Ctrl-C during the
+steps finishes the step, writes a checkpoint and raises ``TrainingInterrupted``.
 """
 from __future__ import annotations
 
+import contextlib
+import os
+import signal
+import threading
 import time
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
+from d2gs_np.data import fingerprint
 from d2gs_np.data.scene import Scene
 from d2gs_np.optim import adam
 from d2gs_np.pose.given import initial_poses
@@ -40,6 +52,7 @@ from d2gs_np.train.optimise import (centre_endpoint_grads, learning_rates, optim
                                     scene_extent)
 from d2gs_np.train.plugins import DepthMemory
 from d2gs_np.train.setup import default_plugins
+from d2gs_np.train.pose_solver import HISTORY_FILE
 from d2gs_np.train.schedule import TargetCache, schedule_step, training_progress
 from d2gs_np.train.stages import Planner, make_stages
 from d2gs_np.train.state import TrainState
@@ -47,6 +60,12 @@ from d2gs_np.train.terms import TermInputs, loss_terms, terms_fwd_bwd
 
 CHECKPOINT_NAME = "checkpoint.npz"
 FINAL_NAME = "final.npz"
+CONFIG_NAME = "config.json"
+METRICS_NAME = "metrics.json"  # written by evaluate.evaluate_run
+REPORT_NAME = "report.html"  # d2gs report's default output
+# Files of an earlier run that a new run in the same folder removes once its first checkpoint is
+# written (checkpoint.npz, config.json and the log it rewrites).
+REPLACED_RESULTS = (FINAL_NAME, METRICS_NAME, HISTORY_FILE, REPORT_NAME)
 PLUGINS_KEY = "plugins/"
 _BACKWARD_VIEWS_STREAM = 0xB1  # the seed stream of blur.backward_views' draws (apart from the frame order's)
 
@@ -69,6 +88,93 @@ def latest_checkpoint(run_dir):
     return best
 
 
+def check_run_folder(run_dir, resume: bool = False, overwrite: bool = False, flags=("resume=True", "overwrite=True")):
+    """Refuse, before any work, to train into ``run_dir`` where that would lose or mix results:
+    a folder that is not empty needs ``resume`` (go on from its latest checkpoint) or ``overwrite``
+    (replace it); ``resume`` needs a checkpoint there. ``flags``: how the message names the two
+    options (the CLI's ``--resume``, ``--overwrite``)."""
+    run_dir = Path(run_dir)
+    resume_flag, overwrite_flag = flags
+    if resume and overwrite:
+        raise ValueError(f"{resume_flag} continues the run in {run_dir} and {overwrite_flag} replaces it; give one "
+                         "of them")
+    if run_dir.exists() and not run_dir.is_dir():
+        raise ValueError(f"run folder {run_dir} exists and is not a folder; choose another output folder")
+    contents = sorted(p.name for p in run_dir.iterdir()) if run_dir.is_dir() else []
+    if resume:
+        if latest_checkpoint(run_dir) is None:
+            raise FileNotFoundError(f"{resume_flag}: no checkpoint in {run_dir}; train without {resume_flag} first"
+                                    + (f" ({overwrite_flag} to start over in it)" if contents else ""))
+    elif contents and not overwrite:
+        shown = ", ".join(contents[:6]) + (f" and {len(contents) - 6} more" if len(contents) > 6 else "")
+        raise ValueError(f"run folder {run_dir} is not empty ({shown}); pass {resume_flag} to continue its training "
+                         f"or {overwrite_flag} to replace it (kept until the new run's first checkpoint), or "
+                         "choose a new folder")
+
+
+def run_scene_record(meta: dict) -> dict:
+    """The record (``data.fingerprint.scene_record``) of the scene a checkpoint was trained on;
+    ``digest`` is None in checkpoints from before it was recorded."""
+    return {"times": list(meta["times"]), "sizes": list(zip(meta["width"], meta["height"])),
+            "digest": meta.get("scene_digest")}
+
+
+def check_scene_of_run(meta: dict, scene: Scene, run_dir, action: str, fix: str, record=None) -> list:
+    """Raise ValueError naming what differs when ``scene`` is not the scene of the run whose
+    checkpoint ``meta`` is (``action``: what was asked, ``fix``: what to do instead); else return
+    notes (another folder holding the same frames; a run without an image digest).
+    ``record``: the scene's ``fingerprint.scene_record`` if already computed."""
+    record = fingerprint.scene_record(scene) if record is None else record
+    saved_root = meta.get("scene_root")
+    diffs = fingerprint.differences(run_scene_record(meta), record)
+    if diffs:
+        where = f"scene {scene.root}" if scene.root is not None else "the scene"
+        raise ValueError(f"{action}: {where} is not the scene run {run_dir} was trained on"
+                         + (f" ({saved_root})" if saved_root else "") + f": {'; '.join(diffs)}; {fix}")
+    notes = []
+    if meta.get("scene_digest") is None:
+        notes.append("the run's checkpoint records no image digest (an older run): the scene was checked on frame "
+                     "count, times and image sizes only")
+    elif scene.root is not None and saved_root and Path(scene.root).resolve() != Path(saved_root):
+        notes.append(f"scene folder {Path(scene.root).resolve()} is not the run's ({saved_root}) but holds the same "
+                     "frames (image digest)")
+    return notes
+
+
+class TrainingInterrupted(KeyboardInterrupt):
+    """Ctrl-C during the steps (``Trainer.run``): ``step`` steps are in the checkpoint ``path``
+    (None: the run has none), the run goes on from there with ``resume``."""
+
+    def __init__(self, message: str, step: int, path):
+        super().__init__(message)
+        self.step, self.path = step, path
+
+
+@contextlib.contextmanager
+def _interrupt_after_the_step():
+    """A first SIGINT (Ctrl-C) sets the flag yielded (a list, non-empty once set), which the loop
+    reads after each step; a second raises KeyboardInterrupt at once. Signal handlers live in the
+    main thread only: elsewhere (a worker) nothing changes; nor where SIGINT is ignored (a
+    background job)."""
+    flag = []
+    if threading.current_thread() is not threading.main_thread() or signal.getsignal(signal.SIGINT) is signal.SIG_IGN:
+        yield flag
+        return
+
+    def handler(signum, frame):
+        if flag:
+            raise KeyboardInterrupt
+        flag.append(signum)
+        print("\n[d2gs] interrupted: a checkpoint is written after this step (Ctrl-C again to stop at once)",
+              flush=True)
+
+    previous = signal.signal(signal.SIGINT, handler)
+    try:
+        yield flag
+    finally:
+        signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
+
+
 def validate_scene_for_training(scene: Scene):
     if scene.num_frames < 2:
         raise ValueError(f"training needs at least 2 frames; the scene has {scene.num_frames}")
@@ -82,41 +188,42 @@ def validate_scene_for_training(scene: Scene):
 
 
 class Trainer:
-    """Trains a model of ``scene`` with ``config`` into the folder ``run_dir`` (``resume``: go on
-    from its latest checkpoint). ``plugins``: step plugins run after the default ones."""
+    """Trains a model of ``scene`` with ``config`` into the folder ``run_dir``. A folder that is
+    not empty needs ``resume`` (go on from its latest checkpoint, on the same scene and config) or
+    ``overwrite`` (replace the run there; its files stay until the new run's first checkpoint).
+    ``plugins``: step plugins run after the default ones. Nothing is written into ``run_dir``
+    before ``run`` (or ``checkpoint``) is called."""
 
-    def __init__(self, scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resume: bool = False):
+    def __init__(self, scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resume: bool = False,
+                 overwrite: bool = False):
+        check_run_folder(run_dir, resume, overwrite)
         validate_scene_for_training(scene)
         self.scene, self.config, self.frames = scene, config, scene.frames
-        self.run_dir = Path(run_dir)
-        self.run_dir.mkdir(parents=True, exist_ok=True)
+        self.run_dir, self.resume = Path(run_dir), resume
+        self._opened = False  # whether the run has written into run_dir (_open_run_folder)
+        self._saved_step, self._saved_path, self._last_save = None, None, time.perf_counter()
+        self.scene_record = fingerprint.scene_record(scene)
         self.cache = TargetCache.from_scene(scene, mask_threshold=config.schedule.mask_threshold)
         self.stopwatch = Stopwatch()
         self.step_index = 0
         self.extent = scene_extent(np.stack([f.cam_T_world for f in self.frames]).astype(np.float64),
                                    scene.scene_scale)
-        ckpt = latest_checkpoint(self.run_dir) if resume else None
-        if resume and ckpt is None:
-            raise FileNotFoundError(f"--resume: no checkpoint in {self.run_dir}; train without --resume first")
         # What the run models decides which loss terms apply (no dynamic set: no L_ts); their
         # notes wait for the log, whose columns follow the terms.
         pending = []
         if resume:
+            ckpt = self._resumed_from = latest_checkpoint(self.run_dir)
             saved = load_checkpoint(ckpt)  # read once: the components here, the rest in _restore
+            pending += self._check_resume(ckpt, saved[1])  # before any setup
             components = Components(**saved[1]["components"])
         else:
             components = decide_components(scene, config, pending.append)
         self.terms = loss_terms(config.loss, components, pending.append, scene=scene, run_dir=self.run_dir,
                                 pose_solver=config.pose_solver)
-        if not resume:
-            for stale in (CHECKPOINT_NAME, FINAL_NAME, "metrics.json"):  # a fresh run never mixes with an old one
-                (self.run_dir / stale).unlink(missing_ok=True)
         self.log = RunLog(self.run_dir, quiet=config.train.quiet, resume=resume,
                           extra_fields=[f"loss_{t.name}" for t in self.terms])
-        if not resume:
-            atomic_write_text(self.run_dir / "config.json", config.to_json())
-            for line in pending:
-                self.log.note(line)
+        for line in pending:
+            self.log.note(line)
         # plugins that loss terms read from (term.plugins) run after the default ones; they were
         # built before the log, so their later lines (L_reproj's match count) go to it from here
         term_plugins = [p for t in self.terms for p in getattr(t, "plugins", ())]
@@ -226,8 +333,15 @@ class Trainer:
 
     # ------------------------------------------------------------------ the loop
     def run(self) -> dict:
+        """Train to the end of the schedule (or of the time budget); returns the last step's
+        record with ``steps`` and ``train_seconds``. Ctrl-C: ``TrainingInterrupted`` after a
+        checkpoint (module docstring)."""
         tc = self.config.train
-        total, budget = tc.iters, tc.time_budget
+        total = tc.iters
+        if self.step_index >= total:  # a resumed run that has nothing left to do: its folder stays as it is
+            self.log.note(f"nothing to train: the run in {self.run_dir} is at step {self.step_index} of {total}")
+            return {"steps": self.step_index, "train_seconds": self.stopwatch.seconds(), "loss": float("nan"),
+                    "train_psnr": float("nan")}
         t_start = time.perf_counter()
         warm_up(self.config.render)
         for term in self.terms:  # loss terms with kernels of their own (L_freq)
@@ -241,6 +355,28 @@ class Trainer:
                              else "float64") + "; evaluation renders in float64")
             self.log.note(f"training {total} steps; stages: " + ", ".join(
                 f"{s.name} [{s.start}, {s.stop})" for s in self.stages))
+        with _interrupt_after_the_step() as interrupted:
+            try:
+                self._open_run_folder()
+                info = self._loop(interrupted)
+            except TrainingInterrupted:
+                raise
+            except KeyboardInterrupt:  # a second Ctrl-C, mid-step: the last checkpoint stands
+                last = ("the run has no checkpoint yet" if self._saved_path is None else
+                        f"the last checkpoint is step {self._saved_step} in {self._saved_path}")
+                raise TrainingInterrupted(f"stopped at once during step {self.step_index}; {last}", self._saved_step,
+                                          self._saved_path) from None
+            wall = time.perf_counter() - t_start
+            self.log.note(f"finished at step {self.step_index}: {self.stopwatch.seconds():.1f}s of training "
+                          f"({wall:.1f}s wall including evaluation)")
+            self.log.save()
+        return {"steps": self.step_index, "train_seconds": self.stopwatch.seconds(), **info}
+
+    def _loop(self, interrupted) -> dict:
+        """The steps from ``step_index`` to the end, then the final checkpoint (``run``);
+        ``interrupted``: non-empty once Ctrl-C was pressed."""
+        tc = self.config.train
+        total, budget = tc.iters, tc.time_budget
         last_stage, info = None, {"loss": float("nan"), "train_psnr": float("nan")}
         while self.step_index < total:
             step = self.step_index
@@ -265,18 +401,19 @@ class Trainer:
             self.stopwatch.pause()
             self.state, self.step_index = state, step + 1
             self._log_row(state)
-            if tc.checkpoint_every and self.step_index % tc.checkpoint_every == 0 and not state.last:
+            due = (tc.checkpoint_every and self.step_index % tc.checkpoint_every == 0) or \
+                (tc.checkpoint_seconds and time.perf_counter() - self._last_save >= tc.checkpoint_seconds)
+            if (due or interrupted) and not state.last:
                 self.checkpoint()
+            if interrupted and not state.last:
+                raise TrainingInterrupted(f"checkpoint of step {self.step_index} written to {self._saved_path}",
+                                          self.step_index, self._saved_path)
             if out_of_time and step + 1 < total:
                 self.log.note(f"time budget of {budget:.0f}s reached at step {self.step_index} (schedule step "
                               f"{sched} of {total}: schedule complete); stopping")
                 break
         self.checkpoint(final=True)
-        wall = time.perf_counter() - t_start
-        self.log.note(f"finished at step {self.step_index}: {self.stopwatch.seconds():.1f}s of training "
-                      f"({wall:.1f}s wall including evaluation)")
-        self.log.save()
-        return {"steps": self.step_index, "train_seconds": self.stopwatch.seconds(), **info}
+        return info
 
     def _on_step(self, plugin, state):
         if plugin.timed:
@@ -302,7 +439,49 @@ class Trainer:
                               fraction=progress)
 
     # ------------------------------------------------------------------ checkpoints
+    def _open_run_folder(self):
+        """The run's first writes into its folder, once setup is done (module docstring). A new
+        run: its step-0 checkpoint, then an earlier run's results (``REPLACED_RESULTS``) go. A
+        resumed one: the metrics and the final model of an earlier stop go (the model becomes
+        checkpoint.npz when it is the one resumed), so nothing in the folder describes another
+        state of the model than its checkpoint and log. Then config.json and the log."""
+        if self._opened:
+            return
+        self._opened = True
+        d = self.run_dir
+        d.mkdir(parents=True, exist_ok=True)
+        for name in (CHECKPOINT_NAME, FINAL_NAME, CONFIG_NAME, "log.json", HISTORY_FILE):
+            for tmp in d.glob(f".{name}.*.tmp"):  # of an atomic write (train.checkpoint) a killed run left
+                tmp.unlink(missing_ok=True)
+        if self.resume:
+            final = d / FINAL_NAME
+            if final.exists():
+                if final == self._resumed_from:
+                    os.replace(final, d / CHECKPOINT_NAME)  # atomic; its contents are the resumed state
+                    self._saved_path = d / CHECKPOINT_NAME
+                else:
+                    final.unlink()
+            (d / METRICS_NAME).unlink(missing_ok=True)
+            self._last_save = time.perf_counter()  # the wall-clock period counts from here
+        else:
+            # first the new checkpoint, then the old final.npz: a kill between the two leaves the old
+            # final.npz, the latest checkpoint there, with its own config and log
+            self._save(CHECKPOINT_NAME, final=False)
+            for name in REPLACED_RESULTS:
+                (d / name).unlink(missing_ok=True)
+        atomic_write_text(d / CONFIG_NAME, self.config.to_json())
+        self.log.truncate(self.step_index)
+        self.log.save()
+
     def checkpoint(self, final: bool = False):
+        """Write the state atomically to checkpoint.npz (``final``: final.npz), with the log."""
+        self._open_run_folder()
+        # the log first: a resume truncates it to the checkpoint it finds, so a kill between the two
+        # writes loses no row of the steps that checkpoint holds
+        self.log.save()
+        self._save(FINAL_NAME if final else CHECKPOINT_NAME, final)
+
+    def _save(self, name: str, final: bool):
         arrays, meta = self.state.to_checkpoint()
         meta["plugins"] = {}
         for p in self.plugins:
@@ -313,23 +492,28 @@ class Trainer:
                     meta["plugins"].setdefault(p.name, {})[key] = v
         meta.update(step=self.step_index, seconds=self.stopwatch.seconds(), final=final, left_out=self.left_out(),
                     position_extent=self.position_extent,
-                    scene_root=str(Path(self.scene.root).resolve()) if self.scene.root is not None else None)
-        save_checkpoint(self.run_dir / (FINAL_NAME if final else CHECKPOINT_NAME), arrays, meta)
-        self.log.save()
+                    scene_root=str(Path(self.scene.root).resolve()) if self.scene.root is not None else None,
+                    scene_digest=self.scene_record["digest"])
+        path = self.run_dir / name
+        save_checkpoint(path, arrays, meta)
+        self._saved_step, self._saved_path, self._last_save = self.step_index, path, time.perf_counter()
 
-    def _restore(self, path, arrays, meta):
+    def _check_resume(self, path, meta) -> list:
+        """Refuse to resume the checkpoint ``path`` with another config or scene; returns notes."""
         saved_cfg = ExperimentConfig.from_dict(meta["config"])
-        # A resumed run continues the saved experiment: only the run length and output may change.
-        free = {"iters", "time_budget", "quiet"}
+        # A resumed run continues the saved experiment: only the run length, housekeeping and output may change.
+        free = {"iters", "time_budget", "quiet", "checkpoint_every", "checkpoint_seconds"}
         changed = [f"train.{k}" for k, v in self.config.train.__dict__.items()
                    if k not in free and getattr(saved_cfg.train, k) != v]
         changed += [k for k in saved_cfg.__dict__ if k != "train" and getattr(saved_cfg, k) != getattr(self.config, k)]
         if changed:
             raise ValueError(f"--resume with a config that differs from the saved run in {changed}; resume with the "
                              f"run's own config (RUN/config.json), changing only {sorted(free)}")
-        times = [f.time for f in self.frames]
-        if len(meta["times"]) != len(times) or not np.allclose(meta["times"], times):
-            raise ValueError(f"--resume: the scene's frames do not match the run in {path.parent}")
+        return check_scene_of_run(meta, self.scene, path.parent, "--resume",
+                                  "resume with the run's scene, or start a new run (another --out, or --overwrite "
+                                  "to replace this one)", self.scene_record)
+
+    def _restore(self, path, arrays, meta):
         params = {k[len("params/"):]: v for k, v in arrays.items() if k.startswith("params/")}
         state = TrainState.from_checkpoint(arrays, meta, self._initial_rows(params))
         self.state = state.replace(model=state.model.replace(config=self.config))
@@ -340,5 +524,5 @@ class Trainer:
         self.position_extent = float(meta.get("position_extent", self.extent))
         self.step_index = int(meta["step"])
         self.stopwatch = Stopwatch(meta["seconds"])
-        self.log.truncate(self.step_index)
+        self._saved_step, self._saved_path = self.step_index, path
         self.log.note(f"resumed from {path} at step {self.step_index} ({meta['seconds']:.1f}s of training)")

@@ -175,7 +175,7 @@ def test_case10_config_is_a_directory(trained, tmp_path, capsys, command):
 def test_case10_eval_on_a_read_only_run(trained, capsys, monkeypatch):
     """d2gs eval on a run folder it cannot write refuses before the evaluation (it used to fail
     after it, writing metrics.json): the scene is never read, metrics.json keeps its bytes."""
-    import d2gs_np.evaluate as evaluate_module
+    import d2gs_np.evaluation.runs as evaluate_module
 
     _, run = trained
     calls = []
