@@ -19,9 +19,7 @@ from d2gs_np.pose.correspond import CorrespondConfig
 from d2gs_np.pose.gauss_newton import GaussNewtonConfig
 from d2gs_np.pose.given import PoseInitConfig
 from d2gs_np.render.config import RenderConfig
-from d2gs_np.scene.deformation import DeformConfig
-from d2gs_np.scene.initialize import InitConfig
-from d2gs_np.scene.motion_init import MotionInitConfig
+from d2gs_np.scene.config import DeformConfig, InitConfig, MotionInitConfig
 from d2gs_np.train.densify import DensifyConfig
 from d2gs_np.train.prune import PruneConfig
 from d2gs_np.train.schedule import ScheduleConfig

@@ -37,7 +37,7 @@ from d2gs_np.blur.render import (
     views_for_length,
 )
 from d2gs_np.geometry import matrix_grad_to_left_tangent, se3_exp, se3_interpolate, se3_inverse, se3_log
-from d2gs_np.scene.deformation import DeformConfig
+from d2gs_np.scene.config import DeformConfig
 from d2gs_np.scene.gaussians import logit
 from d2gs_np.scene.render_inputs import render_inputs_fwd
 
