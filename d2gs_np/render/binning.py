@@ -1,6 +1,6 @@
 """Tile binning of projected Gaussians: the tiles each one reaches and the depth-sorted tile lists.
 
-Steps 1-2 of the fast rasteriser (docs/conventions.md §5-8, gsplat 1.5.3); steps 3-5, the
+Steps 1-2 of the fast rasteriser (docs/conventions.md §5, gsplat 1.5.3); steps 3-5, the
 compositing and its backward over these lists, are in render/rasterize.py.
 
 1. ``_tile_rects_kernel`` (serial loop over Gaussians): the tiles ``[floor((u-rx)/ts), ceil((u+rx)/ts))
