@@ -67,7 +67,7 @@ SSIM_C2 = 0.03**2
 # by it would blow float rounding up to O(1) inputs, so it is only centred.
 POSENET_INPUT_STD_MIN = 1e-6
 
-# Fast splatter shortcut (d2gs_np.render.rasterize): a (Gaussian, pixel) pair with
+# Fast splatter shortcut (d2gs_np.render.binning, rasterize): a (Gaussian, pixel) pair with
 # sigma > ln(opacity / ALPHA_THRESHOLD) + ALPHA_CUTOFF_SAFETY is skipped without evaluating exp.
 # Then alpha <= exp(-1e-3) / 255 < 1/255 with a relative gap of 1e-3, far above the rounding of
 # exp, log and the product in float32 (~1e-7) or float64, so the skip decision is exactly the
@@ -124,7 +124,7 @@ BA_POINT_EIG_FLOOR = 1e-10
 # single faint Gaussian's depth), and such matches are dropped (and counted) instead.
 POSE_DEPTH_ALPHA_MIN = 0.5
 
-# The rasteriser's vectorisable exp(-sigma) (render/rasterize.py ``_exp_neg``) clamps its argument
+# The rasteriser's vectorisable exp(-sigma) (render/fast_exp.py ``exp_neg``) clamps its argument
 # into [0, EXP_ARG_MAX]. Only sigma <= ln(opacity / ALPHA_THRESHOLD) + ALPHA_CUTOFF_SAFETY
 # <= ln(255) + 1e-3 ~ 5.54 ever reaches a pixel (opacity <= 1); larger sigma is masked out, so the
 # clamp only keeps those masked lanes finite. 8 > 5.54 with room, and keeps 2^-k in 4 bits (k <= 12).

@@ -35,7 +35,7 @@ from d2gs_np.blur.config import BlurConfig
 from d2gs_np.blur.render import blur_render_bwd, blur_render_fwd
 from d2gs_np.geometry.camera import look_at, make_intrinsics
 from d2gs_np.evaluation.metrics import psnr
-from d2gs_np.scene.deformation import DeformConfig
+from d2gs_np.scene.config import DeformConfig
 from d2gs_np.scene.gaussians import init_params, logit
 
 NS = (1, 2, 4, 8, 16, 32)

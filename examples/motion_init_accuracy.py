@@ -32,7 +32,8 @@ from d2gs_np.data.suite import (SUITE, SuiteConfig, build_suite_world, make_suit
                                mover_tracks_of_seeds)
 from d2gs_np.evaluation.metrics import trajectory_reprojection_error
 from d2gs_np.scene.initialize import initialize_points
-from d2gs_np.scene.motion_init import WARPS, MotionInitConfig, initialize_deformation
+from d2gs_np.scene.config import WARPS, MotionInitConfig
+from d2gs_np.scene.motion_init import initialize_deformation
 from d2gs_np.train.config import ExperimentConfig
 
 MOVER_SCENES = [name for name in SUITE if name != "photo_room"]  # photo_room has no mover

@@ -54,7 +54,6 @@ sys.path.insert(0, str(HERE))
 from bench_render import cotangents, random_scene  # noqa: E402
 
 STAGES = ("project_fwd", "build_intersections", "rasterize_fwd", "rasterize_bwd", "project_bwd")
-RENDER_FILES = ("__init__", "config", "project", "rasterize", "api")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -74,11 +73,13 @@ def load_render_package(rev):
     base = Path(tempfile.gettempdir()) / "d2gs_render_revisions"
     pkg = base / name
     pkg.mkdir(parents=True, exist_ok=True)
-    for f in RENDER_FILES:
-        text = subprocess.run(["git", "show", f"{sha}:d2gs_np/render/{f}.py"], cwd=root, capture_output=True,
+    files = subprocess.run(["git", "ls-tree", "--name-only", sha, "d2gs_np/render/"], cwd=root, capture_output=True,
+                           text=True, check=True).stdout.split()
+    for f in (Path(f).name for f in files if f.endswith(".py")):  # the render package's modules at that revision
+        text = subprocess.run(["git", "show", f"{sha}:d2gs_np/render/{f}"], cwd=root, capture_output=True,
                               text=True, check=True).stdout
         text = text.replace("d2gs_np.render.", f"{name}.")
-        path = pkg / f"{f}.py"
+        path = pkg / f
         if not path.exists() or path.read_text() != text:
             path.write_text(text)
     if str(base) not in sys.path:

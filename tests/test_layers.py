@@ -147,7 +147,7 @@ def module_name_in(pkg: Path, path: Path) -> str:
     return ".".join(parts)
 
 
-@pytest.mark.parametrize("module", ["d2gs_np.train.config"])
+@pytest.mark.parametrize("module", ["d2gs_np.render.config", "d2gs_np.scene.config", "d2gs_np.train.config"])
 def test_loading_a_config_imports_no_solver(module):
     # a config is plain data: reading one must not pull in CasADi, OpenCV or the Numba kernels
     code = (f"import sys; import {module}; heavy = sorted(m for m in ('casadi', 'cv2', 'numba') if m in sys.modules); "

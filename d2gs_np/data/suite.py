@@ -53,9 +53,10 @@ from pathlib import Path
 
 import numpy as np
 
+from d2gs_np.data.camera_paths import as_times, eval_sines, random_sines
+from d2gs_np.data.raycast import cast_depth, cast_view
 from d2gs_np.data.scene import Scene
-from d2gs_np.data.synthetic import (_as_times, _check_view, _eval_sines, _pixel_rays, _sines, preset_overrides,
-                                     render_clip)
+from d2gs_np.data.synthetic import preset_overrides, render_clip
 from d2gs_np.geometry.camera import look_at, project_points
 from d2gs_np.geometry.se3 import se3_exp
 from d2gs_np.geometry.so3 import so3_exp
@@ -264,7 +265,7 @@ class SuiteWorld:
     target: np.ndarray  # (3,) look-at point at mid-clip
     depth: float  # scene depth: camera to back wall (pose noise and test offsets scale with it)
     textures: dict  # (patch id) -> resampled texture (h, w, 3)
-    sway: np.ndarray  # sum-of-sines blocks (see synthetic._sines)
+    sway: np.ndarray  # sum-of-sines blocks (data/camera_paths.py)
     shake_pos: np.ndarray
     shake_rot: np.ndarray
     pan: float
@@ -392,10 +393,10 @@ def build_suite_world(config: SuiteConfig) -> SuiteWorld:
         texel = 0.5 * dist / fx
         img = load_texture(p.texture)
         textures[i] = _resample(img, 2 * p.half[0] / p.repeat[0] / texel, 2 * p.half[1] / p.repeat[1] / texel)
-    sway = _sines(rng, [[0.05, 0.04, 0.05], [0.02, 0.02, 0.02]], [0.7, 1.3])
-    shake_pos = _sines(rng, [[0.01, 0.01, 0.006]], [config.shake_cycles])
+    sway = random_sines(rng, [[0.05, 0.04, 0.05], [0.02, 0.02, 0.02]], [0.7, 1.3])
+    shake_pos = random_sines(rng, [[0.01, 0.01, 0.006]], [config.shake_cycles])
     # hand shake: ~0.6 deg of tilt and pan, ~0.3 deg of roll, 1 cm of position at shake = 1
-    shake_rot = _sines(rng, [[0.01, 0.01, 0.005]], [config.shake_cycles * 1.1])
+    shake_rot = random_sines(rng, [[0.01, 0.01, 0.005]], [config.shake_cycles * 1.1])
     shake_pos[:, 0, :] *= config.shake
     shake_rot[:, 0, :] *= config.shake
     return SuiteWorld(patches=tuple(patches), movers=tuple(movers), eye=eye, target=target, depth=depth,
@@ -405,16 +406,16 @@ def build_suite_world(config: SuiteConfig) -> SuiteWorld:
 
 def suite_camera_pose(world: SuiteWorld, t):
     """True cam_T_world at time(s) t: scalar -> (4, 4), (M,) -> (M, 4, 4). C-infinity in t."""
-    t = _as_times(t)
+    t = as_times(t)
     tt = np.atleast_1d(t)
-    eye = world.eye[None] + np.outer(tt - 0.5, [world.pan, 0.0, 0.0]) + _eval_sines(world.sway, tt) \
-        + _eval_sines(world.shake_pos, tt)
+    eye = world.eye[None] + np.outer(tt - 0.5, [world.pan, 0.0, 0.0]) + eval_sines(world.sway, tt) \
+        + eval_sines(world.shake_pos, tt)
     # the viewing direction turns smoothly about the vertical by yaw over the clip
     a = world.yaw * (tt - 0.5)
     look = world.target - world.eye
     target = eye + np.stack([look[0] * np.cos(a) + look[2] * np.sin(a), np.full_like(a, look[1]),
                              -look[0] * np.sin(a) + look[2] * np.cos(a)], axis=1)
-    R_shake = so3_exp(_eval_sines(world.shake_rot, tt))
+    R_shake = so3_exp(eval_sines(world.shake_rot, tt))
     poses = np.empty((len(tt), 4, 4))
     for m in range(len(tt)):
         T = look_at(eye[m], target[m], up=(0.0, 1.0, 0.0))
@@ -504,20 +505,13 @@ def _cast(world: SuiteWorld, origin, dirs, t):
 
 def render_suite_view(world: SuiteWorld, cam_T_world, t, K, width, height, supersample=2):
     """Sharp ray-cast image (H, W, 3) and moving-pixel mask (H, W) at a pose and time."""
-    T, K = _check_view(cam_T_world, K, width, height)
-    origin, dirs = _pixel_rays(T, K, width, height, supersample)
-    rgb, _, dyn = _cast(world, origin, dirs, float(t))
-    s = supersample
-    rgb = np.ascontiguousarray(rgb.reshape(3, height, s, width, s).mean(axis=(2, 4)).transpose(1, 2, 0))
-    return rgb, dyn.reshape(height, s, width, s).any(axis=(1, 3))
+    return cast_view(lambda origin, dirs: _cast(world, origin, dirs, float(t)), cam_T_world, K, width, height,
+                     supersample)
 
 
 def suite_depth_map(world: SuiteWorld, cam_T_world, t, K, width, height):
     """True depth (H, W) through pixel centres at time t (inf where nothing is hit)."""
-    T, K = _check_view(cam_T_world, K, width, height)
-    origin, dirs = _pixel_rays(T, K, width, height, 1)
-    _, depth, _ = _cast(world, origin, dirs, float(t))
-    return depth.reshape(height, width)
+    return cast_depth(lambda origin, dirs: _cast(world, origin, dirs, float(t)), cam_T_world, K, width, height)
 
 
 def mover_point_tracks(world: SuiteWorld, cam_T_world, K, t, pixels, poses, Ks, times):

@@ -54,9 +54,11 @@ from pathlib import Path
 
 import numpy as np
 
+from d2gs_np.data.camera_paths import as_times, eval_sines, random_sines
+from d2gs_np.data.raycast import cast_depth, cast_view
 from d2gs_np.data.scene import Frame, Scene
-from d2gs_np.geometry.camera import check_intrinsics, look_at, make_intrinsics
-from d2gs_np.geometry.se3 import check_rigid, se3_exp
+from d2gs_np.geometry.camera import look_at, make_intrinsics
+from d2gs_np.geometry.se3 import se3_exp
 from d2gs_np.geometry.so3 import so3_exp
 
 __all__ = [
@@ -237,20 +239,6 @@ class SyntheticWorld:
     sphere_params: np.ndarray  # (2, 8) path phases / amplitudes (see object_states)
 
 
-def _sines(rng, amps, freqs, freq_jitter=0.15):
-    """(n, 3, 3) sum-of-sines block: amplitude (n, 3), cycles per clip (n, 3), random phase."""
-    amps = np.broadcast_to(np.asarray(amps, dtype=np.float64), (len(freqs), 3))
-    f = np.asarray(freqs, dtype=np.float64)[:, None] * (1.0 + freq_jitter * rng.uniform(-1, 1, (len(freqs), 3)))
-    p = rng.uniform(0.0, 2.0 * np.pi, (len(freqs), 3))
-    return np.stack([amps, f, p], axis=1)
-
-
-def _eval_sines(block, t):
-    """block (n, 3, 3), t (M,) -> (M, 3)."""
-    a, f, p = block[:, 0], block[:, 1], block[:, 2]
-    return np.einsum("nd,mnd->md", a, np.sin(2.0 * np.pi * f[None] * t[:, None, None] + p[None]))
-
-
 def build_world(config: SyntheticConfig) -> SyntheticWorld:
     """The seeded analytic world of ``config`` (depends on seed, moving_objects and the shake scales)."""
     if not isinstance(config, SyntheticConfig):
@@ -285,13 +273,13 @@ def build_world(config: SyntheticConfig) -> SyntheticWorld:
         "sphere1": jitter([[0.15, 0.3, 0.9], [0.98, 0.85, 0.2]]),
     }
     cam_arc = (4.3, rng.uniform(-0.05, 0.05), 0.4, 1.55)
-    cam_sway = _sines(rng, [[0.06, 0.05, 0.06], [0.03, 0.03, 0.03]], [0.8, 1.7])
-    cam_shake = _sines(rng, [[0.006, 0.006, 0.004], [0.004, 0.004, 0.003]], [5.5, 8.5])
-    target_sway = _sines(rng, [[0.12, 0.06, 0.0]], [0.9])
+    cam_sway = random_sines(rng, [[0.06, 0.05, 0.06], [0.03, 0.03, 0.03]], [0.8, 1.7])
+    cam_shake = random_sines(rng, [[0.006, 0.006, 0.004], [0.004, 0.004, 0.003]], [5.5, 8.5])
+    target_sway = random_sines(rng, [[0.12, 0.06, 0.0]], [0.9])
     # camera-frame rotation vector (x: tilt, y: pan, z: roll): a fast shake of ~0.5 deg plus a slow roll
     rot_shake = np.concatenate([
-        _sines(rng, [[0.009, 0.009, 0.005], [0.006, 0.006, 0.004]], [6.0, 9.0]),
-        _sines(rng, [[0.0, 0.0, 0.03]], [0.6]),
+        random_sines(rng, [[0.009, 0.009, 0.005], [0.006, 0.006, 0.004]], [6.0, 9.0]),
+        random_sines(rng, [[0.0, 0.0, 0.03]], [0.6]),
     ])
     # Stronger hand shake scales only the amplitudes (row 0 of each (a, f, p) block): the path
     # keeps its shape and smoothness, the phases and frequencies are the same draws.
@@ -310,22 +298,13 @@ def build_world(config: SyntheticConfig) -> SyntheticWorld:
     )
 
 
-def _as_times(t, name="t"):
-    arr = np.asarray(t, dtype=np.float64)
-    if arr.ndim > 1:
-        raise ValueError(f"{name} must be a scalar or a 1-D array of times; got shape {arr.shape}")
-    if not np.all(np.isfinite(arr)):
-        raise ValueError(f"{name} contains NaN or inf")
-    return arr
-
-
 def camera_pose(world: SyntheticWorld, t):
     """True camera ``cam_T_world`` at time(s) t: scalar -> (4, 4), (M,) -> (M, 4, 4).
 
     C-infinity in t (sums of sines, an arc, look-at, a rotation exponential), defined for all
     real t (exposures of the first and last frames reach slightly outside [0, 1]).
     """
-    t = _as_times(t)
+    t = as_times(t)
     tt = np.atleast_1d(t)
     radius, theta_mid, theta_span, height = world.cam_arc
     theta = theta_mid + theta_span * (tt - 0.5)
@@ -334,9 +313,9 @@ def camera_pose(world: SyntheticWorld, t):
         np.full_like(tt, height),
         _SCENE_CENTER[2] + radius * np.cos(theta),
     ], axis=1)
-    eye = eye + _eval_sines(world.cam_sway, tt) + _eval_sines(world.cam_shake, tt)
-    target = _SCENE_CENTER + _eval_sines(world.target_sway, tt)
-    R_shake = so3_exp(_eval_sines(world.rot_shake, tt))  # rotation about the camera centre
+    eye = eye + eval_sines(world.cam_sway, tt) + eval_sines(world.cam_shake, tt)
+    target = _SCENE_CENTER + eval_sines(world.target_sway, tt)
+    R_shake = so3_exp(eval_sines(world.rot_shake, tt))  # rotation about the camera centre
     poses = np.empty((len(tt), 4, 4))
     for m in range(len(tt)):
         T = look_at(eye[m], target[m], up=(0.0, 1.0, 0.0))
@@ -542,70 +521,16 @@ def _cast(world, origin, dirs, t, states=None):
     return rgb, depth, surf >= _SPHERE0
 
 
-_GRID_CACHE = {}
-
-
-def _camera_grid(K, width, height, supersample):
-    """Normalised camera-plane coordinates (x, y), each (H*s*W*s,), row-major over the fine grid."""
-    key = (width, height, supersample, float(K[0, 0]), float(K[1, 1]), float(K[0, 2]), float(K[1, 2]))
-    grid = _GRID_CACHE.get(key)
-    if grid is None:
-        s = supersample
-        xs = ((np.arange(width * s) + 0.5) / s - K[0, 2]) / K[0, 0]  # sub-sample centres, continuous coords
-        ys = ((np.arange(height * s) + 0.5) / s - K[1, 2]) / K[1, 1]
-        X, Y = np.meshgrid(xs, ys)
-        grid = (X.ravel(), Y.ravel())
-        if len(_GRID_CACHE) > 16:
-            _GRID_CACHE.clear()
-        _GRID_CACHE[key] = grid
-    return grid
-
-
-def _pixel_rays(cam_T_world, K, width, height, supersample):
-    """World origin (3,) and ray directions (dx, dy, dz) = R^T (x, y, 1), each (H*s*W*s,)."""
-    X, Y = _camera_grid(K, width, height, supersample)
-    Rm, tv = cam_T_world[:3, :3], cam_T_world[:3, 3]
-    dirs = tuple(X * Rm[0, a] + Y * Rm[1, a] + Rm[2, a] for a in range(3))  # sum_i d_cam_i R[i, a]
-    return -Rm.T @ tv, dirs
-
-
-def _check_view(cam_T_world, K, width, height):
-    T = np.asarray(cam_T_world, dtype=np.float64)
-    if T.shape != (4, 4):
-        raise ValueError(f"cam_T_world must have shape (4, 4); got {T.shape}")
-    check_rigid(T, "cam_T_world")
-    K = np.asarray(K, dtype=np.float64)
-    check_intrinsics(K)
-    for name, v in (("width", width), ("height", height)):
-        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
-            raise ValueError(f"{name} must be a positive int; got {v!r}")
-    return T, K
-
-
 def render_view(world: SyntheticWorld, cam_T_world, t, K, width, height, supersample=2):
-    """Sharp ray-cast image at pose ``cam_T_world`` (4, 4) and time t (objects at t).
-
-    Returns (rgb (H, W, 3) float64 in [0, 1], dynamic (H, W) bool). Each pixel is the mean of
-    supersample^2 rays through (j + (a + 0.5)/s, i + (b + 0.5)/s); ``dynamic`` is True where any
-    of them hits a moving object.
-    """
-    T, K = _check_view(cam_T_world, K, width, height)
-    if isinstance(supersample, bool) or not isinstance(supersample, numbers.Integral) or supersample < 1:
-        raise ValueError(f"supersample must be a positive int; got {supersample!r}")
-    origin, dirs = _pixel_rays(T, K, width, height, supersample)
-    rgb, _, dyn = _cast(world, origin, dirs, float(t))
-    s = supersample
-    rgb = np.ascontiguousarray(rgb.reshape(3, height, s, width, s).mean(axis=(2, 4)).transpose(1, 2, 0))
-    dyn = dyn.reshape(height, s, width, s).any(axis=(1, 3))
-    return rgb, dyn
+    """Sharp ray-cast image at pose ``cam_T_world`` (4, 4) and time t (objects at t): rgb (H, W, 3)
+    float64 in [0, 1] and dynamic (H, W) bool, ``supersample^2`` rays per pixel (``raycast.cast_view``)."""
+    return cast_view(lambda origin, dirs: _cast(world, origin, dirs, float(t)), cam_T_world, K, width, height,
+                     supersample)
 
 
 def depth_map(world: SyntheticWorld, cam_T_world, t, K, width, height):
     """True depth (camera z, (H, W) float64) of the first surface hit through each pixel centre at time t."""
-    T, K = _check_view(cam_T_world, K, width, height)
-    origin, dirs = _pixel_rays(T, K, width, height, 1)
-    _, depth, _ = _cast(world, origin, dirs, float(t))
-    return depth.reshape(height, width)
+    return cast_depth(lambda origin, dirs: _cast(world, origin, dirs, float(t)), cam_T_world, K, width, height)
 
 
 # ============================================================================ frames

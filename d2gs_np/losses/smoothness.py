@@ -34,7 +34,8 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from d2gs_np.constants import TS_NORM_EPS
-from d2gs_np.scene.deformation import DeformConfig, deform_basis
+from d2gs_np.scene.config import DeformConfig
+from d2gs_np.scene.deformation import deform_basis
 
 __all__ = ["smooth_norm", "knn", "time_fwd", "time_bwd", "spatial_fwd", "spatial_bwd"]
 

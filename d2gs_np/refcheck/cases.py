@@ -269,7 +269,7 @@ def _blur():
 
 def _deform():
     """Polynomial (degree 2) + Fourier (order 2) deformation of 10 Gaussians at t = 0.37."""
-    from d2gs_np.scene.deformation import DeformConfig
+    from d2gs_np.scene.config import DeformConfig
 
     rng = np.random.default_rng(6)
     cfg = DeformConfig(degree=2, order=2)

@@ -93,7 +93,7 @@ class _RenderLayoutScene:
 def _compute_blur(inputs, cot, dtype, renderer):
     from d2gs_np.blur.config import BlurConfig
     from d2gs_np.blur.render import blur_render_bwd, blur_render_fwd
-    from d2gs_np.scene.deformation import DeformConfig
+    from d2gs_np.scene.config import DeformConfig
 
     cast = lambda k: np.ascontiguousarray(inputs[k], dtype=dtype)  # noqa: E731
     params = {f"static.{k}": cast(k) for k in RENDER_FIELDS}
@@ -116,7 +116,8 @@ _DEFORM_INPUTS = ("base_means", "base_quats", "base_colors", "coef_means", "coef
 
 
 def _compute_deform(inputs, cot, dtype, renderer):
-    from d2gs_np.scene.deformation import DeformConfig, deform_bwd, deform_fwd
+    from d2gs_np.scene.config import DeformConfig
+    from d2gs_np.scene.deformation import deform_bwd, deform_fwd
 
     cfg = DeformConfig(degree=int(inputs["degree"]), order=int(inputs["order"]), omega=float(inputs["omega"]))
     args = [np.ascontiguousarray(inputs[k], dtype=dtype) for k in _DEFORM_INPUTS]

@@ -1,8 +1,8 @@
 """Public fast renderer: ``render_fwd`` / ``render_bwd`` (docs/conventions.md §10).
 
 Numba, tile based like gsplat: projection (prange over Gaussians, project.py), tile
-intersection lists sorted by (tile, float32 depth, Gaussian index), compositing with prange over
-tiles (rasterize.py). Same contract and conventions as the float64 NumPy reference
+intersection lists sorted by (tile, float32 depth, Gaussian index) (binning.py), compositing with
+prange over tiles (rasterize.py). Same contract and conventions as the float64 NumPy reference
 ``d2gs_np.reference.render_fwd/render_bwd``, which it matches to ~1e-10 relative in float64.
 
 dtype: all float arrays float64, or all float32; a float32 call runs float32 kernels end to end
@@ -35,7 +35,8 @@ import numpy as np
 from d2gs_np import constants as C
 from d2gs_np.render.config import RenderConfig
 from d2gs_np.render.project import make_consts, project_bwd, project_fwd
-from d2gs_np.render.rasterize import build_intersections, rasterize_bwd, rasterize_fwd
+from d2gs_np.render.binning import build_intersections
+from d2gs_np.render.rasterize import rasterize_bwd, rasterize_fwd
 
 _INT32_MAX = np.iinfo(np.int32).max
 

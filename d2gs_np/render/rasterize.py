@@ -1,19 +1,10 @@
-"""Tile-based rasterisation of projected Gaussians: intersection lists, compositing fwd/bwd.
+"""Compositing of projected Gaussians over screen tiles, forward and backward.
 
-Pipeline (docs/conventions.md §5-8, gsplat 1.5.3):
+Pipeline (docs/conventions.md §5-8, gsplat 1.5.3). Steps 1-2, the tile lists, are render/binning.py's
+``build_intersections``: per tile, the Gaussians whose bands reach it, front to back
+(``isect_gauss``, delimited by ``tile_offsets``), and ``slot_to_isect``, which maps each Gaussian's
+own numbering of its intersections to list positions. Here:
 
-1. ``_tile_rects_kernel`` (serial loop over Gaussians): the tiles ``[floor((u-rx)/ts), ceil((u+rx)/ts))
-   x [floor((v-ry)/ts), ceil((v+ry)/ts))`` clamped to the grid (gsplat's binning; their number is
-   the ``num_intersections`` output), cut to the tiles that the Gaussian's row and column bands
-   (step 3) reach: a tile whose pixels all have alpha < 1/255 for certain is not listed.
-2. ``_isect_build_kernel`` (sequential, O(N log N + n_isect)): a stable argsort of the visible
-   Gaussians by float32 camera depth (ties by Gaussian index), then a bucket pass over the
-   Gaussians in that order that appends each to the lists of its tiles. The result, ``isect_gauss``,
-   is ordered by tile, then front to back with ties by index: exactly the order of a per-tile
-   stable sort of float32 depths, i.e. the reference's order. ``tile_offsets`` (n_tiles+1,)
-   delimits each tile's run. ``slot_to_isect`` maps the Gaussian-major numbering of the
-   intersections (Gaussian g owns slots ``goff[g]:goff[g+1]``, its tiles in row-major order) to
-   positions in the tile-major list; the backward pass uses it to reduce deterministically.
 3. ``_rasterize_fwd_kernel`` (prange over tiles): every pixel composites its tile's list front to
    back with the exact rules of §6 (skip if sigma < 0 or alpha < 1/255; alpha clamped at 0.999;
    stop *before* a Gaussian that would bring T(1-alpha) <= 1e-4) and stores its final
@@ -25,10 +16,10 @@ Pipeline (docs/conventions.md §5-8, gsplat 1.5.3):
    (``_pad_rows``), as one contiguous run of lanes per strip it reaches. Outside the band alpha <
    1/255 for certain (with a relative margin of 1e-3 >> rounding), so the skipped pairs are
    exactly those the rule skips. Each run is composited by a branch-free loop
-   (``_composite_band``: every lane computes alpha with an inline polynomial exp, ``_exp_neg``,
-   and changes state only when the rules say so) that LLVM vectorises (8 float64 lanes with
-   AVX-512): more lanes than the exact per-row footprint (~1.6-2x), but each several times
-   cheaper than in a scalar, branchy loop with a libm exp.
+   (``_composite_band``: every lane computes alpha with an inline polynomial exp, ``exp_neg`` of
+   render/fast_exp.py, and changes state only when the rules say so) that LLVM vectorises (8
+   float64 lanes with AVX-512): more lanes than the exact per-row footprint (~1.6-2x), but each
+   several times cheaper than in a scalar, branchy loop with a libm exp.
 4. ``_rasterize_bwd_kernel`` (prange over tiles): the same bands, Gaussians from the tile's
    latest last contributor back to its first; each pixel walks its own contributors back to
    front, recovering T_k = T_{k+1} / (1 - alpha_k) (safe: alpha <= 0.999), as 3DGS and gsplat
@@ -49,13 +40,12 @@ the per-tile scratch is O(tile pixels + tile list length).
 """
 from __future__ import annotations
 
-import functools
-import math
-
 import numpy as np
 from numba import njit, prange
 
 from d2gs_np import constants as C
+from d2gs_np.render.binning import band, inv_axis_vars, tile_order
+from d2gs_np.render.fast_exp import exp_consts, exp_neg, unpack_exp_consts
 from d2gs_np.render.project import (
     K_DET_MIN,
     K_TWO,
@@ -64,7 +54,6 @@ from d2gs_np.render.project import (
     K_HALF,
     K_ONE,
     K_T_MIN,
-    K_TILE,
     K_ZERO,
 )
 
@@ -82,141 +71,6 @@ _NLOC = 15
 # sums gradients in this lane order, so results depend on it (deterministically).
 _STRIP = 8
 _ROW_GROUP = 2  # bands are padded to a multiple of this many rows (``_pad_rows``): 16-lane runs
-_TILE_ORDER_SEED = 0  # seed of the fixed tile permutation (load balance only; results never depend on it)
-
-
-@njit(cache=True)
-def _tile_rects_kernel(means2d, radii_f, sigma_cut, cov2d, consts, grid_w, grid_h, width, height, tight, rects,
-                       counts, box_counts):
-    """Tile rectangle [x0, x1) x [y0, y1) of each Gaussian (rects (N,4) int64) and its tile count.
-
-    box_counts: the tiles of the 3.33-sigma box ``[floor((u-rx)/ts), ceil((u+rx)/ts)) x ...``
-    clamped to the grid (gsplat's binning, the ``num_intersections`` output). rects and counts:
-    that box cut to the tiles that hold a pixel of the Gaussian's row and column bands
-    (``_band``, with the same operands as the rasterisers' ``_band_rows`` / ``_band_cols``), so
-    a tile is left out of the lists only where every pixel has sigma > sigma_cut, i.e. alpha <
-    1/255 for certain: where the rasterisers would skip the Gaussian anyway (results are the same
-    to the last bit; low-opacity Gaussians reach fewer tiles). Culled Gaussians (a radius 0) get
-    an empty rectangle and count 0. Serial on purpose: a few dozen flops per Gaussian, less than
-    the cost of waking the threads of a parallel region. ``tight=False``: the boxes, uncut.
-    """
-    n = means2d.shape[0]
-    zero = consts[K_ZERO]
-    one = consts[K_ONE]
-    two = consts[K_TWO]
-    half = consts[K_HALF]
-    det_min = consts[K_DET_MIN]
-    ts = consts[K_TILE]
-    tsi = int(ts)
-    for i in range(n):
-        rx = radii_f[i, 0]
-        ry = radii_f[i, 1]
-        rects[i, 0] = 0
-        rects[i, 1] = 0
-        rects[i, 2] = 0
-        rects[i, 3] = 0
-        counts[i] = 0
-        box_counts[i] = 0
-        if rx == zero or ry == zero:
-            continue
-        u = means2d[i, 0]
-        v = means2d[i, 1]
-        x0 = _clamp_tile(np.floor((u - rx) / ts), grid_w)
-        x1 = _clamp_tile(np.ceil((u + rx) / ts), grid_w)
-        y0 = _clamp_tile(np.floor((v - ry) / ts), grid_h)
-        y1 = _clamp_tile(np.ceil((v + ry) / ts), grid_h)
-        box_counts[i] = max(x1 - x0, 0) * max(y1 - y0, 0)
-        if box_counts[i] == 0:
-            continue
-        if not tight:
-            rects[i, 0] = x0
-            rects[i, 1] = x1
-            rects[i, 2] = y0
-            rects[i, 3] = y1
-            counts[i] = box_counts[i]
-            continue
-        ic00, ic11 = _inv_axis_vars(cov2d[i, 0], cov2d[i, 1], cov2d[i, 2], det_min, zero, one)
-        ja, jb = _band(u, rx, ic00, sigma_cut[i], 0, width, half, one, two, zero)
-        ia, ib = _band(v, ry, ic11, sigma_cut[i], 0, height, half, one, two, zero)
-        if jb <= ja or ib <= ia:
-            continue
-        x0 = max(x0, ja // tsi)
-        x1 = min(x1, (jb - 1) // tsi + 1)
-        y0 = max(y0, ia // tsi)
-        y1 = min(y1, (ib - 1) // tsi + 1)
-        if x1 <= x0 or y1 <= y0:
-            continue
-        rects[i, 0] = x0
-        rects[i, 1] = x1
-        rects[i, 2] = y0
-        rects[i, 3] = y1
-        counts[i] = (x1 - x0) * (y1 - y0)
-
-
-@njit(cache=True)
-def _inv_axis_vars(c00, c01, c11, det_min, zero, one):
-    """(1/c00, 1/c11): the coefficients of the column and row minima of sigma (``_band``), from the
-    2D covariance; with a clamped det (only possible with eps2d = 0) conic = adj(cov) / DET_MIN,
-    whose minima are d^2 det / (2 DET_MIN c) (<= 0 if det <= 0: the band keeps the box)."""
-    det = c00 * c11 - c01 * c01  # bitwise the projection's det before its clamp
-    if det >= det_min:
-        return one / c00, one / c11
-    return max(det, zero) / (det_min * c00), max(det, zero) / (det_min * c11)
-
-
-@njit(cache=True)
-def _clamp_tile(f, n):
-    """int(clamp(f, 0, n)) for a float tile coordinate (clamped as a float: no int overflow)."""
-    if f <= 0:
-        return 0
-    if f >= n:
-        return n
-    return int(f)
-
-
-@njit(cache=True)
-def _isect_build_kernel(depths, counts, rects, goff, grid_w, tile_offsets, isect_gauss, slot_to_isect):
-    """Build the tile-major, depth-sorted intersection list (see the module docstring, step 2).
-
-    depths (N,) camera z; counts (N,) tiles per Gaussian; rects (N,4); goff (N+1,) = cumsum of
-    counts; outputs tile_offsets (n_tiles+1,), isect_gauss (n_isect,), slot_to_isect (n_isect,).
-    """
-    n = depths.shape[0]
-    n_tiles = tile_offsets.shape[0] - 1
-    nvis = 0
-    for g in range(n):
-        if counts[g] > 0:
-            nvis += 1
-    vis = np.empty(nvis, np.int64)
-    d32 = np.empty(nvis, np.float32)
-    k = 0
-    for g in range(n):
-        if counts[g] > 0:
-            vis[k] = g
-            d32[k] = np.float32(depths[g])
-            k += 1
-    order = np.argsort(d32, kind="mergesort")  # stable: equal float32 depths keep index order
-    tile_count = np.zeros(n_tiles, np.int64)
-    for k in range(nvis):
-        g = vis[k]
-        for ty in range(rects[g, 2], rects[g, 3]):
-            for tx in range(rects[g, 0], rects[g, 1]):
-                tile_count[ty * grid_w + tx] += 1
-    tile_offsets[0] = 0
-    for t in range(n_tiles):
-        tile_offsets[t + 1] = tile_offsets[t] + tile_count[t]
-    cursor = tile_offsets[:n_tiles].copy()
-    for k in range(nvis):
-        g = vis[order[k]]
-        s = goff[g]
-        for ty in range(rects[g, 2], rects[g, 3]):
-            for tx in range(rects[g, 0], rects[g, 1]):
-                t = ty * grid_w + tx
-                pos = cursor[t]
-                cursor[t] = pos + 1
-                isect_gauss[pos] = g
-                slot_to_isect[s] = pos
-                s += 1
 
 
 @njit(cache=True)
@@ -247,61 +101,20 @@ def _gather_tile(start, end, isect_gauss, means2d, conics, opac_eff, colors, dep
         loc[k, _RX] = radii_f[g, 0]
         loc[k, _RY] = radii_f[g, 1]
         loc[k, _CUT] = sigma_cut[g]
-        loc[k, _IC00], loc[k, _IC11] = _inv_axis_vars(cov2d[g, 0], cov2d[g, 1], cov2d[g, 2], det_min, zero, one)
+        loc[k, _IC00], loc[k, _IC11] = inv_axis_vars(cov2d[g, 0], cov2d[g, 1], cov2d[g, 2], det_min, zero, one)
     return loc
 
 
 @njit(cache=True)
-def _box_range(c, r, lo, hi, half, one):
-    """Pixels [a, b) of [lo, hi) whose centre p + 0.5 may lie within r of c: ceil(c - r - 1/2 - m)
-    <= p <= floor(c + r - 1/2 + m), with a margin m = 1/64 px for the rounding of the bounds.
-
-    Why that is enough (``_band`` gives r = the reach of sigma <= cut along the axis): the bounds
-    round by e <= ~1.2e-7 (|c| + r) in float32, with |c| <= r + image size for a Gaussian that
-    reaches the image. If e <= m (images up to ~1e5 px) every pixel within r is kept; otherwise a
-    pixel left out still lies beyond r - e, where sigma >= cut (1 - e / r)^2 >= cut - 2.6e-6 cut
-    (r >= 1 there), far inside the ALPHA_CUTOFF_SAFETY = 1e-3 that the cut carries above
-    ln(255 o) (constants.py). Either way the pixels left out are only pixels the 1/255 rule
-    skips. (Before, the interval was widened by one more pixel on each side: 1.5-2 px in all.)
-    """
-    m = half * half * half * half * half * half  # 1/64 px, exact and in the kernel's dtype
-    fa = np.ceil(c - r - half - m)
-    fb = np.floor(c + r - half + m)
-    a = lo if fa <= lo else (hi if fa >= hi else int(fa))
-    b = lo if fb < lo else (hi if fb >= hi else int(fb) + 1)
-    return a, b
-
-
-@njit(cache=True)
-def _band(c, r_box, inv_var, cut, lo, hi, half, one, two, zero):
-    """Pixels [a, b) of [lo, hi) along one axis where a Gaussian may have sigma <= cut.
-
-    Along that axis the minimum of sigma over the other axis is d^2 inv_var / 2 (inv_var = 1/c11
-    for rows, 1/c00 for columns, built from the covariance: no cancellation), so only
-    |d| <= sqrt(2 cut / inv_var) can hold a pixel with sigma <= cut; the 3.33-sigma box (r_box)
-    bounds it too. ``_box_range`` widens the interval by 1/64 px (rounding). A degenerate minimum
-    (inv_var <= 0, only with a clamped det) keeps the box.
-    """
-    if inv_var > zero:
-        r2 = two * cut / inv_var
-        if not r2 >= zero:  # cut < 0 (alpha < 1/255 everywhere) or -inf (opacity 0)
-            return lo, lo
-        r = math.sqrt(r2)
-        if r < r_box:
-            r_box = r
-    return _box_range(c, r_box, lo, hi, half, one)
-
-
-@njit(cache=True)
 def _band_rows(loc, k, y0, y1, half, one, two, zero):
-    """Rows [ia, ib) of [y0, y1) where Gaussian k may have sigma <= sigma_cut (``_band``)."""
-    return _band(loc[k, _V], loc[k, _RY], loc[k, _IC11], loc[k, _CUT], y0, y1, half, one, two, zero)
+    """Rows [ia, ib) of [y0, y1) where Gaussian k may have sigma <= sigma_cut (``band``)."""
+    return band(loc[k, _V], loc[k, _RY], loc[k, _IC11], loc[k, _CUT], y0, y1, half, one, two, zero)
 
 
 @njit(cache=True)
 def _band_cols(loc, k, x0, x1, half, one, two, zero):
-    """Columns [ja, jb) of [x0, x1) where Gaussian k may have sigma <= sigma_cut (``_band``)."""
-    return _band(loc[k, _U], loc[k, _RX], loc[k, _IC00], loc[k, _CUT], x0, x1, half, one, two, zero)
+    """Columns [ja, jb) of [x0, x1) where Gaussian k may have sigma <= sigma_cut (``band``)."""
+    return band(loc[k, _U], loc[k, _RX], loc[k, _IC00], loc[k, _CUT], x0, x1, half, one, two, zero)
 
 
 @njit(cache=True)
@@ -333,61 +146,6 @@ def _strip_run(s, ia, ib, x0, x1, y0, th):
     ws = min(_STRIP, x1 - c0)
     base = s * _STRIP * th
     return base + (ia - y0) * ws, base + (ib - y0) * ws
-
-
-@njit(cache=True, fastmath={"contract"})  # Horner steps as fused multiply-adds (deterministic)
-def _exp_neg(s, ec):
-    """exp(-s) for s in [0, EXP_ARG_MAX] (clamped into it), within 3 ulp; plain arithmetic so that
-    a loop calling it vectorises (``math.exp`` is a scalar library call). ``ec``: ``_exp_consts``
-    unpacked into a tuple (see there for the method and the error bound)."""
-    (inv_ln2, ln2_hi, ln2_lo, s_max, half, one, zero, p1, p2, p4, p8, eight, four, two,
-     c2, c3, c4, c5, c6, c7, c8, c9, c10, c11, c12, c13) = ec
-    s = s_max if s > s_max else s
-    s = zero if s < zero else s
-    kf = np.floor(s * inv_ln2 + half)  # k = round(s / ln 2), 0 <= k <= 12
-    r = (kf * ln2_hi - s) + kf * ln2_lo  # k ln2 - s in [-ln2/2, ln2/2]; k ln2_hi is exact
-    p = c13
-    p = p * r + c12
-    p = p * r + c11
-    p = p * r + c10
-    p = p * r + c9
-    p = p * r + c8
-    p = p * r + c7
-    p = p * r + c6
-    p = p * r + c5
-    p = p * r + c4
-    p = p * r + c3
-    p = p * r + c2
-    p = p * r + one
-    p = p * r + one  # exp(r)
-    scale = one  # 2^-k from the bits of k (exact powers of two)
-    if kf >= eight:
-        kf = kf - eight
-        scale = p8
-    if kf >= four:
-        kf = kf - four
-        scale = scale * p4
-    if kf >= two:
-        kf = kf - two
-        scale = scale * p2
-    if kf >= one:
-        scale = scale * p1
-    return p * scale
-
-
-def _exp_consts(dtype):
-    """Constants of ``_exp_neg`` in ``dtype``: exp(-s) = 2^-k exp(r) with k = round(s / ln 2) and
-    r = k ln 2 - s in [-ln2/2, ln2/2] (Cody-Waite: ln 2 = ln2_hi + ln2_lo with ln2_hi holding 12
-    trailing zero bits, so k ln2_hi is exact for k <= 4096), exp(r) by its Taylor polynomial of
-    degree 13 (remainder <= (ln2/2)^14 / 14! < 5e-18, far below float64 rounding; measured within
-    3 ulp of numpy.exp in float64 and 1.1 ulp in float32 over [0, EXP_ARG_MAX], checked by
-    tests/render/test_render_fast.py). Not bitwise ``math.exp``: results differ from a libm exp
-    in the last bits (see docs/conventions.md §6)."""
-    ln2 = math.log(2.0)
-    ln2_hi = 0.693145751953125
-    vals = [1.0 / ln2, ln2_hi, ln2 - ln2_hi, C.EXP_ARG_MAX, 0.5, 1.0, 0.0, 0.5, 0.25, 1.0 / 16.0, 1.0 / 256.0,
-            8.0, 4.0, 2.0] + [1.0 / math.factorial(n) for n in range(2, 14)]
-    return np.array(vals, dtype=dtype)
 
 
 @njit(cache=True)
@@ -429,7 +187,7 @@ def _composite_band(S, last, P, qa, qb, u, v, ca, cb, cc, o, cut, col0, col1, co
         dx = u - P[0, q]
         dy = v - P[1, q]
         sigma = _sigma(dx, dy, ca, cb, cc, half)
-        alpha = o * _exp_neg(sigma, ec)
+        alpha = o * exp_neg(sigma, ec)
         alpha = amax if alpha > amax else alpha
         T = S[0, q]
         next_T = T * (one - alpha)
@@ -482,7 +240,7 @@ def _rasterize_fwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
     bg0 = background[0]
     bg1 = background[1]
     bg2 = background[2]
-    ec = _unpack_exp_consts(exp_consts)
+    ec = unpack_exp_consts(exp_consts)
     for it in prange(n_tiles):
         t = tile_order[it]
         start = tile_offsets[t]
@@ -532,13 +290,6 @@ def _rasterize_fwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
         n_eval_tile[t] = count
 
 
-@njit(cache=True)
-def _unpack_exp_consts(e):
-    """The (26,) array of ``_exp_consts`` as a tuple (loop invariants LLVM keeps in registers)."""
-    return (e[0], e[1], e[2], e[3], e[4], e[5], e[6], e[7], e[8], e[9], e[10], e[11], e[12], e[13], e[14], e[15],
-            e[16], e[17], e[18], e[19], e[20], e[21], e[22], e[23], e[24], e[25])
-
-
 # error_model="numpy": no zero-division check (alpha <= 0.999), which would stop vectorisation
 @njit(cache=True, error_model="numpy")
 def _backprop_band(S, X, P, V, last, qa, qb, row, u, v, ca, cb, cc, o, cut, col0, col1, col2, zk, amax, athr,
@@ -560,7 +311,7 @@ def _backprop_band(S, X, P, V, last, qa, qb, row, u, v, ca, cb, cc, o, cut, col0
         dx = u - P[0, q]
         dy = v - P[1, q]
         sigma = _sigma(dx, dy, ca, cb, cc, half)
-        vis = _exp_neg(sigma, ec)
+        vis = exp_neg(sigma, ec)
         raw = o * vis
         alpha = amax if raw > amax else raw
         ok = (row <= last[q]) & (sigma >= zero) & (sigma <= cut) & (alpha >= athr)
@@ -647,7 +398,7 @@ def _rasterize_bwd_kernel(means2d, conics, opac_eff, colors, depths, radii_f, si
     half = consts[K_HALF]
     amax = consts[K_ALPHA_MAX]
     athr = consts[K_ALPHA_THRESHOLD]
-    ec = _unpack_exp_consts(exp_consts)
+    ec = unpack_exp_consts(exp_consts)
     for it in prange(n_tiles):
         t = tile_order[it]
         start = tile_offsets[t]
@@ -796,62 +547,11 @@ def _isect_reduce_kernel(buf, slot_to_isect, goff, v_means2d, v_conics, v_opac_e
         v_depths[g] = a_z
 
 
-def grid_shape(width, height, tile_size):
-    """(grid_w, grid_h) = (ceil(W / ts), ceil(H / ts))."""
-    return -(-width // tile_size), -(-height // tile_size)
-
-
-def build_intersections(proj, consts, width, height, tile_size, tight=True):
-    """Steps 1-2 of the module docstring, from ``project_fwd``'s outputs. Returns a dict of the
-    intersection structures, the per-Gaussian ``sigma_cut`` (``sigma_cutoffs``) and
-    ``n_box_isect``, the tile-Gaussian pairs of the 3.33-sigma boxes (gsplat's count; the lists
-    hold only the pairs of tiles the Gaussian's bands reach, ``n_isect``). ``tight=False`` lists
-    every tile of the boxes (gsplat's lists; the renders are the same, only slower: for tests
-    and benchmarks)."""
-    means2d = proj["means2d"]
-    n = means2d.shape[0]
-    grid_w, grid_h = grid_shape(width, height, tile_size)
-    sigma_cut = sigma_cutoffs(proj["opac_eff"])
-    rects = np.empty((n, 4), np.int64)
-    counts = np.empty(n, np.int64)
-    box_counts = np.empty(n, np.int64)
-    _tile_rects_kernel(means2d, proj["radii_f"], sigma_cut, proj["cov2d"], consts, grid_w, grid_h, width, height,
-                       bool(tight), rects, counts, box_counts)
-    goff = np.zeros(n + 1, np.int64)
-    np.cumsum(counts, out=goff[1:])
-    n_isect = int(goff[-1])
-    tile_offsets = np.empty(grid_w * grid_h + 1, np.int64)
-    isect_gauss = np.empty(n_isect, np.int64)
-    slot_to_isect = np.empty(n_isect, np.int64)
-    _isect_build_kernel(proj["depths"], counts, rects, goff, grid_w, tile_offsets, isect_gauss, slot_to_isect)
-    return dict(grid_w=grid_w, grid_h=grid_h, goff=goff, tile_offsets=tile_offsets,
-                isect_gauss=isect_gauss, slot_to_isect=slot_to_isect, n_isect=n_isect,
-                n_box_isect=int(box_counts.sum()), sigma_cut=sigma_cut)
-
-
 def pixel_centres(width, height, dtype):
     """(px (W,), py (H,)) pixel-centre coordinates j + 0.5, i + 0.5 in ``dtype``."""
     px = (np.arange(width, dtype=np.float64) + C.PIXEL_CENTER_OFFSET).astype(dtype)
     py = (np.arange(height, dtype=np.float64) + C.PIXEL_CENTER_OFFSET).astype(dtype)
     return px, py
-
-
-def sigma_cutoffs(opac_eff):
-    """Per-Gaussian sigma beyond which alpha < 1/255 for certain: ln(o / (1/255)) + safety (-inf for o = 0).
-
-    See constants.ALPHA_CUTOFF_SAFETY: the skip it allows is exactly the 1/255 rule's decision.
-    """
-    with np.errstate(divide="ignore"):
-        return np.log(opac_eff / C.ALPHA_THRESHOLD) + C.ALPHA_CUTOFF_SAFETY
-
-
-@functools.lru_cache(maxsize=64)
-def _tile_order(n_tiles):
-    """A fixed pseudo-random permutation of the tiles, so that Numba's static split of the prange
-    gives every thread a similar mix of busy and empty screen regions. Results never depend on it."""
-    order = np.random.default_rng(_TILE_ORDER_SEED).permutation(n_tiles).astype(np.int64)
-    order.flags.writeable = False
-    return order
 
 
 def rasterize_fwd(proj, colors, background, consts, isect, width, height, tile_size):
@@ -868,7 +568,7 @@ def rasterize_fwd(proj, colors, background, consts, isect, width, height, tile_s
     n_eval_tile = np.zeros(n_tiles, np.int64)
     _rasterize_fwd_kernel(proj["means2d"], proj["conics"], proj["opac_eff"], colors, proj["depths"],
                           proj["radii_f"], sigma_cut, proj["cov2d"], isect["isect_gauss"], isect["tile_offsets"],
-                          _tile_order(n_tiles), px, py, background, consts, _exp_consts(dtype), isect["grid_w"],
+                          tile_order(n_tiles), px, py, background, consts, exp_consts(dtype), isect["grid_w"],
                           tile_size, image, depth, T_final, last_idx, n_eval_tile)
     return dict(image=image, depth=depth, T_final=T_final, last_idx=last_idx, n_eval_tile=n_eval_tile,
                 sigma_cut=sigma_cut)
@@ -888,7 +588,7 @@ def rasterize_bwd(proj, colors, consts, isect, raster, tile_size, v_color_img, v
     buf = np.zeros((isect["n_isect"], _NCOL), dtype)
     _rasterize_bwd_kernel(proj["means2d"], proj["conics"], proj["opac_eff"], colors, proj["depths"],
                           proj["radii_f"], raster["sigma_cut"], proj["cov2d"], isect["isect_gauss"], isect["tile_offsets"],
-                          _tile_order(n_tiles), px, py, consts, _exp_consts(dtype), isect["grid_w"], tile_size,
+                          tile_order(n_tiles), px, py, consts, exp_consts(dtype), isect["grid_w"], tile_size,
                           raster["T_final"], raster["last_idx"], v_color_img, v_depth_img, v_T_img, buf)
     out = dict(v_means2d=np.zeros((n, 2), dtype), v_conics=np.zeros((n, 3), dtype),
                v_opac_eff=np.zeros(n, dtype), v_colors=np.zeros((n, 3), dtype),

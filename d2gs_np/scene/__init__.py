@@ -1,5 +1,6 @@
 """Scene model: static and dynamic Gaussian sets, their deformation, and the map to renderer inputs."""
-from d2gs_np.scene.deformation import DeformConfig, deform_basis, deform_bwd, deform_fwd
+from d2gs_np.scene.config import DeformConfig
+from d2gs_np.scene.deformation import deform_basis, deform_bwd, deform_fwd
 from d2gs_np.scene.gaussians import (
     DEFORM_FIELDS,
     DYNAMIC,

@@ -29,43 +29,13 @@ from __future__ import annotations
 
 import math
 import numbers
-from dataclasses import dataclass
 
 import numpy as np
 
 from d2gs_np.constants import QUAT_NORM_MIN
+from d2gs_np.scene.config import DeformConfig
 
-__all__ = ["DeformConfig", "deform_basis", "deform_fwd", "deform_bwd"]
-
-
-@dataclass(frozen=True)
-class DeformConfig:
-    """Size of the deformation model.
-
-    degree: P, highest power of t in the polynomial part (P = 0: no polynomial part).
-    order: L, number of Fourier harmonics (L = 0: no Fourier part).
-    omega: base angular frequency w of the Fourier part, in radians per unit of normalised time
-        (2 pi = one period over the clip).
-    """
-
-    degree: int = 2
-    order: int = 2
-    omega: float = 2.0 * math.pi
-
-    def __post_init__(self):
-        for name in ("degree", "order"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
-                raise ValueError(f"DeformConfig.{name} must be an integer >= 0; got {value!r}")
-        if isinstance(self.omega, bool) or not isinstance(self.omega, numbers.Real):
-            raise ValueError(f"DeformConfig.omega must be a real number; got {self.omega!r}")
-        if not (math.isfinite(self.omega) and self.omega > 0.0):
-            raise ValueError(f"DeformConfig.omega must be finite and > 0; got {self.omega!r}")
-
-    @property
-    def num_coefs(self) -> int:
-        """K = P + 2L, the length of the coefficient axis."""
-        return int(self.degree) + 2 * int(self.order)
+__all__ = ["deform_basis", "deform_fwd", "deform_bwd"]
 
 
 def _check_time(t, name="t"):

@@ -26,7 +26,7 @@ import numpy as np
 from scipy.spatial import cKDTree
 
 from d2gs_np.constants import INIT_DIST2_MIN
-from d2gs_np.scene.deformation import DeformConfig
+from d2gs_np.scene.config import DeformConfig
 
 __all__ = [
     "STATIC",

@@ -77,124 +77,22 @@ per-point provenance arrays (``static_source_frames``, ``dynamic_source_frames``
 """
 from __future__ import annotations
 
-import numbers
-from dataclasses import dataclass, field
-
 import cv2
 import numpy as np
 
 from d2gs_np.constants import MAD_TO_SIGMA, ONE_DEPTH_RANGE_FACTOR, PIXEL_CENTER_OFFSET
-from d2gs_np.pose.config import FeatureConfig
 from d2gs_np.pose.features import detect_features, match_keypoints, static_detector_mask
 from d2gs_np.geometry.camera import camera_center, check_intrinsics, project_points, unproject_points
 from d2gs_np.geometry.se3 import check_rigid
-from d2gs_np.scene.stereo import StereoConfig, plane_sweep_depth
+from d2gs_np.scene.config import InitConfig
+from d2gs_np.scene.stereo import plane_sweep_depth
 
-__all__ = ["InitConfig", "initialize_points", "triangulate_matches", "sample_image_bilinear", "pixel_scale_cap",
+__all__ = ["initialize_points", "triangulate_matches", "sample_image_bilinear", "pixel_scale_cap",
            "robust_depth_range"]
 
 # Homogeneous triangulation results with |w| below this (relative to the largest coordinate)
 # are points at infinity: dividing by w would give meaningless, huge positions.
 _W_MIN_REL = 1e-12
-
-
-@dataclass(frozen=True)
-class InitConfig:
-    """Settings of the initial point clouds. Validated on construction."""
-
-    features: FeatureConfig = field(default_factory=FeatureConfig)
-    # pair frame k with k + s for each s (clamped to N - 1). Wide baselines: with independent
-    # per-frame pose noise, consecutive frames triangulate poorly (measured on the synthetic
-    # "dynamic" scene: median depth error 14% for (1, 2, 4) vs 8% for (2, 4, 8) at 1 deg parallax)
-    frame_skips: tuple = (2, 4, 8)
-    max_static_points: int = 20000  # triangulated points kept (seeded random subset beyond)
-    random_fill_points: int = 2000  # extra static points at random depths in the view frusta
-    # Dense seeding (step 3 of the module docstring): a pixel grid of stride dense_stride on
-    # static pixels of dense_frames evenly spaced keyframes, lifted at the depth interpolated
-    # from the triangulated points. 0 frames: off.
-    dense_frames: int = 4
-    dense_stride: int = 3
-    dense_outlier_rel: float = 0.15  # drop a sparse depth that differs this much from its neighbours' median
-    stereo: StereoConfig = field(default_factory=StereoConfig)  # the dense seeds' depths (scene/stereo.py)
-    # random fill at the depth interpolated from the triangulated and dense points seen in its frame
-    # (uniform in [near, far] where they give none); False: uniform everywhere. Measured (photo_room,
-    # half size): uniform fill put Gaussians between the camera and the walls whose fog made the
-    # initial render's depth 0.2x the true depth, and 0.4x after 800 steps.
-    fill_on_surface: bool = True
-    # Largest initial scale, in pixels of the point's source frame (scale <= max_scale_px * z / fx
-    # there; 0 = no cap). 3DGS's neighbour-distance scale makes a lone point near the camera a
-    # blob tens of pixels wide that veils everything behind it (photo_room, half size: the
-    # initial render's depth was 0.42x the true depth with the seeds themselves within 1 %).
-    max_scale_px: float = 3.0
-    dynamic_points: int = 2000  # points seeded inside the motion masks
-    max_reprojection_error_px: float = 2.0  # max over both views
-    min_parallax_deg: float = 2.0  # min angle between the two viewing rays of a triangulated point
-    fill_depth_percentiles: tuple = (5.0, 95.0)  # of triangulated depths -> fill depth range
-    fill_depth_margin: float = 0.2  # near = (1 - m) p_lo, far = (1 + m) p_hi
-    fallback_depth_range: tuple = (0.25, 2.0)  # x scene_scale, when nothing was triangulated
-    # Robust depth range (module docstring, step 4): the percentiles are clipped to the median depth
-    # times exp(+-k sigma), sigma = 1.4826 MAD of the log depths (k = depth_range_mad; 0: no clip).
-    # Measured (cube_sign, 240x135, noisy poses after the bundle adjustment): 30 % of the 126
-    # two-view points sat at 0.04-0.6 x the true depth (mismatches along the horizontal epipolar
-    # lines of a panning camera on brick and grass); the 5th percentile put the sweep's near end
-    # at 0.13, and its 128 hypotheses left about 2 for the true range.
-    depth_range_mad: float = 0.0  # 0: the plain percentiles (default; 3 with distinct_px = 1: docs/method.md §8)
-    dynamic_depth_factor: float = 0.8  # dynamic depth = factor x frame's median static depth
-    dynamic_depth_jitter: float = 0.05  # relative half-width of the uniform depth jitter
-
-    def __post_init__(self):
-        if not isinstance(self.features, FeatureConfig):
-            raise TypeError(f"InitConfig.features must be a FeatureConfig; got {type(self.features).__name__}")
-        if not (isinstance(self.max_scale_px, numbers.Real) and 0.0 <= self.max_scale_px < float("inf")):
-            raise ValueError(f"InitConfig.max_scale_px must be a finite number >= 0 (0 = no cap); got "
-                             f"{self.max_scale_px!r}")
-        if not isinstance(self.fill_on_surface, bool):
-            raise ValueError(f"InitConfig.fill_on_surface must be true or false; got {self.fill_on_surface!r}")
-        if not isinstance(self.stereo, StereoConfig):
-            raise TypeError(f"InitConfig.stereo must be a StereoConfig; got {type(self.stereo).__name__}")
-        skips = self.frame_skips
-        if (not isinstance(skips, tuple) or len(skips) == 0
-                or not all(isinstance(s, numbers.Integral) and not isinstance(s, bool) and s >= 1 for s in skips)):
-            raise ValueError(f"InitConfig.frame_skips must be a non-empty tuple of ints >= 1; got {skips!r}")
-        if not (isinstance(self.depth_range_mad, numbers.Real) and 0.0 <= self.depth_range_mad < float("inf")):
-            raise ValueError(f"InitConfig.depth_range_mad must be a finite number >= 0 (0 = no clip); got "
-                             f"{self.depth_range_mad!r}")
-        for name in ("max_static_points", "random_fill_points", "dynamic_points", "dense_frames"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 0:
-                raise ValueError(f"InitConfig.{name} must be an int >= 0; got {v!r}")
-        for name in ("max_reprojection_error_px", "min_parallax_deg", "fill_depth_margin",
-                     "dynamic_depth_factor", "dynamic_depth_jitter"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v):
-                raise TypeError(f"InitConfig.{name} must be a finite real number; got {v!r}")
-        if isinstance(self.dense_stride, bool) or not isinstance(self.dense_stride, numbers.Integral) \
-                or self.dense_stride < 1:
-            raise ValueError(f"InitConfig.dense_stride must be an int >= 1; got {self.dense_stride!r}")
-        if not (isinstance(self.dense_outlier_rel, numbers.Real) and 0.0 < self.dense_outlier_rel):
-            raise ValueError(f"InitConfig.dense_outlier_rel must be > 0; got {self.dense_outlier_rel!r}")
-        if self.max_reprojection_error_px <= 0:
-            raise ValueError(f"InitConfig.max_reprojection_error_px must be > 0; got {self.max_reprojection_error_px}")
-        if not 0.0 <= self.min_parallax_deg < 90.0:
-            raise ValueError(f"InitConfig.min_parallax_deg must be in [0, 90); got {self.min_parallax_deg}")
-        lo, hi = _pair(self.fill_depth_percentiles, "fill_depth_percentiles")
-        if not 0.0 <= lo <= hi <= 100.0:
-            raise ValueError(f"InitConfig.fill_depth_percentiles must satisfy 0 <= lo <= hi <= 100; got {(lo, hi)}")
-        if not 0.0 <= self.fill_depth_margin < 1.0:
-            raise ValueError(f"InitConfig.fill_depth_margin must be in [0, 1); got {self.fill_depth_margin}")
-        lo, hi = _pair(self.fallback_depth_range, "fallback_depth_range")
-        if not 0.0 < lo < hi:
-            raise ValueError(f"InitConfig.fallback_depth_range must satisfy 0 < near < far; got {(lo, hi)}")
-        if not 0.0 < self.dynamic_depth_factor <= 1.0:
-            raise ValueError(f"InitConfig.dynamic_depth_factor must be in (0, 1]; got {self.dynamic_depth_factor}")
-        if not 0.0 <= self.dynamic_depth_jitter < 1.0:
-            raise ValueError(f"InitConfig.dynamic_depth_jitter must be in [0, 1); got {self.dynamic_depth_jitter}")
-
-
-def _pair(v, name):
-    if not isinstance(v, tuple) or len(v) != 2 or not all(isinstance(x, numbers.Real) for x in v):
-        raise ValueError(f"InitConfig.{name} must be a tuple of two numbers; got {v!r}")
-    return float(v[0]), float(v[1])
 
 
 def sample_image_bilinear(image, pts):

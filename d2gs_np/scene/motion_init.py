@@ -52,45 +52,16 @@ the means are initialised; rotations and colours start with zero residuals.
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 from scipy.optimize import linear_sum_assignment
 
 from d2gs_np.constants import PIXEL_CENTER_OFFSET
 from d2gs_np.geometry.camera import unproject_points
-from d2gs_np.scene.deformation import DeformConfig, deform_basis
+from d2gs_np.scene.config import WARPS, DeformConfig, MotionInitConfig
+from d2gs_np.scene.deformation import deform_basis
 
-
-WARPS = ("centroid", "similarity", "homography", "flow")
 WARP_W_MIN = 1e-6  # a homogeneous pixel with w below this is at or behind infinity
-
-
-@dataclass(frozen=True)
-class MotionInitConfig:
-    enabled: bool = True
-    min_area_fraction: float = 5e-4  # components below this share of the image are noise
-    max_jump_fraction: float = 0.25  # centroid jump gate between consecutive frames, x image diagonal
-    ridge: float = 1e-4  # Tikhonov weight on the coefficients relative to the number of frames (step 5)
-    rotation: bool = True  # follow each track's in-image rotation (step 3); False: translation only
-    min_rotation_inliers: int = 6  # fewer RANSAC inliers between two frames: no rotation measured
-    # how a seed's pixel follows its track (steps 3-4): "flow" (similarity refined by optical flow),
-    # "similarity" or "homography" (the chained warps alone), "centroid" (the component's centroid
-    # plus the similarity's turn and scale about it; ``rotation`` applies to this rule only)
-    warp: str = "flow"
-
-    def __post_init__(self):
-        if not 0.0 <= self.min_area_fraction < 1.0:
-            raise ValueError(f"MotionInitConfig.min_area_fraction must be in [0, 1); got {self.min_area_fraction}")
-        if self.max_jump_fraction <= 0.0:
-            raise ValueError(f"MotionInitConfig.max_jump_fraction must be > 0; got {self.max_jump_fraction}")
-        if not self.ridge > 0.0:  # tracks shorter than 1 + K frames need it to be well posed
-            raise ValueError(f"MotionInitConfig.ridge must be > 0; got {self.ridge}")
-        if self.warp not in WARPS:
-            raise ValueError(f"MotionInitConfig.warp must be one of {WARPS}; got {self.warp!r}")
-        if self.min_rotation_inliers < 3:  # a similarity has 4 degrees of freedom: 2 points + 1 check
-            raise ValueError(f"MotionInitConfig.min_rotation_inliers must be >= 3; got {self.min_rotation_inliers}")
 
 
 def mask_components(mask, min_area):

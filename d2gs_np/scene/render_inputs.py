@@ -13,7 +13,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from d2gs_np.scene.deformation import DeformConfig, _check_time, _deform_bwd, _deform_fwd
+from d2gs_np.scene.config import DeformConfig
+from d2gs_np.scene.deformation import _check_time, _deform_bwd, _deform_fwd
 from d2gs_np.scene.gaussians import (
     DYNAMIC,
     STATIC,

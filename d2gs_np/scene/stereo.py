@@ -43,50 +43,15 @@ true depth of a ray-cast suite scene).
 """
 from __future__ import annotations
 
-import numbers
 import warnings
-from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
 from d2gs_np.constants import PIXEL_CENTER_OFFSET
+from d2gs_np.scene.config import StereoConfig
 
-__all__ = ["StereoConfig", "plane_sweep_depth"]
-
-
-@dataclass(frozen=True)
-class StereoConfig:
-    """Settings of ``plane_sweep_depth``. ``enabled = False`` keeps the older interpolated dense seeds."""
-
-    enabled: bool = True
-    num_depths: int = 128
-    window: int = 5  # odd, pixels
-    min_sources: int = 2
-    min_texture: float = 0.02  # grey-level standard deviation over the window (images in [0, 1])
-    max_cost_ratio: float = 0.8  # best cost / best cost away from the minimum
-    depth_margin: float = 0.5  # the sweep covers [(1 - m) near, (1 + m) far] of the given range
-    # the distinctness check compares with hypotheses this many source pixels away (0: two hypotheses
-    # away, the default; 1 fills cube_sign's stereo but cost novel views in 600 s runs: docs/method.md §8)
-    distinct_px: float = 0.0
-
-    def __post_init__(self):
-        for name in ("num_depths", "window", "min_sources"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
-                raise ValueError(f"StereoConfig.{name} must be an int >= 1; got {v!r}")
-        if self.num_depths < 3:
-            raise ValueError(f"StereoConfig.num_depths must be >= 3 (a parabola needs three); got {self.num_depths}")
-        if self.window % 2 == 0:
-            raise ValueError(f"StereoConfig.window must be odd; got {self.window}")
-        if not 0.0 <= self.min_texture < float("inf"):
-            raise ValueError(f"StereoConfig.min_texture must be >= 0; got {self.min_texture}")
-        if not 0.0 < self.max_cost_ratio <= 1.0:
-            raise ValueError(f"StereoConfig.max_cost_ratio must be in (0, 1]; got {self.max_cost_ratio}")
-        if not (isinstance(self.distinct_px, numbers.Real) and 0.0 <= self.distinct_px < float("inf")):
-            raise ValueError(f"StereoConfig.distinct_px must be a finite number >= 0; got {self.distinct_px!r}")
-        if not 0.0 <= self.depth_margin < 1.0:
-            raise ValueError(f"StereoConfig.depth_margin must be in [0, 1); got {self.depth_margin}")
+__all__ = ["plane_sweep_depth"]
 
 
 def _box(x, window):

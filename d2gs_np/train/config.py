@@ -18,9 +18,7 @@ from typing import Optional
 from d2gs_np.blur.config import BlurConfig, TrajectoryConfig
 from d2gs_np.pose.config import CorrespondConfig, GaussNewtonConfig, PoseInitConfig
 from d2gs_np.render.config import RenderConfig
-from d2gs_np.scene.deformation import DeformConfig
-from d2gs_np.scene.initialize import InitConfig
-from d2gs_np.scene.motion_init import MotionInitConfig
+from d2gs_np.scene.config import DeformConfig, InitConfig, MotionInitConfig
 from d2gs_np.train.densify import DensifyConfig
 from d2gs_np.train.prune import PruneConfig
 from d2gs_np.train.schedule import ScheduleConfig

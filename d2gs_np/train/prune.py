@@ -20,7 +20,8 @@ from dataclasses import dataclass
 import cv2
 import numpy as np
 
-from d2gs_np.scene.deformation import DeformConfig, deform_basis
+from d2gs_np.scene.config import DeformConfig
+from d2gs_np.scene.deformation import deform_basis
 
 
 @dataclass(frozen=True)

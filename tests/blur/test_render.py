@@ -22,7 +22,7 @@ from d2gs_np.blur.exposure import EXPOSURE_BLOCK
 from d2gs_np.blur.render import blur_render_bwd, blur_render_fwd
 from d2gs_np.blur.views import backward_subset
 from d2gs_np.blur.virtual_poses import subframe_times, virtual_poses
-from d2gs_np.scene.deformation import DeformConfig
+from d2gs_np.scene.config import DeformConfig
 from d2gs_np.scene.gaussians import logit
 from d2gs_np.scene.render_inputs import render_inputs_fwd
 

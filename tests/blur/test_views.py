@@ -8,7 +8,7 @@ import pytest
 
 from d2gs_np.blur.config import BlurConfig
 from d2gs_np.blur.views import backward_subset, blur_length_px, frame_views, views_at_scale, views_for_length
-from d2gs_np.scene.deformation import DeformConfig
+from d2gs_np.scene.config import DeformConfig
 from d2gs_np.scene.gaussians import init_params
 
 

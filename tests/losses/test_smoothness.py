@@ -6,7 +6,7 @@ import pytest
 from d2gs_np.constants import TS_NORM_EPS
 from d2gs_np.losses.smoothness import knn, smooth_norm, spatial_bwd, spatial_fwd, time_bwd, time_fwd
 from d2gs_np.reference import smoothness as ref
-from d2gs_np.scene.deformation import DeformConfig
+from d2gs_np.scene.config import DeformConfig
 
 CFG = DeformConfig()  # P = 2, L = 2: K = 6 coefficients
 REF_ARGS = (CFG.degree, CFG.order, CFG.omega)

@@ -72,8 +72,9 @@ def test_mixed_equals_float32_rasteriser_on_the_float64_projection():
     """The option is exactly: float64 projection, its outputs cast, the float32 rasteriser on a
     zero background, and the float64 background added after."""
     from d2gs_np.render.api import _raster_inputs
+    from d2gs_np.render.binning import build_intersections
     from d2gs_np.render.project import make_consts, project_fwd
-    from d2gs_np.render.rasterize import build_intersections, rasterize_fwd
+    from d2gs_np.render.rasterize import rasterize_fwd
 
     rng = np.random.default_rng(53)
     scene = rf.safe_random_scene(rng, 40, 31, 23, margin=MARGIN)

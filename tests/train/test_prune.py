@@ -2,7 +2,8 @@
 import numpy as np
 import pytest
 
-from d2gs_np.scene.deformation import DeformConfig, deform_fwd
+from d2gs_np.scene.config import DeformConfig
+from d2gs_np.scene.deformation import deform_fwd
 from d2gs_np.train import prune
 
 K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])

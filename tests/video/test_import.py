@@ -165,7 +165,8 @@ def test_untextured_and_unregistrable_frames_are_named(tmp_path):
 
 
 def test_sparse_points_seed_the_initialisation(tmp_path):
-    from d2gs_np.scene.initialize import InitConfig, initialize_points
+    from d2gs_np.scene.config import InitConfig
+    from d2gs_np.scene.initialize import initialize_points
 
     sc = _scene("photo_room")
     rng = np.random.default_rng(0)
