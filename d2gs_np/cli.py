@@ -1,7 +1,9 @@
 """Command line: ``d2gs {demo, make-scene, import-video, train, eval, report, experiment, render, export-ply, refcheck}``.
 
 Every command validates its inputs before starting work and exits with a
-one-line error (status 2) naming the problem. Each command's help names the
+one-line error (status 2) naming the problem. Input accepted but implausible
+(``d2gs_np.checks.InputWarning``) is printed as one line ``d2gs CMD: warning: ...``
+on stderr, and recorded in the run log by ``train``. Each command's help names the
 page of docs/ that explains it (docs/architecture.md §2 maps the code to the docs).
 """
 from __future__ import annotations
@@ -10,6 +12,7 @@ import argparse
 import json
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -77,6 +80,8 @@ def _cmd_train(args):
     cfg = _load_config(args)  # config errors before the scene is read
     scene = load_scene(args.scene)
     trainer = Trainer(scene, cfg, args.out, resume=args.resume)
+    for message in getattr(args, "input_warnings", ()):  # printed already (main); kept with the run's notes
+        trainer.log.notes.append(f"warning: {message}")
     result = trainer.run()
     print(f"trained {result['steps']} steps in {result['train_seconds']:.1f}s; run in {args.out}")
     return trainer
@@ -420,10 +425,31 @@ class CheckFailed(Exception):
     """A check ran and failed (``d2gs refcheck compare``): exit status 1, unlike a usage error's 2."""
 
 
+def _print_input_warnings(command, seen):
+    """A ``warnings.showwarning`` that prints each InputWarning as one line ``d2gs CMD: warning: ...``
+    on stderr and appends it to ``seen``; other warnings go to Python's printer."""
+    from d2gs_np.checks import InputWarning
+
+    original = warnings.showwarning
+
+    def show(message, category, filename, lineno, file=None, line=None):
+        if not issubclass(category, InputWarning):
+            return original(message, category, filename, lineno, file, line)
+        seen.append(str(message))
+        print(f"d2gs {command}: warning: {message}", file=sys.stderr, flush=True)
+    return show
+
+
 def main(argv=None):
     args = build_parser().parse_args(argv)
+    from d2gs_np.checks import InputWarning
+
+    args.input_warnings = []
     try:
-        args.func(args)
+        with warnings.catch_warnings():
+            warnings.simplefilter("always", InputWarning)  # each load says it again
+            warnings.showwarning = _print_input_warnings(args.command, args.input_warnings)
+            args.func(args)
     except CheckFailed as e:
         print(f"d2gs {e}", file=sys.stderr)
         return 1

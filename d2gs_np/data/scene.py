@@ -54,6 +54,12 @@ class Scene:
         return all(f.mask is not None for f in self.frames)
 
     @property
+    def frames_without_masks(self) -> list:
+        """Indices of the frames that have no motion mask while others have one; [] when all or none do."""
+        lacking = [i for i, f in enumerate(self.frames) if f.mask is None and f.mask_path is None]
+        return lacking if len(lacking) < len(self.frames) else []
+
+    @property
     def has_moving_pixels(self) -> bool:
         return self.has_masks and any(bool(np.any(f.mask)) for f in self.frames)
 
