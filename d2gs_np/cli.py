@@ -200,7 +200,7 @@ def _cmd_demo(args):
     print(f"[demo] made the built-in {args.preset!r} scene ({size}) in {time.perf_counter() - t0:.1f}s")
     ns = argparse.Namespace(scene=str(scene_dir), out=str(out / "run"), config=args.config, iters=iters,
                             time_budget=budget, seed=args.seed, quiet=False, blur=None, dynamic=None,
-                            n=None, resume=False)
+                            n=None, resume=False, input_warnings=args.input_warnings)
     _cmd_train(ns)
     result = evaluate_run(out / "run")
     plot_error_vs_time(out / "run", out / "error_vs_time.png")

@@ -79,7 +79,7 @@ _MASK_DEPTHS = (1, 8)  # bit depths of greyscale mask PNGs: 8-bit, or 1-bit (a s
 # Plausible pinhole intrinsics (docs/dataset_format.md §5). The field of view of an image axis,
 # 2 atan(size / (2 f)), outside _FOV_WARN_DEG is implausible for a video camera (1 deg: a 2000 mm
 # lens on a full-frame sensor; 170 deg: a fisheye, which a pinhole without distortion cannot model)
-# and warned about; outside _FOV_REFUSE_DEG the focal length cannot be in pixels (f below 0.009 or
+# and warned about; outside _FOV_REFUSE_DEG the focal length cannot be in pixels (f below 0.0044 or
 # above 5700 image sizes: metres, millimetres or divided by the image size) and is refused.
 _FOV_WARN_DEG = (1.0, 170.0)
 _FOV_REFUSE_DEG = (0.01, 179.0)
