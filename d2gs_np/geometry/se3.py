@@ -200,11 +200,13 @@ def check_rigid(T, name="T", tol=RIGID_TOL):
 
 
 def rigid_deviation(T):
-    """(..., 4, 4) -> (...,) how far each T is from rigid: the largest of max |R^T R - I|, |det R - 1|
-    and the bottom row's distance from (0, 0, 0, 1) (max abs entry)."""
+    """(..., 4, 4) -> (...,) how far each T is from rigid: the largest of max |R^T R - I|, max |R R^T - I|
+    (the inverse's R^T R: the loader inverts its poses), |det R - 1| and the bottom row's distance from
+    (0, 0, 0, 1) (max abs entry)."""
     T = np.asarray(T, dtype=np.float64)
     R = T[..., :3, :3]
-    ortho = np.abs(np.swapaxes(R, -1, -2) @ R - np.eye(3)).max(axis=(-2, -1))
+    Rt = np.swapaxes(R, -1, -2)
+    ortho = np.maximum(np.abs(Rt @ R - np.eye(3)).max(axis=(-2, -1)), np.abs(R @ Rt - np.eye(3)).max(axis=(-2, -1)))
     det = np.abs(np.linalg.det(R) - 1.0)
     bottom = np.abs(T[..., 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=-1)
     return np.maximum(np.maximum(ortho, det), bottom)
