@@ -10,6 +10,7 @@ warning machinery shows it (or a caller filters it, ``warnings.simplefilter``).
 from __future__ import annotations
 
 import math
+import numbers
 import warnings
 
 __all__ = ["InputWarning", "SceneWarning", "ConfigWarning", "warn", "check_number", "name_items"]
@@ -40,7 +41,7 @@ def check_number(value, name, lo=-math.inf, hi=math.inf, lo_open=False, hi_open=
     """``float(value)`` if it is a finite real number (not a bool) in the interval from ``lo`` to
     ``hi`` (closed unless ``lo_open`` / ``hi_open``); else ValueError naming ``name``, the interval,
     the value and ``hint`` (what the value means, or the fix)."""
-    ok = isinstance(value, (int, float)) and not isinstance(value, bool)
+    ok = isinstance(value, numbers.Real) and not isinstance(value, bool)  # NumPy scalars too
     try:
         v = float(value) if ok else math.nan
     except OverflowError:  # an int too large for a float

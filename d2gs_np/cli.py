@@ -3,12 +3,13 @@
 Every command validates its inputs before starting work and exits with a
 one-line error (status 2) naming the problem. Input accepted but implausible
 (``d2gs_np.checks.InputWarning``) is printed as one line ``d2gs CMD: warning: ...``
-on stderr, and recorded in the run log by ``train``. Each command's help names the
+on stderr when issued (a training run also keeps it in its log). Each command's help names the
 page of docs/ that explains it (docs/architecture.md §2 maps the code to the docs).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import sys
 import time
@@ -80,8 +81,6 @@ def _cmd_train(args):
     cfg = _load_config(args)  # config errors before the scene is read
     scene = load_scene(args.scene)
     trainer = Trainer(scene, cfg, args.out, resume=args.resume)
-    for message in getattr(args, "input_warnings", ()):  # printed already (main); kept with the run's notes
-        trainer.log.notes.append(f"warning: {message}")
     result = trainer.run()
     print(f"trained {result['steps']} steps in {result['train_seconds']:.1f}s; run in {args.out}")
     return trainer
@@ -200,7 +199,7 @@ def _cmd_demo(args):
     print(f"[demo] made the built-in {args.preset!r} scene ({size}) in {time.perf_counter() - t0:.1f}s")
     ns = argparse.Namespace(scene=str(scene_dir), out=str(out / "run"), config=args.config, iters=iters,
                             time_budget=budget, seed=args.seed, quiet=False, blur=None, dynamic=None,
-                            n=None, resume=False, input_warnings=args.input_warnings)
+                            n=None, resume=False)
     _cmd_train(ns)
     result = evaluate_run(out / "run")
     plot_error_vs_time(out / "run", out / "error_vs_time.png")
@@ -425,30 +424,29 @@ class CheckFailed(Exception):
     """A check ran and failed (``d2gs refcheck compare``): exit status 1, unlike a usage error's 2."""
 
 
-def _print_input_warnings(command, seen):
-    """A ``warnings.showwarning`` that prints each InputWarning as one line ``d2gs CMD: warning: ...``
-    on stderr and appends it to ``seen``; other warnings go to Python's printer."""
+@contextlib.contextmanager
+def _input_warnings_as_lines(args):
+    """Within: each InputWarning (docs/dataset_format.md §5) is printed as one line
+    ``d2gs CMD: warning: ...`` on stderr, every time it is issued; other warnings as Python prints them."""
     from d2gs_np.checks import InputWarning
 
-    original = warnings.showwarning
+    command = " ".join(c for c in (args.command, getattr(args, "refcheck_command", None)) if c)
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", InputWarning)
+        original = warnings.showwarning
 
-    def show(message, category, filename, lineno, file=None, line=None):
-        if not issubclass(category, InputWarning):
-            return original(message, category, filename, lineno, file, line)
-        seen.append(str(message))
-        print(f"d2gs {command}: warning: {message}", file=sys.stderr, flush=True)
-    return show
+        def show(message, category, filename, lineno, file=None, line=None):
+            if not issubclass(category, InputWarning):
+                return original(message, category, filename, lineno, file, line)
+            print(f"d2gs {command}: warning: {message}", file=sys.stderr, flush=True)
+        warnings.showwarning = show
+        yield
 
 
 def main(argv=None):
     args = build_parser().parse_args(argv)
-    from d2gs_np.checks import InputWarning
-
-    args.input_warnings = []
     try:
-        with warnings.catch_warnings():
-            warnings.simplefilter("always", InputWarning)  # each load says it again
-            warnings.showwarning = _print_input_warnings(args.command, args.input_warnings)
+        with _input_warnings_as_lines(args):
             args.func(args)
     except CheckFailed as e:
         print(f"d2gs {e}", file=sys.stderr)

@@ -309,8 +309,8 @@ def _focal_for(fov_deg, size):
     return size / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
 
 
-def _which(specs, group, source):
-    """'all N frames of SOURCE' or the frames of ``group`` named."""
+def _which(specs, group):
+    """'all N frames' or the frames of ``group`` named."""
     if len(group) == len(specs) > 1:
         return f"all {len(specs)} frames"
     return name_items([s.short for s in group])
@@ -326,7 +326,7 @@ def _check_duplicates(specs, source):
         first[key] = s
 
 
-def _warn_intrinsics(specs, source):
+def _intrinsics_warnings(specs, source):
     """One warning per implausible value (field of view, principal point), naming the frames that have it."""
     groups = {}
     lo, hi = _FOV_WARN_DEG
@@ -347,8 +347,7 @@ def _warn_intrinsics(specs, source):
                        "optical axis of a video frame passes through the image: check cx, cy (a crop, or a resize "
                        "without scaling them?)")
                 groups.setdefault(msg, []).append(s)
-    for msg, group in groups.items():
-        warn(f"{source}: {_which(specs, group, source)}: {msg}", SceneWarning, stacklevel=4)
+    return [f"{source}: {_which(specs, group)}: {msg}" for msg, group in groups.items()]
 
 
 def _parse_file(root, path, defaults):
@@ -358,34 +357,31 @@ def _parse_file(root, path, defaults):
     intr.update(_top_intrinsics(data))
     specs = [_parse_frame(root, path.name, i, fr, intr) for i, fr in enumerate(data["frames"])]
     _check_duplicates(specs, path.name)
-    _warn_intrinsics(specs, path.name)
     specs.sort(key=lambda s: s.fields["time"])  # stable
     return data, specs
 
 
-def _warn_times(specs, source):
+def _times_warnings(specs, source):
     """Frames of one video have distinct times: a warning names those that share one."""
     by_time = {}
     for s in specs:
         by_time.setdefault(s.fields["time"], []).append(s)
     shared = [(t, g) for t, g in by_time.items() if len(g) > 1]
     if not shared:
-        return
+        return []
     why = ("frames of one video have distinct times, and the deformation model takes frames of one time for one "
            "instant (a moving object in the same place in all of them); give frame k of N the time k / (N - 1)")
-    if len(by_time) == 1 and len(specs) > 1:
-        warn(f"{source}: all {len(specs)} frames have time {specs[0].fields['time']:g}; {why}", SceneWarning,
-             stacklevel=3)
-        return
+    if len(by_time) == 1:
+        return [f"{source}: all {len(specs)} frames have time {specs[0].fields['time']:g}; {why}"]
     parts = [f"{name_items([s.short for s in g])} share time {t:g}" for t, g in shared]
-    warn(f"{source}: {'; '.join(parts[:3])}{f' (and {len(parts) - 3} more times)' if len(parts) > 3 else ''}; "
-         f"{why}", SceneWarning, stacklevel=3)
+    more = f" (and {len(parts) - 3} more times)" if len(parts) > 3 else ""
+    return [f"{source}: {'; '.join(parts[:3])}{more}; {why}"]
 
 
-def _check_camera_outliers(specs, source, scene_scale):
-    """Warn about (or refuse) a training camera far from all the others (module constants)."""
+def _camera_outlier_warnings(specs, source, scene_scale):
+    """Refuse a training camera absurdly far from all the others, warn about one far (module constants)."""
     if len(specs) < 3:
-        return  # with two cameras neither is the odd one
+        return []  # with two cameras neither is the odd one
     T = np.stack([s.fields["cam_T_world"] for s in specs])
     centres = -np.einsum("nji,nj->ni", T[:, :3, :3], T[:, :3, 3])  # -R^T t
     median = np.median(centres, axis=0)
@@ -393,11 +389,11 @@ def _check_camera_outliers(specs, source, scene_scale):
     spread = max(float(np.median(dist)), _CAMERA_SPREAD_FLOOR * float(np.median(np.linalg.norm(centres, axis=1))),
                  _CAMERA_SPREAD_FLOOR * (scene_scale or 0.0))
     if not spread > 0.0:
-        return  # every camera at the origin: nothing to compare with
+        return []  # every camera at the origin: nothing to compare with
     ratio = dist / spread
     far = [i for i in np.argsort(-ratio) if ratio[i] > _CAMERA_OUTLIER_WARN]
     if not far:
-        return
+        return []
     worst = far[0]
     named = name_items([f"{specs[i].short} at {dist[i]:.3g}" for i in far])
     what = (f"{source}: the camera centre of {named} from the cameras' median centre, up to {ratio[worst]:.3g} x "
@@ -405,9 +401,8 @@ def _check_camera_outliers(specs, source, scene_scale):
     if ratio[worst] > _CAMERA_OUTLIER_REFUSE:
         raise ValueError(f"{what}, beyond the {_CAMERA_OUTLIER_REFUSE:g} x refused: not a camera of this video; fix "
                          "its transform_matrix (a translation in other units?) or remove the frame")
-    warn(f"{what}, above the {_CAMERA_OUTLIER_WARN:g} x of a plausible camera path; a far camera alone sets the "
-         "camera extent (the position learning rates, pruning and densification): check its transform_matrix",
-         SceneWarning, stacklevel=3)
+    return [f"{what}, above the {_CAMERA_OUTLIER_WARN:g} x of a plausible camera path; a far camera alone sets "
+            "the camera extent (the position learning rates, pruning and densification): check its transform_matrix"]
 
 
 # ------------------------------------------------------------------------- PNG
@@ -456,12 +451,13 @@ def _decode(path, label, what, gray):
 
 
 def _binarise_masks(pairs):
-    """(spec, frame) pairs with raw uint8 masks -> bool masks, True = moving. The encoding is the
-    scene's: 0/255 (> 127 moving, anti-aliased greys allowed) when its brightest mask pixel is >= 128,
-    0/1 (1 moving) when it is 1; 2 to 127 is neither and refused (read as 0/255, every pixel static)."""
+    """(spec, frame) pairs with raw uint8 masks -> bool masks, True = moving; returns warnings. The
+    encoding is the scene's: 0/255 (> 127 moving, anti-aliased greys allowed) when its brightest mask
+    pixel is >= 128, 0/1 (1 moving) when it is 1; 2 to 127 is neither and refused (read as 0/255,
+    every pixel static). A 0/1 mask among 0/255 ones is warned about."""
     pairs = [(s, f) for s, f in pairs if f.mask is not None]
     if not pairs:
-        return
+        return []
     peaks = [int(f.mask.max()) for _, f in pairs]
     top = max(peaks)
     if 1 < top <= _MASK_THRESHOLD:
@@ -471,12 +467,23 @@ def _binarise_masks(pairs):
                          "as static; save the masks with 255 (or 1) = moving, 0 = static")
     threshold = _MASK_THRESHOLD if top > _MASK_THRESHOLD else 0
     odd = [s for (s, _), p in zip(pairs, peaks) if p == 1] if threshold else []
-    if odd:
-        warn(f"the masks of {name_items([s.label for s in odd], 2)} hold only 0 and 1 while the others are 0/255 "
-             f"masks: read as 0/255 (moving > 127) they are all static; save every mask with one encoding",
-             SceneWarning, stacklevel=3)
     for _, f in pairs:
         f.mask = f.mask > threshold
+    if not odd:
+        return []
+    return [f"the masks of {name_items([s.label for s in odd], 2)} hold only 0 and 1 while the others are 0/255 "
+            "masks: read as 0/255 (moving > 127) they are all static; save every mask with one encoding"]
+
+
+def _flat_image_warnings(pairs):
+    """A training frame whose image is one flat colour (a blank export?) is warned about; every frame
+    flat is refused by training (``train.trainer.validate_scene_for_training``)."""
+    flat = [s for s, f in pairs if f.image is not None and np.all(f.image == f.image[0, 0])]
+    if not flat:
+        return []
+    return [f"{TRANSFORMS_FILE}: {_which([s for s, _ in pairs], flat)} "
+            f"{'is' if len(flat) == 1 else 'are'} one flat colour (a black or blank export?): nothing to learn "
+            "there but that colour at that pose"]
 
 
 # --------------------------------------------------------------------- loading
@@ -514,14 +521,17 @@ def load_scene(path, load_images=True) -> Scene:
     tt = root / TRANSFORMS_TEST_FILE
     if tt.exists():
         _, test = _parse_file(root, tt, _top_intrinsics(data))
-    _warn_times(train, TRANSFORMS_FILE)
-    _check_camera_outliers(train, TRANSFORMS_FILE, optional["scene_scale"])
+    # implausible content: warned about once the whole scene is read (docs/dataset_format.md §5)
+    notes = _intrinsics_warnings(train, TRANSFORMS_FILE) + _intrinsics_warnings(test, TRANSFORMS_TEST_FILE)
+    notes += _times_warnings(train, TRANSFORMS_FILE)
+    notes += _camera_outlier_warnings(train, TRANSFORMS_FILE, optional["scene_scale"])
     rounded = [s for s in train + test if s.rounding > 0.0]
     if rounded:
-        warn(f"re-orthonormalised the poses of {len(rounded)} frame(s) ({name_items([s.label for s in rounded], 2)}): "
-             f"rigid only up to rounding, largest deviation {max(s.rounding for s in rounded):.2g} (max |R^T R - I|, "
-             f"|det R - 1|); up to {POSE_ROUNDING_TOL:g}, what an export rounded to 4 or more decimals gives, a "
-             "rotation is projected to the nearest one", SceneWarning, stacklevel=2)
+        notes.append(f"re-orthonormalised the poses of {len(rounded)} frame(s) "
+                     f"({name_items([s.label for s in rounded], 2)}): rigid only up to rounding, largest deviation "
+                     f"{max(s.rounding for s in rounded):.2g} (max |R^T R - I|, |det R - 1|); up to "
+                     f"{POSE_ROUNDING_TOL:g}, what an export rounded to 4 or more decimals gives, a rotation is "
+                     "projected to the nearest one")
 
     # 2. files exist, headers agree with the intrinsics
     ply_rel = optional.pop("ply_file_path")
@@ -548,17 +558,21 @@ def load_scene(path, load_images=True) -> Scene:
         return fr
 
     frames, test_frames = [build(s) for s in train], [build(s) for s in test]
-    _binarise_masks(list(zip(train + test, frames + test_frames)))
+    notes += _binarise_masks(list(zip(train + test, frames + test_frames)))
+    notes += _flat_image_warnings(list(zip(train, frames)))
     scene = Scene(
         frames=frames,
         test_frames=test_frames,
         root=root,
+        warnings=notes,
         **optional,
     )
     if ply_rel is not None:  # optional sparse points (docs/dataset_format.md §4)
         from d2gs_np.data.ply import read_points_ply
 
         scene.points3d, scene.points3d_colors = read_points_ply(root / ply_rel)
+    for message in notes:
+        warn(message, SceneWarning)
     return scene
 
 

@@ -44,6 +44,8 @@ class Scene:
     poses_trusted: Optional[bool] = None  # True: the given poses are exact (no pose refinement)
     points3d: Optional[np.ndarray] = None  # (P, 3) sparse static world points (optional ply_file_path)
     points3d_colors: Optional[np.ndarray] = None  # (P, 3) their RGB in [0, 1]
+    # what load_scene warned about (SceneWarning, one line each; docs/dataset_format.md §5)
+    warnings: list = field(default_factory=list)
 
     @property
     def num_frames(self) -> int:

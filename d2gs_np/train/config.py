@@ -143,12 +143,18 @@ class LearningRates:
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (v >= 0.0 and v < float("inf")):
                 raise ValueError(f"LearningRates.{f.name} must be a finite number >= 0 (0 freezes the block); got {v!r}")
+        for message in self.implausible():
+            warn(message, ConfigWarning, stacklevel=3)
+
+    def implausible(self) -> list:
+        """Warnings (one line each) on rates that are possible but implausible: above LR_PLAUSIBLE_MAX."""
         high = [f"LearningRates.{f.name} = {getattr(self, f.name):g}" for f in dataclasses.fields(self)
                 if f.name not in ("means_unit", "final_ratio") and getattr(self, f.name) > LR_PLAUSIBLE_MAX]
-        if high:
-            warn(f"{name_items(high)} above {LR_PLAUSIBLE_MAX:g}: Adam moves a parameter by about its learning rate "
-                 "each step (a position in units of the scene's size, a log-scale by an e-fold, a colour across its "
-                 "range), so training diverges; the defaults are at most 5e-2", ConfigWarning, stacklevel=3)
+        if not high:
+            return []
+        return [f"{name_items(high)} above {LR_PLAUSIBLE_MAX:g}: Adam moves a parameter by about its learning rate "
+                "each step (a position in units of the scene's size, a log-scale by an e-fold, a colour across its "
+                "range), so training diverges; the defaults are at most 5e-2"]
 
 
 @dataclass(frozen=True)

@@ -26,7 +26,6 @@ from typing import Optional
 
 import numpy as np
 
-from d2gs_np.checks import SceneWarning, name_items, warn
 from d2gs_np.data.scene import Scene
 from d2gs_np.optim import adam
 from d2gs_np.pose_init import initial_poses
@@ -69,11 +68,7 @@ def latest_checkpoint(run_dir):
     return best
 
 
-def validate_scene_for_training(scene: Scene, config: Optional[ExperimentConfig] = None):
-    """Refuse a scene training cannot learn from, before any work (docs/dataset_format.md §5): too few
-    frames, images not loaded or not finite, every image one flat colour; with the dynamic set possible
-    (``config.train.dynamic`` not off), masks on only some frames, or moving pixels at one shared time.
-    Warns (``SceneWarning``) about single flat frames."""
+def validate_scene_for_training(scene: Scene):
     if scene.num_frames < 2:
         raise ValueError(f"training needs at least 2 frames; the scene has {scene.num_frames}")
     for i, f in enumerate(scene.frames):
@@ -83,17 +78,21 @@ def validate_scene_for_training(scene: Scene, config: Optional[ExperimentConfig]
             raise ValueError(f"frame {i} ({f.file_path}) image has shape {f.image.shape}; expected {(f.height, f.width, 3)}")
         if not np.all(np.isfinite(f.image)):
             raise ValueError(f"frame {i} ({f.file_path}) image contains NaN or inf")
-    flat = [i for i, f in enumerate(scene.frames) if np.all(f.image == f.image[0, 0])]
-    if len(flat) == scene.num_frames:
+    # every image one flat colour (a single flat frame: load_scene warns)
+    if all(np.all(f.image == f.image[0, 0]) for f in scene.frames):
         colour = ", ".join(f"{v:.3g}" for v in scene.frames[0].image[0, 0])
         raise ValueError(f"every training image is one flat colour (frame 0: RGB {colour}): there is nothing to "
                          "reconstruct, and a render of the flat colour would score an infinite PSNR; check that the "
                          "images were exported (file_path of each frame)")
-    if flat:
-        warn(f"{name_items([f'frame {i} ({scene.frames[i].file_path})' for i in flat])} of the {scene.num_frames} "
-             f"training frames {'is' if len(flat) == 1 else 'are'} one flat colour (a black or blank export?): "
-             "nothing to learn there but that colour at that pose", SceneWarning)
-    if config is not None and config.train.dynamic == "off":
+
+
+def validate_scene_for_dynamic(scene: Scene, config: ExperimentConfig):
+    """Unless ``config.train.dynamic`` is off, refuse what the dynamic set cannot learn from, before any
+    work (docs/dataset_format.md §5): motion masks on only some frames, or moving pixels in frames that
+    all share one time."""
+    from d2gs_np.checks import name_items
+
+    if config.train.dynamic == "off":
         return
     lacking = scene.frames_without_masks
     if lacking:
@@ -116,7 +115,8 @@ class Trainer:
     from its latest checkpoint). ``plugins``: step plugins run after the default ones."""
 
     def __init__(self, scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resume: bool = False):
-        validate_scene_for_training(scene, config)
+        validate_scene_for_training(scene)
+        validate_scene_for_dynamic(scene, config)
         self.scene, self.config, self.frames = scene, config, scene.frames
         self.run_dir = Path(run_dir)
         self.run_dir.mkdir(parents=True, exist_ok=True)
@@ -131,6 +131,8 @@ class Trainer:
         # What the run models decides which loss terms apply (no dynamic set: no L_ts); their
         # notes wait for the log, whose columns follow the terms.
         pending = []
+        # the input's warnings (printed when issued: docs/dataset_format.md §5), kept in the run log
+        pending += [f"warning: {m}" for m in scene.warnings + config.train.lr.implausible()]
         if resume:
             saved = load_checkpoint(ckpt)  # read once: the components here, the rest in _restore
             components = Components(**saved[1]["components"])

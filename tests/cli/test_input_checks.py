@@ -225,8 +225,8 @@ def test_case9_flat_black_input_is_refused_one_black_frame_warned(base, tmp_path
     one = _copy(base, tmp_path, name="one")
     cv2.imwrite(str(one / "images" / "0002.png"), black)
     (line,) = _trained_with_warning(one, tmp_path, capsys)
-    assert line.startswith("d2gs train: warning: frame 2 (images/0002.png) of the 5 training frames is one flat "
-                           "colour")
+    assert line.startswith("d2gs train: warning: transforms.json: frames[2] ('images/0002.png') is one flat "
+                           "colour (a black or blank export?)")
 
 
 # ------------------------------------------------------------------ case 11: poses rounded by their export

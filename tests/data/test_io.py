@@ -733,3 +733,17 @@ def test_rounding_tolerance_admits_4_decimals_not_3(scene_dir):
     _round_poses(root, 2)  # up to 2.6e-2 off: a scale or shear
     with pytest.raises(ValueError, match=r"is not rigid: the singular values of R .* a scale or shear"):
         load_scene(root, load_images=False)
+
+
+def test_warnings_are_issued_once_the_scene_is_read_and_kept_on_it(scene_dir):
+    root, scene = scene_dir
+    cv2.imwrite(str(root / "images" / "0001.png"), np.zeros((H, W, 3), np.uint8))  # a blank frame
+    _edit_json(root, lambda d: d["frames"][3].update(time=d["frames"][2]["time"]))
+    with pytest.warns(SceneWarning) as record:
+        loaded = load_scene(root)
+    assert [str(w.message) for w in record] == loaded.warnings
+    assert loaded.warnings[0].startswith("transforms.json: frames[2] ('images/0002.png') and frames[3] "
+                                         "('images/0003.png') share time")
+    assert loaded.warnings[1].startswith("transforms.json: frames[1] ('images/0001.png') is one flat colour")
+    with pytest.warns(SceneWarning):
+        assert load_scene(root, load_images=False).warnings == loaded.warnings[:1]  # pixels not read
