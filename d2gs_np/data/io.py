@@ -33,9 +33,10 @@ Choices the format leaves open:
 
 Plausibility (docs/dataset_format.md §5): impossible content is refused
 (ValueError), implausible content accepted with one ``SceneWarning`` line
-each (``d2gs_np.checks``): intrinsics outside a plausible field of view or
-principal point, a camera far from the others, frames sharing a time, poses
-rigid only up to rounding (re-orthonormalised).
+each (``d2gs_np.checks``), issued once the whole scene is read and kept in
+``Scene.warnings``: intrinsics outside a plausible field of view or principal
+point, a camera far from the others, frames sharing a time, poses rigid only
+up to rounding (re-orthonormalised), a frame of one flat colour.
 """
 from __future__ import annotations
 

@@ -142,7 +142,8 @@ class LearningRates:
                 continue
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (v >= 0.0 and v < float("inf")):
-                raise ValueError(f"LearningRates.{f.name} must be a finite number >= 0 (0 freezes the block); got {v!r}")
+                raise ValueError(f"LearningRates.{f.name} must be a finite number >= 0 (0 freezes the block); "
+                                 f"got {v!r}")
         for message in self.implausible():
             warn(message, ConfigWarning, stacklevel=3)
 
