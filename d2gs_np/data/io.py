@@ -483,8 +483,8 @@ def _flat_image_warnings(pairs):
     if not flat:
         return []
     return [f"{TRANSFORMS_FILE}: {_which([s for s, _ in pairs], flat)} "
-            f"{'is' if len(flat) == 1 else 'are'} one flat colour (a black or blank export?): nothing to learn "
-            "there but that colour at that pose"]
+            f"{'is' if len(flat) == 1 else 'are'} one flat colour (a black or blank export?): nothing there to "
+            "learn but one colour"]
 
 
 # --------------------------------------------------------------------- loading
