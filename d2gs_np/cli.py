@@ -1,16 +1,20 @@
 """Command line: ``d2gs {demo, make-scene, import-video, train, eval, report, experiment, render, export-ply, refcheck}``.
 
 Every command validates its inputs before starting work and exits with a
-one-line error (status 2) naming the problem. Each command's help names the
+one-line error (status 2) naming the problem. Input accepted but implausible
+(``d2gs_np.base.checks.InputWarning``) is printed as one line ``d2gs CMD: warning: ...``
+on stderr when issued (a training run also keeps it in its log). Each command's help names the
 page of docs/ that explains it (docs/architecture.md §2 maps the code to the docs).
 """
 from __future__ import annotations
 
 import argparse
+import contextlib
 import json
 import math
 import sys
 import time
+import warnings
 from pathlib import Path
 
 import numpy as np
@@ -523,6 +527,25 @@ def build_parser() -> argparse.ArgumentParser:
     return p
 
 
+@contextlib.contextmanager
+def _input_warnings_as_lines(args):
+    """Within: each InputWarning (docs/dataset_format.md §5) is printed as one line
+    ``d2gs CMD: warning: ...`` on stderr, every time it is issued; other warnings as Python prints them."""
+    from d2gs_np.base.checks import InputWarning
+
+    command = " ".join(c for c in (args.command, getattr(args, "refcheck_command", None)) if c)
+    with warnings.catch_warnings():
+        warnings.simplefilter("always", InputWarning)
+        original = warnings.showwarning
+
+        def show(message, category, filename, lineno, file=None, line=None):
+            if not issubclass(category, InputWarning):
+                return original(message, category, filename, lineno, file, line)
+            print(f"d2gs {command}: warning: {message}", file=sys.stderr, flush=True)
+        warnings.showwarning = show
+        yield
+
+
 def main(argv=None):
     from d2gs_np.refcheck.cli import CheckFailed
 
@@ -532,7 +555,8 @@ def main(argv=None):
         return e.code
     command = " ".join(c for c in (args.command, getattr(args, "refcheck_command", None)) if c)
     try:
-        args.func(args)
+        with _input_warnings_as_lines(args):
+            args.func(args)
     except CheckFailed as e:
         print(f"d2gs {e}", file=sys.stderr)
         return 1

@@ -37,6 +37,13 @@ QUAT_NORM_MIN = 1e-12
 # A rotation matrix whose R^T R deviates from I by more than this (max abs
 # entry), or whose determinant deviates from +1 by more, is "not rigid".
 RIGID_TOL = 1e-6
+# A pose read from a file (docs/dataset_format.md §2) may be rigid only up to the rounding of its
+# export: rounded to d decimals, each entry is off by e <= 0.5e-d, so max |R^T R - I| <= 2 sqrt(3) e
+# = 1.7e-d and |det R - 1| <= sqrt(3) * 3 e = 2.6e-d (Cauchy-Schwarz on unit columns). The usual
+# 6 decimals give up to 2.6e-6, above RIGID_TOL. Up to this tolerance (exports of 4 or more
+# decimals, with a margin of 3.8) a loaded rotation is projected to the nearest one
+# (``se3.nearest_rigid``); beyond it the matrix is a scale, a shear or a reflection, and refused.
+POSE_ROUNDING_TOL = 1e-3
 
 # --- Metrics ---------------------------------------------------------------------
 # Trajectory metrics reject camera centres whose spread (mean squared distance

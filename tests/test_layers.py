@@ -12,6 +12,7 @@ PACKAGE = Path(__file__).resolve().parents[1] / "d2gs_np"
 # Lowest first; the first part of a module's path under d2gs_np/ names its layer.
 LAYERS = (
     ("constants",),
+    ("base",),
     ("geometry",),
     ("render",),
     ("pose",),

@@ -27,8 +27,16 @@ Choices the format leaves open:
   ignored. Nerfstudio distortion fields (k1..k4, p1, p2) must be zero and
   ``camera_model``, if given, a pinhole one: this project has no distortion.
 - Images must be 8-bit RGB (or palette) PNGs; RGBA is rejected rather than
-  composited onto a guessed background. Masks must be 8-bit greyscale PNGs
-  and are thresholded at > 127.
+  composited onto a guessed background. Masks must be 8-bit (or 1-bit)
+  greyscale PNGs, 0/255 (thresholded at > 127) or 0/1 (1 = moving), decided
+  once for the scene from its brightest mask pixel.
+
+Plausibility (docs/dataset_format.md §5): impossible content is refused
+(ValueError), implausible content accepted with one ``SceneWarning`` line
+each (``d2gs_np.base.checks``), issued once the whole scene is read and kept in
+``Scene.warnings``: intrinsics outside a plausible field of view or principal
+point, a camera far from the others, frames sharing a time, poses rigid only
+up to rounding (re-orthonormalised), a frame of one flat colour.
 """
 from __future__ import annotations
 
@@ -40,6 +48,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from d2gs_np.base.checks import SceneWarning, name_items, warn
+from d2gs_np.constants import POSE_ROUNDING_TOL, RIGID_TOL
 from d2gs_np.data.scene import Frame, Scene
 from d2gs_np.geometry.camera import (
     cam_T_world_to_opengl_c2w,
@@ -48,6 +58,7 @@ from d2gs_np.geometry.camera import (
     make_intrinsics,
     opengl_c2w_to_cam_T_world,
 )
+from d2gs_np.geometry.se3 import nearest_rigid
 
 __all__ = ["load_scene", "write_scene", "TRANSFORMS_FILE", "TRANSFORMS_TEST_FILE"]
 
@@ -65,6 +76,26 @@ _POSE_KEYS = (
     ("gt_exposure_end", "gt_exposure_end"),
 )
 _MASK_THRESHOLD = 127  # mask pixels > 127 are dynamic (255 = dynamic, 0 = static)
+_MASK_DEPTHS = (1, 8)  # bit depths of greyscale mask PNGs: 8-bit, or 1-bit (a saved bool array; decoded as 0/255)
+# Plausible pinhole intrinsics (docs/dataset_format.md §5). The field of view of an image axis,
+# 2 atan(size / (2 f)), outside _FOV_WARN_DEG is implausible for a video camera (1 deg: a 2000 mm
+# lens on a full-frame sensor; 170 deg: a fisheye, which a pinhole without distortion cannot model)
+# and warned about; outside _FOV_REFUSE_DEG the focal length cannot be in pixels (f below 0.0044 or
+# above 5700 image sizes: metres, millimetres or divided by the image size) and is refused.
+_FOV_WARN_DEG = (1.0, 170.0)
+_FOV_REFUSE_DEG = (0.01, 179.0)
+# A principal point outside the image is warned about (the optical axis of a video frame crosses it;
+# a crop or a resize without scaling cx, cy moves it out); more than this many image sizes outside,
+# refused (cx, cy in other units or of another resolution).
+_PRINCIPAL_POINT_MAX_OUTSIDE = 5.0
+# A training camera whose centre lies farther from the median centre than these multiples of the
+# cameras' spread (the median distance from the median centre) is warned about / refused: it sets
+# the camera extent (1.1 x the largest distance; the position learning rates, pruning and
+# densification) alone. The spread is taken at least 1/1000 of the cameras' median distance from the
+# origin and of scene_scale: cameras on a tripod have none.
+_CAMERA_OUTLIER_WARN = 100.0
+_CAMERA_OUTLIER_REFUSE = 1e6
+_CAMERA_SPREAD_FLOOR = 1e-3
 _PNG_SIGNATURE = b"\x89PNG\r\n\x1a\n"
 _PNG_HEADER_BYTES = 26  # signature (8) + IHDR length/type (8) + width, height (8) + depth, colour (2)
 _PNG_COLOR_NAMES = {0: "greyscale", 2: "RGB", 3: "palette", 4: "greyscale+alpha", 6: "RGBA"}
@@ -95,7 +126,8 @@ def _positive_int(value, where, field):
 
 
 def _matrix4(value, where, field):
-    """Nested 4x4 list of numbers -> (4, 4) float64 (not yet checked for rigidity)."""
+    """Nested 4x4 list of numbers -> ((4, 4) float64 rigid, deviation): a rotation rigid only up to
+    rounding (``POSE_ROUNDING_TOL``) is re-orthonormalised (``nearest_rigid``), anything else refused."""
     ok = (
         isinstance(value, list)
         and len(value) == 4
@@ -107,8 +139,8 @@ def _matrix4(value, where, field):
         M = np.array(value, dtype=np.float64)
     except OverflowError:
         raise ValueError(f"{where}: '{field}' has an entry too large for a float64") from None
-    check_rigid(M, f"{where}: '{field}'")
-    return M
+    M, dev = nearest_rigid(M, f"{where}: '{field}'")
+    return M, float(dev)
 
 
 def _frame_label(source, index, frame):
@@ -194,7 +226,7 @@ def _top_level_optional(data, where):
 class _Spec:
     """Validated metadata of one frame plus where its files are."""
 
-    __slots__ = ("label", "fields", "image_file", "mask_file", "sharp_file")
+    __slots__ = ("label", "short", "fields", "image_file", "mask_file", "sharp_file", "rounding")
 
 
 def _resolve_path(root, rel, label, field):
@@ -221,13 +253,17 @@ def _parse_frame(root, source, index, frame, defaults):
     spec.label = label
     f = {}
     f["file_path"], spec.image_file = _resolve_path(root, frame["file_path"], label, "file_path")
+    spec.short = f"frames[{index}] ({f['file_path']!r})"
     t = _number(frame["time"], label, "time")
     if not 0.0 <= t <= 1.0:
         raise ValueError(f"{label}: 'time' must be a normalised timestamp in [0, 1]; got {t}")
     f["time"] = t
+    spec.rounding = 0.0  # largest deviation from rigid of the frame's poses that were re-orthonormalised
     for key, attr in _POSE_KEYS:
         if frame.get(key) is not None:
-            c2w = _matrix4(frame[key], label, key)
+            c2w, dev = _matrix4(frame[key], label, key)
+            if dev > RIGID_TOL:
+                spec.rounding = max(spec.rounding, dev)
             f[attr] = opengl_c2w_to_cam_T_world(c2w)
     intr = dict(defaults)
     intr.update({k: frame[k] for k in _INTRINSIC_KEYS if frame.get(k) is not None})
@@ -243,7 +279,24 @@ def _parse_frame(root, source, index, frame, defaults):
     fy = _number(intr["fl_y"], label, "fl_y")
     if fx <= 0 or fy <= 0:
         raise ValueError(f"{label}: focal lengths must be positive (pixels); got fl_x={fx}, fl_y={fy}")
-    f["K"] = make_intrinsics(fx, fy, _number(intr["cx"], label, "cx"), _number(intr["cy"], label, "cy"))
+    cx, cy = _number(intr["cx"], label, "cx"), _number(intr["cy"], label, "cy")
+    lo, hi = _FOV_REFUSE_DEG
+    for key, focal, size, axis in (("fl_x", fx, f["width"], "width"), ("fl_y", fy, f["height"], "height")):
+        f_min, f_max = _focal_for(hi, size), _focal_for(lo, size)
+        if not f_min <= focal <= f_max:
+            side = f"below {f_min:.3g} px, a {hi:g}" if focal < f_min else f"above {f_max:.3g} px, a {lo:g}"
+            raise ValueError(
+                f"{label}: {key} = {focal:g} px is {side} deg field of view over the {size} px {axis}: not a focal "
+                "length in pixels; convert it to pixels (a focal length in mm or metres, or divided by the image "
+                "size?)")
+    for key, c, size, axis in (("cx", cx, f["width"], "width"), ("cy", cy, f["height"], "height")):
+        out = max(-c, c - size) / size  # image sizes outside [0, size]
+        if out > _PRINCIPAL_POINT_MAX_OUTSIDE:
+            raise ValueError(
+                f"{label}: principal point {key} = {c:g} px lies {out:.3g} image {axis}s outside the {size} px "
+                f"image (more than {_PRINCIPAL_POINT_MAX_OUTSIDE:g} is refused): give cx, cy in pixels of this "
+                "image (the image centre is w/2, h/2)")
+    f["K"] = make_intrinsics(fx, fy, cx, cy)
     spec.mask_file = spec.sharp_file = None
     if frame.get("mask_path") is not None:
         f["mask_path"], spec.mask_file = _resolve_path(root, frame["mask_path"], label, "mask_path")
@@ -253,14 +306,110 @@ def _parse_frame(root, source, index, frame, defaults):
     return spec
 
 
+def _fov_deg(focal, size):
+    """Field of view in degrees of ``size`` pixels at focal length ``focal`` pixels."""
+    return math.degrees(2.0 * math.atan(size / (2.0 * focal)))
+
+
+def _focal_for(fov_deg, size):
+    """The focal length (pixels) that gives ``size`` pixels a field of view of ``fov_deg`` degrees."""
+    return size / (2.0 * math.tan(math.radians(fov_deg) / 2.0))
+
+
+def _which(specs, group):
+    """'all N frames' or the frames of ``group`` named."""
+    if len(group) == len(specs) > 1:
+        return f"all {len(specs)} frames"
+    return name_items([s.short for s in group])
+
+
+def _check_duplicates(specs, source):
+    first = {}
+    for s in specs:
+        key = os.path.normpath(s.fields["file_path"])
+        if key in first:
+            raise ValueError(f"{source} {s.short} repeats {first[key].short}: the same image twice; each frame "
+                             "must appear once in 'frames', remove the duplicate entry")
+        first[key] = s
+
+
+def _intrinsics_warnings(specs, source):
+    """One warning per implausible value (field of view, principal point), naming the frames that have it."""
+    groups = {}
+    lo, hi = _FOV_WARN_DEG
+    for s in specs:
+        f, K = s.fields, s.fields["K"]
+        w, h, fx, fy = f["width"], f["height"], K[0, 0], K[1, 1]
+        fovs = (_fov_deg(fx, w), _fov_deg(fy, h))
+        if not all(lo <= v <= hi for v in fovs):
+            msg = (f"fl_x, fl_y = {fx:g}, {fy:g} px give a field of view of {fovs[0]:.4g} x {fovs[1]:.4g} deg over "
+                   f"the {w}x{h} image, outside the [{lo:g}, {hi:g}] deg of a video camera (fl_x in "
+                   f"[{_focal_for(hi, w):.3g}, {_focal_for(lo, w):.3g}], fl_y in [{_focal_for(hi, h):.3g}, "
+                   f"{_focal_for(lo, h):.3g}] px); a wrong focal length renders every view at the wrong scale: check "
+                   "its unit (pixels) and the image size it belongs to")
+            groups.setdefault(msg, []).append(s)
+        for key, c, size, axis in (("cx", K[0, 2], f["width"], "width"), ("cy", K[1, 2], f["height"], "height")):
+            if not 0.0 <= c <= size:
+                msg = (f"principal point {key} = {c:g} px lies outside the image (0 to {size} px, its {axis}); the "
+                       "optical axis of a video frame passes through the image: check cx, cy (a crop, or a resize "
+                       "without scaling them?)")
+                groups.setdefault(msg, []).append(s)
+    return [f"{source}: {_which(specs, group)}: {msg}" for msg, group in groups.items()]
+
+
 def _parse_file(root, path, defaults):
     data = _read_json(path)
     _check_camera_model(data, path.name)
     intr = dict(defaults)
     intr.update(_top_intrinsics(data))
     specs = [_parse_frame(root, path.name, i, fr, intr) for i, fr in enumerate(data["frames"])]
+    _check_duplicates(specs, path.name)
     specs.sort(key=lambda s: s.fields["time"])  # stable
     return data, specs
+
+
+def _times_warnings(specs, source):
+    """Frames of one video have distinct times: a warning names those that share one."""
+    by_time = {}
+    for s in specs:
+        by_time.setdefault(s.fields["time"], []).append(s)
+    shared = [(t, g) for t, g in by_time.items() if len(g) > 1]
+    if not shared:
+        return []
+    why = ("frames of one video have distinct times, and the deformation model takes frames of one time for one "
+           "instant (a moving object in the same place in all of them); give frame k of N the time k / (N - 1)")
+    if len(by_time) == 1:
+        return [f"{source}: all {len(specs)} frames have time {specs[0].fields['time']:g}; {why}"]
+    parts = [f"{name_items([s.short for s in g])} share time {t:g}" for t, g in shared]
+    more = f" (and {len(parts) - 3} more times)" if len(parts) > 3 else ""
+    return [f"{source}: {'; '.join(parts[:3])}{more}; {why}"]
+
+
+def _camera_outlier_warnings(specs, source, scene_scale):
+    """Refuse a training camera absurdly far from all the others, warn about one far (module constants)."""
+    if len(specs) < 3:
+        return []  # with two cameras neither is the odd one
+    T = np.stack([s.fields["cam_T_world"] for s in specs])
+    centres = -np.einsum("nji,nj->ni", T[:, :3, :3], T[:, :3, 3])  # -R^T t
+    median = np.median(centres, axis=0)
+    dist = np.linalg.norm(centres - median, axis=1)
+    spread = max(float(np.median(dist)), _CAMERA_SPREAD_FLOOR * float(np.median(np.linalg.norm(centres, axis=1))),
+                 _CAMERA_SPREAD_FLOOR * (scene_scale or 0.0))
+    if not spread > 0.0:
+        return []  # every camera at the origin: nothing to compare with
+    ratio = dist / spread
+    far = [i for i in np.argsort(-ratio) if ratio[i] > _CAMERA_OUTLIER_WARN]
+    if not far:
+        return []
+    worst = far[0]
+    named = name_items([f"{specs[i].short} at {dist[i]:.3g}" for i in far])
+    what = (f"{source}: the camera centre of {named} from the cameras' median centre, up to {ratio[worst]:.3g} x "
+            f"their spread ({spread:.3g}, the median distance)")
+    if ratio[worst] > _CAMERA_OUTLIER_REFUSE:
+        raise ValueError(f"{what}, beyond the {_CAMERA_OUTLIER_REFUSE:g} x refused: not a camera of this video; fix "
+                         "its transform_matrix (a translation in other units?) or remove the frame")
+    return [f"{what}, above the {_CAMERA_OUTLIER_WARN:g} x of a plausible camera path; a far camera alone sets "
+            "the camera extent (the position learning rates, pruning and densification): check its transform_matrix"]
 
 
 # ------------------------------------------------------------------------- PNG
@@ -282,10 +431,14 @@ def _png_header(path, label, what):
 def _check_png(path, label, what, width, height, gray):
     w, h, depth, color = _png_header(path, label, what)
     kind = _PNG_COLOR_NAMES.get(color, f"colour type {color}")
-    if depth != 8:
-        raise ValueError(f"{label}: {what} {path} has {depth}-bit channels; the format needs 8-bit PNG")
+    if gray and color == 0 and depth in _MASK_DEPTHS:
+        pass
+    elif depth != 8:
+        need = "8-bit (or 1-bit) greyscale PNG" if gray else "8-bit PNG"
+        raise ValueError(f"{label}: {what} {path} has {depth}-bit channels; the format needs {need}")
     if gray and color != 0:
-        raise ValueError(f"{label}: {what} {path} is {kind}; masks must be single-channel 8-bit greyscale PNG (255 = dynamic)")
+        raise ValueError(f"{label}: {what} {path} is {kind}; masks must be single-channel 8-bit greyscale PNG "
+                         "(255 or 1 = dynamic, 0 = static)")
     if not gray and color not in (2, 3):
         fix = " (composite it onto a background and save RGB)" if color in (4, 6) else ""
         raise ValueError(f"{label}: {what} {path} is {kind}; images must be 8-bit RGB PNG{fix}")
@@ -302,8 +455,44 @@ def _decode(path, label, what, gray):
     if arr is None:
         raise ValueError(f"{label}: could not decode {what} {path} (corrupt or truncated PNG); re-save or replace it")
     if gray:
-        return arr > _MASK_THRESHOLD
+        return arr  # uint8; made bool by _binarise_masks once the scene's encoding is known
     return arr[:, :, ::-1].astype(np.float64) / 255.0  # BGR -> RGB, [0, 1]
+
+
+def _binarise_masks(pairs):
+    """(spec, frame) pairs with raw uint8 masks -> bool masks, True = moving; returns warnings. The
+    encoding is the scene's: 0/255 (> 127 moving, anti-aliased greys allowed) when its brightest mask
+    pixel is >= 128, 0/1 (1 moving) when it is 1; 2 to 127 is neither and refused (read as 0/255,
+    every pixel static). A 0/1 mask among 0/255 ones is warned about."""
+    pairs = [(s, f) for s, f in pairs if f.mask is not None]
+    if not pairs:
+        return []
+    peaks = [int(f.mask.max()) for _, f in pairs]
+    top = max(peaks)
+    if 1 < top <= _MASK_THRESHOLD:
+        s = pairs[peaks.index(top)][0]
+        raise ValueError(f"{s.label}: mask {s.mask_file} holds the brightest pixel of the scene's motion masks, {top}: "
+                         "neither 0/255 masks (moving > 127) nor 0/1 masks (moving = 1), so every pixel would count "
+                         "as static; save the masks with 255 (or 1) = moving, 0 = static")
+    threshold = _MASK_THRESHOLD if top > _MASK_THRESHOLD else 0
+    odd = [s for (s, _), p in zip(pairs, peaks) if p == 1] if threshold else []
+    for _, f in pairs:
+        f.mask = f.mask > threshold
+    if not odd:
+        return []
+    return [f"the masks of {name_items([s.label for s in odd], 2)} hold only 0 and 1 while the others are 0/255 "
+            "masks: read as 0/255 (moving > 127) they are all static; save every mask with one encoding"]
+
+
+def _flat_image_warnings(pairs):
+    """A training frame whose image is one flat colour (a blank export?) is warned about; every frame
+    flat is refused by training (``train.trainer.validate_scene_for_training``)."""
+    flat = [s for s, f in pairs if f.image is not None and np.all(f.image == f.image[0, 0])]
+    if not flat:
+        return []
+    return [f"{TRANSFORMS_FILE}: {_which([s for s, _ in pairs], flat)} "
+            f"{'is' if len(flat) == 1 else 'are'} one flat colour (a black or blank export?): nothing there to "
+            "learn but one colour"]
 
 
 # --------------------------------------------------------------------- loading
@@ -317,7 +506,8 @@ def load_scene(path, load_images=True) -> Scene:
     Frames of ``transforms.json`` and of ``transforms_test.json`` (if present)
     are each sorted by ``time``. Poses come back as ``cam_T_world`` (OpenCV),
     images as float64 (H, W, 3) RGB in [0, 1] (value / 255), masks as bool
-    (H, W) (pixel > 127). Top-level ``exposure_fraction``, ``scene_scale``,
+    (H, W) (pixel > 127 of 0/255 masks, 1 of 0/1 masks). Implausible content
+    gives a ``SceneWarning`` (module docstring). Top-level ``exposure_fraction``, ``scene_scale``,
     ``blur_subframes`` come from ``transforms.json``; absent -> None.
     Raises FileNotFoundError for a missing folder or file, ValueError for any
     invalid content; see the module docstring for the order of checks.
@@ -340,6 +530,17 @@ def load_scene(path, load_images=True) -> Scene:
     tt = root / TRANSFORMS_TEST_FILE
     if tt.exists():
         _, test = _parse_file(root, tt, _top_intrinsics(data))
+    # implausible content: warned about once the whole scene is read (docs/dataset_format.md §5)
+    notes = _intrinsics_warnings(train, TRANSFORMS_FILE) + _intrinsics_warnings(test, TRANSFORMS_TEST_FILE)
+    notes += _times_warnings(train, TRANSFORMS_FILE)
+    notes += _camera_outlier_warnings(train, TRANSFORMS_FILE, optional["scene_scale"])
+    rounded = [s for s in train + test if s.rounding > 0.0]
+    if rounded:
+        notes.append(f"re-orthonormalised the poses of {len(rounded)} frame(s) "
+                     f"({name_items([s.label for s in rounded], 2)}): rigid only up to rounding, largest deviation "
+                     f"{max(s.rounding for s in rounded):.2g} (max |R^T R - I|, |det R - 1|); up to "
+                     f"{POSE_ROUNDING_TOL:g}, what an export rounded to 4 or more decimals gives, a rotation is "
+                     "projected to the nearest one")
 
     # 2. files exist, headers agree with the intrinsics
     ply_rel = optional.pop("ply_file_path")
@@ -366,16 +567,22 @@ def load_scene(path, load_images=True) -> Scene:
                 fr.sharp = _decode(spec.sharp_file, spec.label, "sharp image", gray=False)
         return fr
 
+    frames, test_frames = [build(s) for s in train], [build(s) for s in test]
+    notes += _binarise_masks(list(zip(train + test, frames + test_frames)))
+    notes += _flat_image_warnings(list(zip(train, frames)))
     scene = Scene(
-        frames=[build(s) for s in train],
-        test_frames=[build(s) for s in test],
+        frames=frames,
+        test_frames=test_frames,
         root=root,
+        warnings=notes,
         **optional,
     )
     if ply_rel is not None:  # optional sparse points (docs/dataset_format.md §4)
         from d2gs_np.data.ply import read_points_ply
 
         scene.points3d, scene.points3d_colors = read_points_ply(root / ply_rel)
+    for message in notes:
+        warn(message, SceneWarning)
     return scene
 
 

@@ -44,6 +44,8 @@ class Scene:
     poses_trusted: Optional[bool] = None  # True: the given poses are exact (no pose refinement)
     points3d: Optional[np.ndarray] = None  # (P, 3) sparse static world points (optional ply_file_path)
     points3d_colors: Optional[np.ndarray] = None  # (P, 3) their RGB in [0, 1]
+    # what load_scene warned about (SceneWarning, one line each; docs/dataset_format.md §5)
+    warnings: list = field(default_factory=list)
 
     @property
     def num_frames(self) -> int:
@@ -52,6 +54,12 @@ class Scene:
     @property
     def has_masks(self) -> bool:
         return all(f.mask is not None for f in self.frames)
+
+    @property
+    def frames_without_masks(self) -> list:
+        """Indices of the frames that have no motion mask while others have one; [] when all or none do."""
+        lacking = [i for i, f in enumerate(self.frames) if f.mask is None and f.mask_path is None]
+        return lacking if len(lacking) < len(self.frames) else []
 
     @property
     def has_moving_pixels(self) -> bool:

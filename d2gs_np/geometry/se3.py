@@ -20,7 +20,7 @@ import math
 
 import numpy as np
 
-from d2gs_np.constants import RIGID_TOL
+from d2gs_np.constants import POSE_ROUNDING_TOL, RIGID_TOL
 from d2gs_np.geometry import so3
 from d2gs_np.geometry.so3 import _series, _split, float_dtype, hat
 
@@ -197,3 +197,54 @@ def check_rigid(T, name="T", tol=RIGID_TOL):
     bottom = T[..., 3, :].astype(np.float64)
     if np.abs(bottom - np.array([0.0, 0.0, 0.0, 1.0])).max(initial=0.0) > tol:
         raise ValueError(f"{name} must have bottom row (0, 0, 0, 1); got {bottom.reshape(-1, 4)[0]}")
+
+
+def rigid_deviation(T):
+    """(..., 4, 4) -> (...,) how far each T is from rigid: the largest of max |R^T R - I|, max |R R^T - I|
+    (the inverse's R^T R: the loader inverts its poses), |det R - 1| and the bottom row's distance from
+    (0, 0, 0, 1) (max abs entry)."""
+    T = np.asarray(T, dtype=np.float64)
+    R = T[..., :3, :3]
+    Rt = np.swapaxes(R, -1, -2)
+    ortho = np.maximum(np.abs(Rt @ R - np.eye(3)).max(axis=(-2, -1)), np.abs(R @ Rt - np.eye(3)).max(axis=(-2, -1)))
+    det = np.abs(np.linalg.det(R) - 1.0)
+    bottom = np.abs(T[..., 3, :] - np.array([0.0, 0.0, 0.0, 1.0])).max(axis=-1)
+    return np.maximum(np.maximum(ortho, det), bottom)
+
+
+def nearest_rigid(T, name="T", tol=POSE_ROUNDING_TOL):
+    """A pose that is rigid up to rounding (e.g. a JSON export at 6 decimals) -> (T', deviation).
+
+    T: (..., 4, 4) finite. deviation: (...,) ``rigid_deviation(T)``. Poses within RIGID_TOL come back
+    unchanged (bitwise); those within ``tol`` get the nearest rotation (``so3.so3_orthonormalize``,
+    the polar factor) and the bottom row (0, 0, 0, 1), the translation kept. Beyond ``tol``:
+    ValueError naming ``name`` and what the matrix is instead (a reflection, a scale or shear).
+    ``check_rigid`` stays the strict test for poses the code computes itself.
+    """
+    T = np.asarray(T)
+    if T.shape[-2:] != (4, 4):
+        raise ValueError(f"{name} must have shape (..., 4, 4); got {T.shape}")
+    if not np.all(np.isfinite(T)):
+        raise ValueError(f"{name} contains NaN or inf; poses must be finite")
+    T = T.astype(np.float64)
+    dev = rigid_deviation(T)
+    R = T[..., :3, :3]
+    det = np.linalg.det(R)
+    if np.any(det <= 0.0):
+        raise ValueError(
+            f"{name} is not rigid: det(R) = {np.min(det):.6g} <= 0, a reflection (a left-handed frame) or a "
+            "singular matrix, not a rotation; flip the sign of one axis to make the frame right-handed")
+    if np.any(dev > tol):
+        sv = np.linalg.svd(R, compute_uv=False)
+        bottom = T[..., 3, :].reshape(-1, 4)[int(np.argmax(dev.reshape(-1)))]
+        what = (f"bottom row {bottom.tolist()} instead of (0, 0, 0, 1)" if np.abs(bottom - [0, 0, 0, 1]).max() > tol
+                else f"the singular values of R are in [{sv.min():.6g}, {sv.max():.6g}] instead of 1: a scale or shear")
+        raise ValueError(
+            f"{name} is not rigid: {what} (deviation {dev.max():.3g}, beyond the {tol:g} that rounding to 4 or "
+            "more decimals stays within); pass a rotation+translation")
+    out = T.copy()
+    fix = dev > RIGID_TOL
+    if np.any(fix):
+        out[fix, :3, :3] = so3.so3_orthonormalize(R[fix])
+        out[fix, 3, :] = (0.0, 0.0, 0.0, 1.0)
+    return out, dev

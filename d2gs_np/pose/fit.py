@@ -34,7 +34,7 @@ def fit_pose(render_inputs, pose0, K, width, height, target, background=None, co
     """Refine ``pose0`` (4, 4 cam_T_world) so that the render of the frozen scene matches ``target``.
 
     render_inputs: dict with means, quats, scales, opacities, colors (float64), as from
-        ``scene.model.render_inputs_fwd`` at the view's time.
+        ``scene.render_inputs.render_inputs_fwd`` at the view's time.
     K (3, 3), width, height: the view's camera; target (H, W, 3) in [0, 1]; background (3,) or None (black);
     render_config: the renderer's RenderConfig (None: its default), as the scene is rendered for scoring.
     Returns (pose (4, 4), info): info has "mse" (steps + 1,) the error at each visited pose (index

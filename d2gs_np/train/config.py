@@ -17,6 +17,7 @@ from typing import Optional
 
 from d2gs_np.blur.config import BlurConfig, TrajectoryConfig
 from d2gs_np.pose.config import CorrespondConfig, GaussNewtonConfig, PoseInitConfig
+from d2gs_np.base.checks import ConfigWarning, check_number, name_items, warn
 from d2gs_np.render.config import RenderConfig
 from d2gs_np.scene.config import DeformConfig, InitConfig, MotionInitConfig
 from d2gs_np.train.densify import DensifyConfig
@@ -24,6 +25,9 @@ from d2gs_np.train.prune import PruneConfig
 from d2gs_np.train.schedule import ScheduleConfig
 
 _AUTO = ("auto", "on", "off")
+# Adam moves a parameter by about its learning rate each step; a rate above this (a position by the
+# scene's size, a log-scale by an e-fold, a colour across its range) diverges (a ConfigWarning).
+LR_PLAUSIBLE_MAX = 1.0
 
 
 @dataclass(frozen=True)
@@ -134,7 +138,20 @@ class LearningRates:
                 continue
             v = getattr(self, f.name)
             if isinstance(v, bool) or not isinstance(v, (int, float)) or not (v >= 0.0 and v < float("inf")):
-                raise ValueError(f"LearningRates.{f.name} must be a finite number >= 0; got {v!r}")
+                raise ValueError(f"LearningRates.{f.name} must be a finite number >= 0 (0 freezes the block); "
+                                 f"got {v!r}")
+        for message in self.implausible():
+            warn(message, ConfigWarning, stacklevel=3)
+
+    def implausible(self) -> list:
+        """Warnings (one line each) on rates that are possible but implausible: above LR_PLAUSIBLE_MAX."""
+        high = [f"LearningRates.{f.name} = {getattr(self, f.name):g}" for f in dataclasses.fields(self)
+                if f.name not in ("means_unit", "final_ratio") and getattr(self, f.name) > LR_PLAUSIBLE_MAX]
+        if not high:
+            return []
+        return [f"{name_items(high)} above {LR_PLAUSIBLE_MAX:g}: Adam moves a parameter by about its learning rate "
+                "each step (a position in units of the scene's size, a log-scale by an e-fold, a colour across its "
+                "range), so training diverges; the defaults are at most 5e-2"]
 
 
 @dataclass(frozen=True)
@@ -174,8 +191,11 @@ class TrainConfig:
         for name in ("dynamic", "blur", "learn_exposure"):
             if getattr(self, name) not in _AUTO:
                 raise ValueError(f"TrainConfig.{name} must be one of {_AUTO}; got {getattr(self, name)!r}")
-        if len(self.background) != 3:
-            raise ValueError(f"TrainConfig.background must have 3 values; got {self.background}")
+        if isinstance(self.background, (str, bytes)) or not hasattr(self.background, "__len__") \
+                or len(self.background) != 3:
+            raise ValueError(f"TrainConfig.background must have 3 values (R, G, B in [0, 1]); got {self.background!r}")
+        for i, v in enumerate(self.background):
+            check_number(v, f"TrainConfig.background[{i}]", 0.0, 1.0, hint="an RGB colour: 0 black, 1 white")
         for name in ("iters", "log_every", "eval_every", "checkpoint_every", "prune_every", "eval_frames", "seed"):
             v = getattr(self, name)
             if isinstance(v, bool) or not isinstance(v, int):

@@ -185,6 +185,36 @@ def validate_scene_for_training(scene: Scene):
             raise ValueError(f"frame {i} ({f.file_path}) image has shape {f.image.shape}; expected {(f.height, f.width, 3)}")
         if not np.all(np.isfinite(f.image)):
             raise ValueError(f"frame {i} ({f.file_path}) image contains NaN or inf")
+    # every image one flat colour (a single flat frame: load_scene warns)
+    if all(np.all(f.image == f.image[0, 0]) for f in scene.frames):
+        colour = ", ".join(f"{v:.3g}" for v in scene.frames[0].image[0, 0])
+        raise ValueError(f"every training image is one flat colour (frame 0: RGB {colour}): there is nothing to "
+                         "reconstruct, and a render of the flat colour would score an infinite PSNR; check that the "
+                         "images were exported (file_path of each frame)")
+
+
+def validate_scene_for_dynamic(scene: Scene, config: ExperimentConfig):
+    """Unless ``config.train.dynamic`` is off, refuse what the dynamic set cannot learn from, before any
+    work (docs/dataset_format.md §5): motion masks on only some frames, or moving pixels in frames that
+    all share one time."""
+    from d2gs_np.base.checks import name_items
+
+    if config.train.dynamic == "off":
+        return
+    lacking = scene.frames_without_masks
+    if lacking:
+        raise ValueError(
+            f"{len(lacking)} of the {scene.num_frames} training frames {'has' if len(lacking) == 1 else 'have'} "
+            "no motion mask ("
+            f"{name_items([f'frame {i} ({scene.frames[i].file_path})' for i in lacking])}) while the others have one, "
+            "and the dynamic set needs a mask on every frame: add mask_path to those frames (an all-zero mask where "
+            "nothing moves), or train without the dynamic set (--dynamic off)")
+    times = {f.time for f in scene.frames}
+    if len(times) == 1 and scene.has_moving_pixels:
+        raise ValueError(
+            f"all {scene.num_frames} training frames have time {scene.frames[0].time:g}, but the motion masks mark "
+            "moving pixels and the deformation model needs each frame's time: give frame k of N the time k / (N - 1) "
+            "in transforms.json, or train without the dynamic set (--dynamic off)")
 
 
 class Trainer:
@@ -198,6 +228,7 @@ class Trainer:
                  overwrite: bool = False):
         check_run_folder(run_dir, resume, overwrite)
         validate_scene_for_training(scene)
+        validate_scene_for_dynamic(scene, config)
         self.scene, self.config, self.frames = scene, config, scene.frames
         self.run_dir, self.resume = Path(run_dir), resume
         self._opened = False  # whether the run has written into run_dir (_open_run_folder)
@@ -211,6 +242,8 @@ class Trainer:
         # What the run models decides which loss terms apply (no dynamic set: no L_ts); their
         # notes wait for the log, whose columns follow the terms.
         pending = []
+        # the input's warnings (printed when issued: docs/dataset_format.md §5), kept in the run log
+        pending += [f"warning: {m}" for m in scene.warnings + config.train.lr.implausible()]
         if resume:
             ckpt = self._resumed_from = latest_checkpoint(self.run_dir)
             saved = load_checkpoint(ckpt)  # read once: the components here, the rest in _restore

@@ -7,6 +7,8 @@ import numpy as np
 import pytest
 from scipy.spatial.transform import Rotation
 
+from d2gs_np.base.checks import SceneWarning
+from d2gs_np.constants import RIGID_TOL
 from d2gs_np.data.io import load_scene, write_scene
 from d2gs_np.data.scene import Frame, Scene
 from d2gs_np.geometry.camera import cam_T_world_to_opengl_c2w, make_intrinsics
@@ -143,7 +145,8 @@ def test_frames_sorted_by_time(tmp_path):
     times = [0.9, 0.1, 0.5, 0.1, 0.0]
     scene = _scene(rng, n=5, full=False, times=times)
     write_scene(scene, tmp_path / "s")
-    loaded = load_scene(tmp_path / "s")
+    with pytest.warns(SceneWarning, match=r"frames\[1\] \('images/0001.png'\) and frames\[3\] .* share time 0.1;"):
+        loaded = load_scene(tmp_path / "s")
     assert [f.time for f in loaded.frames] == sorted(times)
     # Stable: of the two frames at t = 0.1, file order (frame 1 before frame 3) is kept
     assert [f.file_path for f in loaded.frames] == [f"images/{i:04d}.png" for i in (4, 1, 3, 2, 0)]
@@ -488,3 +491,259 @@ def test_mask_threshold_at_127(scene_dir):
     cv2.imwrite(str(root / "masks" / "0000.png"), m)
     mask = load_scene(root).frames[0].mask
     assert mask[0, :4].tolist() == [False, False, True, True] and mask.sum() == 2
+
+
+# ------------------------------------------------------------------ plausibility (issue #41)
+def _no_warnings():
+    """A context in which any warning fails the test."""
+    import warnings
+    ctx = warnings.catch_warnings()
+    ctx.__enter__()
+    warnings.simplefilter("error")
+    return ctx
+
+
+def test_clean_scene_loads_without_warnings(scene_dir):
+    root, _ = scene_dir
+    ctx = _no_warnings()
+    try:
+        load_scene(root)
+    finally:
+        ctx.__exit__(None, None, None)
+
+
+def _masks_as(root, fn):
+    for p in sorted((root / "masks").glob("*.png")):
+        cv2.imwrite(str(p), fn(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)))
+
+
+def test_zero_one_masks_read_as_the_0_255_ones(scene_dir):
+    root, scene = scene_dir
+    _masks_as(root, lambda m: (m > 127).astype(np.uint8))
+    loaded = load_scene(root)
+    for a, b in zip(scene.frames, loaded.frames):
+        np.testing.assert_array_equal(b.mask, a.mask)
+    assert loaded.has_moving_pixels
+
+
+def test_one_bit_masks_read_as_bool(scene_dir):
+    """A bool array saved by Pillow is a 1-bit greyscale PNG."""
+    from PIL import Image
+    root, scene = scene_dir
+    for f in scene.frames:
+        Image.fromarray(f.mask).save(root / f.mask_path)
+    assert (root / scene.frames[0].mask_path).read_bytes()[24] == 1  # bit depth 1
+    for a, b in zip(scene.frames, load_scene(root).frames):
+        np.testing.assert_array_equal(b.mask, a.mask)
+
+
+def test_masks_of_neither_encoding_refused(scene_dir):
+    root, _ = scene_dir
+    _masks_as(root, lambda m: (m > 127).astype(np.uint8) * 127)  # 127: static under the > 127 rule
+    with pytest.raises(ValueError, match="brightest pixel of the scene's motion masks, 127: neither 0/255"):
+        load_scene(root)
+    load_scene(root, load_images=False)  # the pixels are not read: nothing to say
+
+
+def test_a_zero_one_mask_among_0_255_ones_is_warned(scene_dir):
+    root, scene = scene_dir
+    cv2.imwrite(str(root / "masks" / "0002.png"), scene.frames[2].mask.astype(np.uint8))
+    with pytest.warns(SceneWarning, match=r"the masks of transforms.json frames\[2\] .* hold only 0 and 1"):
+        loaded = load_scene(root)
+    assert not loaded.frames[2].mask.any()
+
+
+def test_frames_without_masks(scene_dir):
+    root, _ = scene_dir
+    assert load_scene(root).frames_without_masks == []
+    _edit_json(root, lambda d: [d["frames"][i].pop("mask_path") for i in (0, 2)])
+    assert load_scene(root).frames_without_masks == [0, 2]
+    assert load_scene(root, load_images=False).frames_without_masks == [0, 2]
+    _edit_json(root, lambda d: [f.pop("mask_path", None) for f in d["frames"]])
+    assert load_scene(root).frames_without_masks == []  # no masks at all: a static scene
+
+
+def test_duplicate_entry_refused_in_either_spelling(scene_dir):
+    root, _ = scene_dir
+    _edit_json(root, lambda d: d["frames"].append(dict(d["frames"][0], file_path="./images/0000.png", time=0.5)))
+    with pytest.raises(ValueError, match=r"frames\[4\] \('./images/0000.png'\) repeats frames\[0\]"):
+        load_scene(root)
+
+
+def test_test_views_may_share_a_time(scene_dir):
+    root, _ = scene_dir
+    _edit_json(root, lambda d: [f.update(time=0.3) for f in d["frames"]], name="transforms_test.json")
+    ctx = _no_warnings()
+    try:
+        load_scene(root, load_images=False)
+    finally:
+        ctx.__exit__(None, None, None)
+
+
+@pytest.mark.parametrize("fx, fy, outcome", [
+    (20.0, 21.5, None),  # the fixture's: 44 x 31 deg
+    (0.5, 21.5, "warn"),  # 172.8 deg over 16 px
+    (1000.0, 21.5, "warn"),  # 0.92 deg
+    (0.05, 21.5, "refuse"),  # 179.4 deg: below 0.0698 px
+    (20.0, 1e6, "refuse"),  # 6.9e-4 deg over 12 px
+])
+def test_focal_length_plausibility(scene_dir, fx, fy, outcome):
+    root, _ = scene_dir
+    _edit_json(root, lambda d: d.update(fl_x=fx, fl_y=fy))
+    _edit_json(root, lambda d: d.update(fl_x=fx, fl_y=fy), name="transforms_test.json")
+    if outcome == "refuse":
+        with pytest.raises(ValueError, match=r"transforms.json frames\[0\] .*: fl_[xy] = .* px is (below|above) "
+                                             r".* px, a .* deg field of view .*not a focal length in pixels"):
+            load_scene(root, load_images=False)
+    elif outcome == "warn":
+        with pytest.warns(SceneWarning, match=r"transforms(_test)?.json: all \d frames: fl_x, fl_y = .* outside the "
+                                              r"\[1, 170\] deg of a video camera") as record:
+            load_scene(root, load_images=False)
+        assert [str(w.message).split(":")[0] for w in record] == ["transforms.json", "transforms_test.json"]
+    else:
+        ctx = _no_warnings()
+        try:
+            load_scene(root, load_images=False)
+        finally:
+            ctx.__exit__(None, None, None)
+
+
+def test_focal_length_bounds_are_the_fields_of_view(scene_dir):
+    """The refusal bounds printed are the focal lengths of a 179 deg and a 0.01 deg view: just inside
+    them loads (with a warning), just outside is refused."""
+    root, _ = scene_dir
+    lo, hi = W / (2 * np.tan(np.radians(179.0) / 2)), W / (2 * np.tan(np.radians(0.01) / 2))
+    for fx, ok in ((lo * 1.001, True), (lo * 0.999, False), (hi * 0.999, True), (hi * 1.001, False)):
+        _edit_json(root, lambda d: d.update(fl_x=fx))
+        if ok:
+            with pytest.warns(SceneWarning):
+                load_scene(root, load_images=False)
+        else:
+            with pytest.raises(ValueError, match="not a focal length in pixels"):
+                load_scene(root, load_images=False)
+
+
+def test_principal_point_plausibility(scene_dir):
+    root, _ = scene_dir
+    _edit_json(root, lambda d: d["frames"][1].update(cx=-3.0))
+    with pytest.warns(SceneWarning, match=r"transforms.json: frames\[1\] \('images/0001.png'\): principal point "
+                                          r"cx = -3 px lies outside the image \(0 to 16 px"):
+        load_scene(root, load_images=False)
+    _edit_json(root, lambda d: d["frames"][1].update(cx=-16.0 * 5.01))
+    with pytest.raises(ValueError, match=r"frames\[1\] .*principal point cx = -80.16 px lies 5.01 image widths "
+                                         r"outside"):
+        load_scene(root, load_images=False)
+    _edit_json(root, lambda d: d["frames"][1].update(cx=-16.0 * 4.99))
+    with pytest.warns(SceneWarning):
+        load_scene(root, load_images=False)
+
+
+def _centres_scene(tmp_path, centres):
+    rng = np.random.default_rng(7)
+    scene = _scene(rng, n=len(centres), full=False)
+    for f, c in zip(scene.frames, centres):
+        f.cam_T_world[:3, 3] = -f.cam_T_world[:3, :3] @ np.asarray(c, float)  # camera centre c
+    write_scene(scene, tmp_path / "s")
+    return tmp_path / "s"
+
+
+def test_far_camera_warned_absurd_one_refused(tmp_path):
+    line = [(0.1 * k, 0.0, 3.0) for k in range(6)]  # spread: median distance 0.15 from the median centre
+    root = _centres_scene(tmp_path, line[:5] + [(20.25, 0.0, 3.0)])
+    with pytest.warns(SceneWarning, match=r"the camera centre of frames\[5\] \('images/0005.png'\) at 20 from "
+                                          r"the cameras' median centre, up to 133 x their spread \(0.15"):
+        load_scene(root, load_images=False)
+    ctx = _no_warnings()
+    try:  # 15 x the spread: a plausible path
+        load_scene(_centres_scene(tmp_path / "ok", line[:5] + [(2.5, 0.0, 3.0)]), load_images=False)
+    finally:
+        ctx.__exit__(None, None, None)
+    root = _centres_scene(tmp_path / "absurd", line[:5] + [(0.0, 2e6, 3.0)])
+    with pytest.raises(ValueError, match=r"frames\[5\] .* at 2e\+06 .* beyond the 1e\+06 x refused"):
+        load_scene(root, load_images=False)
+
+
+def test_tripod_cameras_measure_the_spread_from_the_origin(tmp_path):
+    """Cameras that do not move have no spread: 1/1000 of their distance from the origin stands in."""
+    root = _centres_scene(tmp_path, [(0.0, 0.0, 3.0)] * 4 + [(0.0, 0.1, 3.0)])
+    ctx = _no_warnings()
+    try:  # 0.1 from the others = 33 x 0.003
+        load_scene(root, load_images=False)
+    finally:
+        ctx.__exit__(None, None, None)
+    root = _centres_scene(tmp_path / "far", [(0.0, 0.0, 3.0)] * 4 + [(0.0, 1.0, 3.0)])
+    with pytest.warns(SceneWarning, match=r"up to 333 x their spread \(0.003"):
+        load_scene(root, load_images=False)
+
+
+def _round_poses(root, decimals, name="transforms.json"):
+    def fn(d):
+        for f in d["frames"]:
+            for key in ("transform_matrix", "gt_transform_matrix", "gt_exposure_start", "gt_exposure_end"):
+                if key in f:
+                    f[key] = np.round(np.array(f[key]), decimals).tolist()
+    _edit_json(root, fn, name=name)
+
+
+def test_poses_rounded_to_6_decimals_are_projected_to_rotations(tmp_path):
+    rng = np.random.default_rng(11)
+    scene = _scene(rng, n=12)  # 12 frames x 4 poses: some are off by more than RIGID_TOL once rounded
+    write_scene(scene, tmp_path / "s")
+    root = tmp_path / "s"
+    _round_poses(root, 6)
+    _round_poses(root, 6, name="transforms_test.json")
+    with pytest.warns(SceneWarning, match=r"re-orthonormalised the poses of \d+ frame\(s\) .* largest deviation "
+                                          r"[12]\.\de-06") as record:
+        loaded = load_scene(root, load_images=False)
+    assert len(record) == 1  # said once for the scene
+    for a, b in zip(scene.frames + scene.test_frames, loaded.frames + loaded.test_frames):
+        for attr in ("cam_T_world", "gt_cam_T_world", "gt_exposure_start", "gt_exposure_end"):
+            x, y = getattr(a, attr), getattr(b, attr)
+            if x is None:
+                continue
+            R = y[:3, :3]
+            assert np.abs(R.T @ R - np.eye(3)).max() <= RIGID_TOL and abs(np.linalg.det(R) - 1) <= RIGID_TOL
+            # rounding moved each entry by <= 5e-7; the projection keeps the rotation within 1e-6 of the
+            # original, and the camera centre (the exported translation, kept) within the rounding
+            assert np.abs(R - x[:3, :3]).max() <= 1e-6
+            centre = lambda T: -np.linalg.solve(T[:3, :3], T[:3, 3])  # noqa: E731 (R may be off by RIGID_TOL)
+            assert np.abs(centre(y) - centre(x)).max() <= 5e-7 + POSE_TOL
+
+
+def test_poses_within_rigid_tol_are_kept_bitwise(scene_dir):
+    root, _ = scene_dir
+    before = load_scene(root, load_images=False)
+    _round_poses(root, 12)  # off by 5e-13: rigid already
+    ctx = _no_warnings()
+    try:
+        after = load_scene(root, load_images=False)
+    finally:
+        ctx.__exit__(None, None, None)
+    for a, b in zip(before.frames, after.frames):
+        c2w = np.round(cam_T_world_to_opengl_c2w(a.cam_T_world), 12)
+        from d2gs_np.geometry.camera import opengl_c2w_to_cam_T_world
+        np.testing.assert_array_equal(b.cam_T_world, opengl_c2w_to_cam_T_world(c2w))
+
+
+def test_rounding_tolerance_admits_4_decimals_not_3(scene_dir):
+    root, _ = scene_dir
+    _round_poses(root, 4)
+    with pytest.warns(SceneWarning, match="re-orthonormalised"):
+        load_scene(root, load_images=False)
+    _round_poses(root, 2)  # up to 2.6e-2 off: a scale or shear
+    with pytest.raises(ValueError, match=r"is not rigid: the singular values of R .* a scale or shear"):
+        load_scene(root, load_images=False)
+
+
+def test_warnings_are_issued_once_the_scene_is_read_and_kept_on_it(scene_dir):
+    root, scene = scene_dir
+    cv2.imwrite(str(root / "images" / "0001.png"), np.zeros((H, W, 3), np.uint8))  # a blank frame
+    _edit_json(root, lambda d: d["frames"][3].update(time=d["frames"][2]["time"]))
+    with pytest.warns(SceneWarning) as record:
+        loaded = load_scene(root)
+    assert [str(w.message) for w in record] == loaded.warnings
+    assert loaded.warnings[0].startswith("transforms.json: frames[2] ('images/0002.png') and frames[3] "
+                                         "('images/0003.png') share time")
+    assert loaded.warnings[1].startswith("transforms.json: frames[1] ('images/0001.png') is one flat colour")
+    with pytest.warns(SceneWarning):
+        assert load_scene(root, load_images=False).warnings == loaded.warnings[:1]  # pixels not read

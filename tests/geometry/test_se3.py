@@ -13,11 +13,11 @@ import math
 import numpy as np
 import pytest
 
-from d2gs_np.constants import LOG_SYMMETRIC_BRANCH_COS, SERIES_ANGLE2
+from d2gs_np.constants import LOG_SYMMETRIC_BRANCH_COS, POSE_ROUNDING_TOL, RIGID_TOL, SERIES_ANGLE2
 from d2gs_np.geometry import quaternion
 from d2gs_np.geometry.se3 import (
-    check_rigid, matrix_grad_to_left_tangent, se3_adjoint, se3_compose, se3_exp, se3_interpolate,
-    se3_inverse, se3_left_jacobian, se3_left_jacobian_inv, se3_log, se3_right_jacobian,
+    check_rigid, matrix_grad_to_left_tangent, nearest_rigid, rigid_deviation, se3_adjoint, se3_compose, se3_exp,
+    se3_interpolate, se3_inverse, se3_left_jacobian, se3_left_jacobian_inv, se3_log, se3_right_jacobian,
     se3_right_jacobian_inv,
 )
 
@@ -407,3 +407,109 @@ def test_check_rigid_accepts_valid_and_slightly_drifted_poses():
     drifted[:3, :3] += 1e-9 * rng.normal(size=(3, 3))  # well inside RIGID_TOL = 1e-6
     check_rigid(drifted, "T")
     check_rigid(np.eye(4), "T")
+
+
+# --- nearest_rigid: poses rigid up to the rounding of an export ----------------------------------
+# Rounded to 6 decimals, each entry is off by <= 5e-7; the nearest rotation is within a few of those.
+ROUNDED6_TOL = 1e-6
+PROJECTED_TOL = 1e-14  # the SVD projection's result is orthonormal to a few ulps (test_so3.ORTHO_TOL)
+
+
+def _rounded_poses(angles, rng, n=400):
+    """Poses with rotation angles drawn from ``angles`` about random axes, random translations ~3,
+    and their 6-decimal roundings."""
+    axes = rng.normal(size=(n, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    xi = np.concatenate([3.0 * rng.normal(size=(n, 3)), axes * rng.choice(angles, size=(n, 1))], axis=1)
+    T = se3_exp(xi)
+    return T, np.round(T, 6)
+
+
+@pytest.mark.parametrize("regime, angles", [
+    ("near_zero", [0.0, 1e-12, 1e-8, 1e-4]),
+    ("near_pi", [math.pi, math.pi - 1e-12, math.pi - 1e-8, math.pi - 1e-4]),
+    ("random", np.linspace(0.1, 3.0, 30)),
+])
+def test_nearest_rigid_gives_back_a_rotation_from_6_decimals(regime, angles):
+    T, rounded = _rounded_poses(angles, np.random.default_rng(41))
+    out, dev = nearest_rigid(rounded, "poses")
+    fixed = dev > RIGID_TOL
+    if regime == "near_zero":
+        # R_ji = -R_ij off the diagonal and round(-x) = -round(x): the rounding error is skew, so
+        # R^T R - I = E + E^T vanishes to first order and nothing leaves RIGID_TOL
+        assert not fixed.any()
+    else:
+        assert 0 < fixed.sum() < len(T)  # some roundings leave RIGID_TOL, the ones within it are kept
+    np.testing.assert_array_equal(out[~fixed], rounded[~fixed])
+    assert rigid_deviation(out[fixed]).max(initial=0.0) <= PROJECTED_TOL
+    assert np.linalg.det(out[fixed, :3, :3]).min(initial=1.0) > 0
+    np.testing.assert_array_equal(out[:, :3, 3], rounded[:, :3, 3])  # translations kept
+    assert np.abs(out[:, :3, :3] - T[:, :3, :3]).max() <= ROUNDED6_TOL
+    check_rigid(out[fixed], "projected")
+    # near pi the rotation angle stays near pi (no jump to the other side of the cut)
+    cos = np.clip((np.trace(out[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)
+    cos_true = np.clip((np.trace(T[:, :3, :3], axis1=1, axis2=2) - 1) / 2, -1, 1)
+    assert np.abs(np.arccos(cos) - np.arccos(cos_true)).max() <= 2e-3  # arccos is steep at the ends
+
+
+@pytest.mark.parametrize("angle", [0.0, 1e-10, 1e-6, math.pi - 1e-10, math.pi])
+def test_nearest_rigid_projects_drifted_rotations_near_0_and_pi(angle):
+    """Entry noise of 1e-5 (not skew): projected to a rotation, which keeps the skew part of the noise
+    only, so it stays within the noise of the truth, and its angle near 0 or near pi."""
+    rng = np.random.default_rng(44)
+    axes = rng.normal(size=(50, 3))
+    axes /= np.linalg.norm(axes, axis=1, keepdims=True)
+    T = se3_exp(np.concatenate([rng.normal(size=(50, 3)), angle * axes], axis=1))
+    noise = 1e-5 * rng.normal(size=(50, 3, 3))
+    drifted = T.copy()
+    drifted[:, :3, :3] += noise
+    out, dev = nearest_rigid(drifted, "T")
+    assert dev.min() > RIGID_TOL and rigid_deviation(out).max() <= PROJECTED_TOL
+    assert np.abs(out[:, :3, :3] - T[:, :3, :3]).max() <= np.abs(noise).max()
+    phi = np.linalg.norm(se3_log(out)[:, 3:], axis=1)
+    # the kept skew part, |entries| <= max |noise| ~ 4e-5, turns the rotation by at most ~sqrt(2) of that
+    assert np.abs(phi - angle).max() <= 1e-4
+
+
+def test_nearest_rigid_keeps_rigid_poses_bitwise_and_reports_deviation():
+    rng = np.random.default_rng(42)
+    T = se3_exp(regime_xis("random", rng, 6))
+    out, dev = nearest_rigid(T, "T")
+    np.testing.assert_array_equal(out, T)
+    assert dev.shape == (6,) and dev.max() <= 1e-14
+    drifted = _valid_pose()
+    drifted[:3, :3] += 2e-4 * rng.normal(size=(3, 3))
+    out, dev = nearest_rigid(drifted, "T")
+    assert RIGID_TOL < dev <= POSE_ROUNDING_TOL and rigid_deviation(out) <= PROJECTED_TOL
+
+
+@pytest.mark.parametrize(
+    "bad, pattern",
+    [
+        (np.diag([1.0, 1.0, -1.0, 1.0]) @ _valid_pose(), r"not rigid: det\(R\) = -1 <= 0, a reflection"),
+        (np.diag([1.002, 1.0, 1.0, 1.0]) @ _valid_pose(), r"not rigid: the singular values of R are in \[1, 1.002\]"),
+        (_with(_valid_pose(), bottom=2e-3), r"not rigid: bottom row"),
+        (np.zeros((4, 4)), r"det\(R\) = 0 <= 0"),
+        (_with(_valid_pose(), nan=np.nan), "NaN"),
+        (np.eye(3), "shape"),
+    ],
+    ids=["reflection", "scale", "bottom_row", "singular", "nan", "shape"],
+)
+def test_nearest_rigid_refuses_what_is_not_a_rotation(bad, pattern):
+    with pytest.raises(ValueError, match=pattern) as info:
+        nearest_rigid(bad, "c2w")
+    assert str(info.value).startswith("c2w ")
+
+
+def test_nearest_rigid_tolerance_is_both_orthogonality_products():
+    """R R^T - I and R^T R - I differ off orthogonal: the loader inverts its poses, so both count."""
+    rng = np.random.default_rng(43)
+    for _ in range(200):
+        M = _valid_pose()
+        M[:3, :3] += 1e-6 * rng.normal(size=(3, 3))
+        R = M[:3, :3]
+        a, b = np.abs(R.T @ R - np.eye(3)).max(), np.abs(R @ R.T - np.eye(3)).max()
+        assert rigid_deviation(M) >= max(a, b)
+        out, _ = nearest_rigid(M, "T")
+        check_rigid(out, "T")
+        check_rigid(se3_inverse(out), "inverse")
