@@ -37,7 +37,7 @@ from d2gs_np.train import prune as prune_rules
 from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.densify import add_grad_stats, densify, init_grad_stats
 from d2gs_np.train.log import psnr_from_mse
-from d2gs_np.train.optimise import size_extent
+from d2gs_np.train.learning_rates import size_extent
 from d2gs_np.train.rows import SETS, num_rows
 from d2gs_np.train.state import TrainState, entered_period
 
@@ -121,7 +121,7 @@ class Prune(Plugin):
 
     def __init__(self, config: ExperimentConfig, extent: float, masks):
         # the oversized rule's unit: the camera extent until on_init measures the scene's size
-        # (optimise.size_extent) from the initial points
+        # (learning_rates.size_extent) from the initial points
         self.config, self.extent = config, extent
         self.masks = list(masks)  # (H, W) bool per frame, or None each
         self.has_masks = all(m is not None for m in self.masks)  # as Scene.has_masks

@@ -7,7 +7,7 @@ One step (``Trainer.step``, then the plugins in ``Trainer.run``):
              of n renders along the exposure (docs/method.md §4), else one sharp render;
   losses     the loss terms (``train/terms.py``, docs/method.md §6), weighted and summed;
   backward   their cotangents back through the render to every parameter block;
-  optimiser  Adam on the blocks the stage trains (``train/optimise.py``, docs/method.md §8);
+  optimiser  Adam on the blocks the stage trains (``train/learning_rates.py``, docs/method.md §8);
   plugins    ``on_step(state) -> state`` on the training state (``train/state.py``): held-out
              evaluation, densification statistics, pruning, densification, then any plugin
              passed in (``train/plugins.py``);
@@ -48,8 +48,8 @@ from d2gs_np.train.components import Components, composition_notes, decide_compo
 from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.log import RunLog, Stopwatch, psnr_from_mse
 from d2gs_np.train.model import Model, frame_render_bwd, frame_render_fwd
-from d2gs_np.train.optimise import (centre_endpoint_grads, learning_rates, optimiser_step, position_extent,
-                                    scene_extent)
+from d2gs_np.train.learning_rates import (centre_endpoint_grads, learning_rates, optimiser_step,
+                                          position_extent, scene_extent)
 from d2gs_np.train.plugins import DepthMemory
 from d2gs_np.train.setup import default_plugins
 from d2gs_np.train.pose_solver import HISTORY_FILE

@@ -478,7 +478,7 @@ def test_prune_removes_oversized_and_escaped_gaussians_and_keeps_state_in_step(d
 
 
 def test_position_rates_take_the_scene_size_as_their_unit(dynamic_scene, tmp_path):
-    from d2gs_np.train.optimise import scene_extent, size_extent
+    from d2gs_np.train.learning_rates import scene_extent, size_extent
 
     camera = Trainer(dynamic_scene, _config(iters=2, lr=LearningRates(means_unit="camera")), tmp_path / "camera")
     scene = Trainer(dynamic_scene, _config(iters=2), tmp_path / "scene")  # the default
@@ -499,7 +499,7 @@ def test_position_rates_take_the_scene_size_as_their_unit(dynamic_scene, tmp_pat
 
 
 def test_size_extent_follows_the_scene_when_the_camera_barely_moves():
-    from d2gs_np.train.optimise import scene_extent, size_extent
+    from d2gs_np.train.learning_rates import scene_extent, size_extent
 
     rng = np.random.default_rng(0)
     # forward-facing: camera centres within 0.1 of the origin, points on a wall 5 units away

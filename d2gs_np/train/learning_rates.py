@@ -92,7 +92,7 @@ def block_learning_rate(name: str, lr: LearningRates, extent: float, iters: int,
     if kind in _RATE_FIELDS:
         return _constant_or_decay(getattr(lr, kind), lr.final_ratio, iters)
     raise ValueError(f"no learning rate for block {name!r}: add a field {kind!r} to LearningRates "
-                     "(train/config.py), or a rule for the block to block_learning_rate (train/optimise.py)")
+                     "(train/config.py), or a rule for the block to block_learning_rate (train/learning_rates.py)")
 
 
 def _constant_or_decay(rate: float, final_ratio: float, iters: int):
