@@ -1,4 +1,4 @@
-"""The optimiser step of training: Adam over named blocks with a learning rate per block kind.
+"""Learning rates per parameter block, and the optimiser step of training that applies them (Adam).
 
 Learning-rate policy (3DGS's, docs/method.md §8), decided per block from its name:
 
