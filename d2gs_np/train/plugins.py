@@ -11,7 +11,7 @@ plugins fire when the schedule step enters a new period (``state.entered_period`
 follow a time budget (docs/method.md §7).
 
 The default list (``train/setup.py``, ``default_plugins``), in order:
-1. ``Evaluate``: held-out PSNR on the model the optimiser produced, before pruning and
+1. ``HeldOutPSNR``: held-out PSNR on the model the optimiser produced, before pruning and
    densification change it;
 2. ``GradientStatistics``: accumulates densification's screen-space gradients (before pruning
    removes rows);
@@ -41,7 +41,7 @@ from d2gs_np.train.learning_rates import size_extent
 from d2gs_np.train.rows import SETS, num_rows
 from d2gs_np.train.state import TrainState, entered_period
 
-__all__ = ["Plugin", "Evaluate", "GradientStatistics", "Prune", "Densify", "NeighbourRefresh", "DepthMemory"]
+__all__ = ["Plugin", "HeldOutPSNR", "GradientStatistics", "Prune", "Densify", "NeighbourRefresh", "DepthMemory"]
 
 
 class Plugin:
@@ -67,12 +67,12 @@ class Plugin:
         pass
 
 
-class Evaluate(Plugin):
+class HeldOutPSNR(Plugin):
     """Held-out PSNR every ``every`` steps and at the last: sharp renders at the optimised
     mid-exposure poses against the sharp frames (if the scene has them), on ``num_frames`` evenly
     spaced frames at full resolution. Recorded as ``heldout_psnr`` (None without sharp frames)."""
 
-    name = "evaluate"
+    name = "heldout_psnr"
     timed = False
 
     def __init__(self, scene, every: int, num_frames: int):

@@ -2,7 +2,7 @@
 from __future__ import annotations
 
 from d2gs_np.train.config import ExperimentConfig
-from d2gs_np.train.plugins import Densify, Evaluate, GradientStatistics, Prune
+from d2gs_np.train.plugins import Densify, GradientStatistics, HeldOutPSNR, Prune
 from d2gs_np.train.pose_solver import PoseSolver, use_pose_solver
 
 __all__ = ["default_plugins"]
@@ -14,7 +14,7 @@ def default_plugins(scene, config: ExperimentConfig, extent: float, note=None, r
     tc = config.train
     plugins = []
     if tc.eval_every:
-        plugins.append(Evaluate(scene, tc.eval_every, tc.eval_frames))
+        plugins.append(HeldOutPSNR(scene, tc.eval_every, tc.eval_frames))
     if config.densify.enabled:
         plugins.append(GradientStatistics(config.densify.absgrad))
     if tc.prune_every:

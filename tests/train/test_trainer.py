@@ -328,8 +328,8 @@ def test_heldout_is_evaluated_before_pruning_and_densification(dynamic_scene, tm
 
     counts, seen = [], []
     tr = Trainer(dynamic_scene, cfg, tmp_path / "run", plugins=[Count()])
-    evaluate = next(p for p in tr.plugins if p.name == "evaluate")
-    monkeypatch.setattr(evaluate, "heldout_psnr", lambda model: seen.append(model.num_gaussians()) or 20.0)
+    heldout = next(p for p in tr.plugins if p.name == "heldout_psnr")
+    monkeypatch.setattr(heldout, "heldout_psnr", lambda model: seen.append(model.num_gaussians()) or 20.0)
     after_adam, step = [], tr.step
 
     def step_then_count(*args):  # the number of Gaussians the Adam step left
