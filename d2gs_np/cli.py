@@ -124,7 +124,8 @@ def _load_config(args):
 
 def _cmd_train(args):
     from d2gs_np.data.io import load_scene
-    from d2gs_np.train.trainer import Trainer, TrainingInterrupted, check_run_folder
+    from d2gs_np.train.run_folder import check_run_folder
+    from d2gs_np.train.trainer import Trainer, TrainingInterrupted
 
     check_output_path(args.out, "--out")
     cfg = _load_config(args)  # config errors before the scene is read

@@ -15,6 +15,7 @@ import numpy as np
 import pytest
 
 from d2gs_np.cli import main
+from d2gs_np.train import run_folder
 from d2gs_np.train import trainer as trainer_module
 from d2gs_np.train.checkpoint import load_checkpoint, load_checkpoint_meta, save_checkpoint
 
@@ -366,7 +367,7 @@ def test_sigkill_at_random_moments_then_resume_loses_at_most_one_checkpoint_peri
     plan = [plan[i] for i in rng.permutation(len(plan))]
     kills = []
     for moment in plan:
-        latest = trainer_module.latest_checkpoint(run) if run.exists() else None
+        latest = run_folder.latest_checkpoint(run) if run.exists() else None
         start = _step_of(latest) if latest is not None else 0
         how = ["--resume"] if latest is not None else (["--overwrite"] if run.exists() else [])
         started = time.time()
@@ -382,7 +383,7 @@ def test_sigkill_at_random_moments_then_resume_loses_at_most_one_checkpoint_peri
         proc.wait()
         proc.stderr.close()
         done = max(_logged_steps(run), default=-1) + 1 if (run / "log.csv").exists() else 0
-        latest = trainer_module.latest_checkpoint(run) if run.exists() else None
+        latest = run_folder.latest_checkpoint(run) if run.exists() else None
         kept = _step_of(latest) if latest is not None else 0
         kills.append((moment[0], start, done, kept))
         # never behind the state it resumed from; nothing lost beyond the last checkpoint period
