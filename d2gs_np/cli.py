@@ -140,7 +140,7 @@ def _cmd_train(args):
         raise KeyboardInterrupt(f"{e}; continue with: {_resume_command(args)}") from None
     except KeyboardInterrupt:  # before the first write into the run folder (Trainer._open_run_folder)
         raise KeyboardInterrupt(f"before training started; nothing in {args.out} was changed") from None
-    print(f"trained {result['steps']} steps in {result['train_seconds']:.1f}s; run in {args.out}")
+    print(f"trained {result.steps} steps in {result.train_seconds:.1f}s; run in {args.out}")
     return trainer
 
 

@@ -140,4 +140,4 @@ def test_a_training_step_runs_no_validation(scene, tmp_path, monkeypatch):
                          (trajectory, "_check_params")):
         monkeypatch.setattr(module, name, forbidden)
     info = tr.step(0)
-    assert np.isfinite(info["loss"])
+    assert np.isfinite(info.loss)

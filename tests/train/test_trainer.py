@@ -44,7 +44,7 @@ def dynamic_scene():
 def test_training_reduces_the_loss(sharp_scene, tmp_path):
     cfg = _config(iters=60, progressive=False, warmup_fraction=0.0, deform_fraction=0.0)
     tr = Trainer(sharp_scene, cfg, tmp_path / "run")
-    first = np.mean([tr.step(s)["loss"] for s in range(6)])  # one epoch at the initial state
+    first = np.mean([tr.step(s).loss for s in range(6)])  # one epoch at the initial state
     tr.step_index = 6
     tr.run()
     last = np.mean([r["loss"] for r in tr.log.rows[-6:]])
@@ -122,7 +122,7 @@ def test_time_budget_stops_early_and_keeps_the_result(sharp_scene, tmp_path):
     cfg = _config(iters=10_000, time_budget=1e-9)
     tr = Trainer(sharp_scene, cfg, tmp_path / "run")
     result = tr.run()
-    assert result["steps"] < 10_000
+    assert result.steps < 10_000
     assert (tmp_path / "run" / "final.npz").exists()
     assert any("time budget" in n for n in tr.log.notes)
 
@@ -217,7 +217,7 @@ def test_only_the_trained_frame_moves_its_camera_endpoints(dynamic_scene, tmp_pa
     before = tr.params["camera.xi_start"].copy()
     info = tr.step(0)
     moved = np.flatnonzero(np.any(tr.params["camera.xi_start"] != before, axis=1))
-    np.testing.assert_array_equal(moved, [info["frame"]])
+    np.testing.assert_array_equal(moved, [info.frame])
 
 
 def test_warmup_survives_frames_whose_ssim_interior_is_all_moving(dynamic_scene, tmp_path):
@@ -404,7 +404,7 @@ def test_a_loss_term_added_to_the_list_enters_the_total_the_gradient_and_the_log
     pulled.terms.append(OpacityPull())
     before = pulled.params["static.opacity_logits"].copy()
     a, b = plain.step(0), pulled.step(0)
-    assert b["loss"] == a["loss"] + 0.5 * b["loss_pull"] and b["loss_pull"] == float(np.mean(before))
+    assert b.loss == a.loss + 0.5 * b.losses["pull"] and b.losses["pull"] == float(np.mean(before))
     assert not np.array_equal(plain.params["static.opacity_logits"], pulled.params["static.opacity_logits"])
     np.testing.assert_array_equal(plain.params["static.colors"], pulled.params["static.colors"])
 
@@ -417,7 +417,7 @@ def test_a_time_budget_buys_a_finished_schedule(dynamic_scene, tmp_path):
     cfg = cfg.replace(blur=dataclasses.replace(cfg.blur, n_schedule="fixed"))
     tr = Trainer(dynamic_scene, cfg, tmp_path / "run")
     out = tr.run()
-    assert out["steps"] < 10000
+    assert out.steps < 10000
     rows = tr.log.rows
     assert rows[-1]["scale"] == 1.0, rows[-1]
     assert rows[0]["scale"] < 1.0
