@@ -16,7 +16,7 @@ import pytest
 
 from d2gs_np.cli import main
 from d2gs_np.train import run_folder
-from d2gs_np.train import setup as setup_module
+from d2gs_np.train import setup as train_setup
 from d2gs_np.train import trainer as trainer_module
 from d2gs_np.train.checkpoint import load_checkpoint, load_checkpoint_meta, save_checkpoint
 
@@ -118,7 +118,7 @@ def test_case1_a_setup_that_fails_with_overwrite_leaves_the_run_as_it_was(traine
     def fails(*args, **kwargs):
         raise ValueError("initialisation failed (test)")
 
-    monkeypatch.setattr(setup_module.Model, "from_scene", fails)  # the long set-up, after every check
+    monkeypatch.setattr(train_setup.Model, "from_scene", fails)  # the long set-up, after every check
     assert main(["train", str(scene), "--out", str(run), "--overwrite", "--config", str(cfg), "--quiet"]) == 2
     _one_line_error(capsys, "initialisation failed")
     assert _snapshot(run) == before
