@@ -128,7 +128,8 @@ def _load_config(args):
 
 def _cmd_train(args):
     from d2gs_np.data.io import load_scene
-    from d2gs_np.train.trainer import Trainer, TrainingInterrupted, check_run_folder
+    from d2gs_np.train.run_folder import check_run_folder
+    from d2gs_np.train.trainer import Trainer, TrainingInterrupted
 
     check_output_path(args.out, "--out")
     cfg = _load_config(args)  # config errors before the scene is read
@@ -143,7 +144,7 @@ def _cmd_train(args):
         raise KeyboardInterrupt(f"{e}; continue with: {_resume_command(args)}") from None
     except KeyboardInterrupt:  # before the first write into the run folder (Trainer._open_run_folder)
         raise KeyboardInterrupt(f"before training started; nothing in {args.out} was changed") from None
-    print(f"trained {result['steps']} steps in {result['train_seconds']:.1f}s; run in {args.out}")
+    print(f"trained {result.steps} steps in {result.train_seconds:.1f}s; run in {args.out}")
     return trainer
 
 

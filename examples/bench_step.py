@@ -84,12 +84,12 @@ def main(argv=None):
         print("losses_sha256", hashlib.sha256(repr([r["loss"] for r in rows]).encode()).hexdigest())
         arrays, _ = load_checkpoint(out / "run" / "final.npz")
         print("params_sha256", digest({k[len("params/"):]: v for k, v in arrays.items() if k.startswith("params/")}))
-        print("num_gaussians", repr(int(rows[-1]["num_gaussians"])), "steps", repr(result["steps"]))
+        print("num_gaussians", repr(int(rows[-1]["num_gaussians"])), "steps", repr(result.steps))
         secs = [r["seconds"] for r in rows]
         per_step = np.diff([0.0] + secs)[args.skip:]
         print(f"init_seconds {t_init:.3f}")
         print(f"step_seconds mean {float(np.mean(per_step)):.5f} median {statistics.median(per_step):.5f} "
-              f"over {len(per_step)} steps; train_seconds {result['train_seconds']:.3f}")
+              f"over {len(per_step)} steps; train_seconds {result.train_seconds:.3f}")
     finally:
         if not args.out:
             shutil.rmtree(out, ignore_errors=True)

@@ -486,7 +486,7 @@ def _binarise_masks(pairs):
 
 def _flat_image_warnings(pairs):
     """A training frame whose image is one flat colour (a blank export?) is warned about; every frame
-    flat is refused by training (``train.trainer.validate_scene_for_training``)."""
+    flat is refused by training (``train.setup.validate_scene_for_training``)."""
     flat = [s for s, f in pairs if f.image is not None and np.all(f.image == f.image[0, 0])]
     if not flat:
         return []

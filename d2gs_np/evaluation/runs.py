@@ -30,7 +30,7 @@ from d2gs_np.pose.fit import fit_pose
 from d2gs_np.scene.render_inputs import render_inputs_fwd
 from d2gs_np.train.checkpoint import atomic_write_text, check_output_path, load_checkpoint
 from d2gs_np.train.model import SCENE_PREFIXES, Model
-from d2gs_np.train.trainer import CHECKPOINT_NAME, FINAL_NAME, METRICS_NAME, check_scene_of_run
+from d2gs_np.train.run_folder import CHECKPOINT_NAME, FINAL_NAME, METRICS_NAME, check_scene_of_run
 
 
 @dataclass

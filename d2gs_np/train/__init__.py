@@ -1,3 +1,4 @@
-"""Training: the model (model.py), its loss terms (terms.py), step plugins (plugins.py) and the
-trainer that runs them (trainer.py); configuration, stages, progressive schedule, densification,
-pruning, run log and atomic checkpoints."""
+"""Training: the model (model.py), its loss terms (terms.py), step plugins (plugins.py), the run's
+set-up (setup.py) and the trainer that runs the steps (trainer.py); configuration, stages,
+progressive schedule, learning rates, densification, pruning, the run folder, run log and atomic
+checkpoints."""

@@ -120,11 +120,12 @@ class LearningRates:
     # the camera extent: 29.38 -> 28.92 dB), so the default stays 1.
     final_ratio: float = 1.0
     # The length that scales the position rates (means, deform): "camera", 3DGS's camera extent
-    # (train.optimise.scene_extent), or "scene", the scene's size (train.optimise.size_extent: the
-    # larger of that and 1.1 x the 90th percentile distance of the initial points from the cameras'
-    # mean). A hand-held camera moves little against the depth it sees (the suite: camera extents
-    # 0.3-0.8 against walls 5-6 away), so in camera units a Gaussian moved ~0.003 px a step and
-    # ~1 000 CPU steps left the positions where the initialisation put them.
+    # (train.learning_rates.scene_extent), or "scene", the scene's size
+    # (train.learning_rates.size_extent: the larger of that and 1.1 x the 90th percentile distance
+    # of the initial points from the cameras' mean). A hand-held camera moves little against the
+    # depth it sees (the suite: camera extents 0.3-0.8 against walls 5-6 away), so in camera units
+    # a Gaussian moved ~0.003 px a step and ~1 000 CPU steps left the positions where the
+    # initialisation put them.
     means_unit: str = "scene"
 
     def __post_init__(self):

@@ -14,7 +14,6 @@ from __future__ import annotations
 import csv
 import json
 import math
-import os
 import sys
 import time
 from pathlib import Path
@@ -46,12 +45,12 @@ class Stopwatch:
 
 
 class RunLog:
-    """The run's log; ``extra_fields`` are columns after LOG_FIELDS (the trainer adds one per loss
-    term, ``loss_<name>``, the term's unweighted value)."""
+    """The run's log; ``extra_fields`` are columns after LOG_FIELDS (``add_columns``: the set-up
+    adds one per loss term, ``loss_<name>``, the term's unweighted value)."""
 
     def __init__(self, run_dir, quiet: bool = False, resume: bool = False, extra_fields=()):
         self.run_dir = Path(run_dir)
-        self.fields = tuple(LOG_FIELDS) + tuple(f for f in extra_fields if f not in LOG_FIELDS)
+        self.fields = tuple(LOG_FIELDS)
         self.rows: list = []
         self.notes: list = []  # (seconds, message): what was left out and why, stage changes, ...
         self.quiet = quiet
@@ -59,9 +58,16 @@ class RunLog:
         # Nothing is written until the first row or ``truncate`` (the trainer's first write into
         # the run folder): a setup that fails leaves an earlier run's log as it was.
         self._started = False
+        self.add_columns(extra_fields)
         if resume and (self.run_dir / "log.json").exists():
             data = json.loads((self.run_dir / "log.json").read_text())
             self.rows, self.notes = data.get("rows", []), data.get("notes", [])
+
+    def add_columns(self, names):
+        """Columns after the present ones (those already there are skipped); before the first row."""
+        if self._started:
+            raise RuntimeError("RunLog.add_columns after the log was started: add the columns before the first row")
+        self.fields += tuple(n for n in names if n not in self.fields)
 
     def note(self, message: str):
         """A decision or event in words (also printed)."""

@@ -312,9 +312,10 @@ def frame_render_fwd(model: Model, k: int, K, width: int, height: int, static_on
 
 
 def frame_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth=None, rng=None):
-    """Backward of ``frame_render_fwd``: (v_params, aux). v_params is keyed by block (every block
-    the forward used, dense); aux["v_means2d"] (M, 2) is the screen-space gradient of each rendered
-    Gaussian's mean in full-resolution pixels (summed over sub-frames), for densification.
+    """Backward of ``frame_render_fwd``: (v_params, v_means2d, v_means2d_abs). v_params is keyed
+    by block (every block the forward used, dense); v_means2d (M, 2) is the screen-space gradient
+    of each rendered Gaussian's mean in full-resolution pixels (summed over sub-frames), for
+    densification, and v_means2d_abs (M, 2) the same as sums of absolute per-pixel terms.
 
     With ``blur.backward_views = m`` (0 < m < the forward's n views) the backward runs through m
     views drawn by ``blur.views.backward_subset`` from ``rng`` (a numpy Generator; required then): an
@@ -340,7 +341,7 @@ def frame_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_dept
         v_means2d = g["means2d"] * saved["ratio"]
         v_means2d_abs = g["means2d_abs"] * saved["ratio"]
         v_p, _ = _render_inputs_bwd(saved["scene"], {n: g[n] for n in RENDER_FIELDS})
-    return v_p, {"v_means2d": v_means2d, "v_means2d_abs": v_means2d_abs}
+    return v_p, v_means2d, v_means2d_abs
 
 
 def _short(info: dict) -> str:

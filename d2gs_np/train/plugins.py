@@ -1,17 +1,27 @@
-"""Step plugins: what runs after the optimiser step, in order, on the training state.
+"""Step plugins: what runs after the optimiser step, in order, on the training state; and the
+run context they are built with.
 
 A plugin has a ``name``, ``on_step(state) -> state`` (``train/state.py``), and, when it keeps
 anything between steps, ``state_dict()`` / ``load_state_dict(d)``: the trainer checkpoints it
-(arrays under ``plugins/<name>/<key>``, other values as JSON), so a resumed run is exact even
-when the plugin changes the model. ``rows(params)`` declares per-row statistics it keeps in
-``state.rows`` (zero at the start); any change in the number of Gaussians goes through
-``state.resize_rows`` so parameters, Adam state and statistics stay in step. ``timed = False``
-pauses the training stopwatch around the plugin (evaluation is not training time). Periodic
-plugins fire when the schedule step enters a new period (``state.entered_period``), so they
-follow a time budget (docs/method.md §7).
+(``plugin_states``: arrays under ``plugins/<name>/<key>``, other values as JSON), so a resumed
+run is exact even when the plugin changes the model. ``rows(params)`` declares per-row
+statistics it keeps in ``state.rows`` (zero at the start); any change in the number of Gaussians
+goes through ``state.resize_rows`` so parameters, Adam state and statistics stay in step.
+``on_init(model)`` runs once on a fresh run's initial model. ``timed = False`` pauses the
+training stopwatch around the plugin (evaluation is not training time). Periodic plugins fire
+when the schedule step enters a new period (``state.entered_period``), so they follow a time
+budget (docs/method.md §7).
+
+A plugin talks to the rest of the step through the state's named fields: it reads the step's
+``state.record`` (``StepRecord``: loss, frame, scale, ...) and ``state.screen_grads``
+(``ScreenGrads``), and adds to the record with ``state.record.replace(...)``. What it needs of
+the run (its scene, config, folder, the camera extent, and ``note``: a line into the run log) it
+gets when built, from the run's ``RunContext``: the set-up (``train/setup.py``) passes the
+context's fields to the plugins it builds, and calls each builder given to the trainer (a class
+or function of the context) with it.
 
 The default list (``train/setup.py``, ``default_plugins``), in order:
-1. ``Evaluate``: held-out PSNR on the model the optimiser produced, before pruning and
+1. ``HeldOutPSNR``: held-out PSNR on the model the optimiser produced, before pruning and
    densification change it;
 2. ``GradientStatistics``: accumulates densification's screen-space gradients (before pruning
    removes rows);
@@ -25,23 +35,41 @@ before those passed to the trainer.
 """
 from __future__ import annotations
 
-from typing import Optional
+from dataclasses import dataclass
+from pathlib import Path
+from typing import Callable, Optional
 
 import numpy as np
 
 from d2gs_np.pose.correspond import correspondences
 from d2gs_np.losses.smoothness import knn
+from d2gs_np.data.scene import Scene
 from d2gs_np.scene import gaussians
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
 from d2gs_np.train import prune as prune_rules
 from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.densify import add_grad_stats, densify, init_grad_stats
 from d2gs_np.train.log import psnr_from_mse
-from d2gs_np.train.optimise import size_extent
+from d2gs_np.train.learning_rates import size_extent
 from d2gs_np.train.rows import SETS, num_rows
 from d2gs_np.train.state import TrainState, entered_period
 
-__all__ = ["Plugin", "Evaluate", "GradientStatistics", "Prune", "Densify", "NeighbourRefresh", "DepthMemory"]
+__all__ = ["RunContext", "Plugin", "plugin_states", "load_plugin_states", "HeldOutPSNR", "GradientStatistics", "Prune",
+           "Densify", "NeighbourRefresh", "DepthMemory"]
+
+PLUGINS_KEY = "plugins/"  # a plugin's arrays in a checkpoint: plugins/<name>/<key>
+
+
+@dataclass(frozen=True)
+class RunContext:
+    """What a plugin may use of the run it is built for (module docstring); one per run, made by
+    the set-up (``train/setup.py``)."""
+
+    scene: Scene
+    config: ExperimentConfig
+    run_dir: Path  # the run folder: written from the first step on, never during the set-up
+    note: Callable[[str], None]  # a line into the run log (printed too unless train.quiet)
+    extent: float  # the camera extent (learning_rates.scene_extent), the unit of the size rules
 
 
 class Plugin:
@@ -67,12 +95,34 @@ class Plugin:
         pass
 
 
-class Evaluate(Plugin):
+def plugin_states(plugins):
+    """(arrays, meta) of every plugin's ``state_dict`` for a checkpoint: arrays under
+    ``plugins/<name>/<key>``, other values in meta[name][key] (JSON)."""
+    arrays, meta = {}, {}
+    for p in plugins:
+        for key, v in p.state_dict().items():
+            if isinstance(v, np.ndarray):
+                arrays[f"{PLUGINS_KEY}{p.name}/{key}"] = v
+            else:
+                meta.setdefault(p.name, {})[key] = v
+    return arrays, meta
+
+
+def load_plugin_states(plugins, arrays, meta):
+    """Inverse of ``plugin_states``: each plugin's ``load_state_dict`` with what the checkpoint
+    (``arrays``, ``meta``) holds for it (empty if nothing)."""
+    for p in plugins:
+        prefix = f"{PLUGINS_KEY}{p.name}/"
+        p.load_state_dict({**meta.get(p.name, {}),
+                           **{k[len(prefix):]: v for k, v in arrays.items() if k.startswith(prefix)}})
+
+
+class HeldOutPSNR(Plugin):
     """Held-out PSNR every ``every`` steps and at the last: sharp renders at the optimised
     mid-exposure poses against the sharp frames (if the scene has them), on ``num_frames`` evenly
     spaced frames at full resolution. Recorded as ``heldout_psnr`` (None without sharp frames)."""
 
-    name = "evaluate"
+    name = "heldout_psnr"
     timed = False
 
     def __init__(self, scene, every: int, num_frames: int):
@@ -81,7 +131,7 @@ class Evaluate(Plugin):
     def on_step(self, state):
         if not (self.every and (state.step % self.every == 0 or state.last)):
             return state
-        return state.replace(record={**state.record, "heldout_psnr": self.heldout_psnr(state.model)})
+        return state.replace(record=state.record.replace(heldout_psnr=self.heldout_psnr(state.model)))
 
     def heldout_psnr(self, model) -> Optional[float]:
         if not self.scene.has_sharp:
@@ -100,17 +150,18 @@ class GradientStatistics(Plugin):
     name = "gradient_statistics"
 
     def __init__(self, absgrad: bool = False):
-        self.key = "v_means2d_abs" if absgrad else "v_means2d"  # DensifyConfig.absgrad
+        self.absgrad = bool(absgrad)  # DensifyConfig.absgrad
 
     def rows(self, params):
         return init_grad_stats(params)
 
     def on_step(self, state):
-        if self.key not in state.aux:  # a step without loss
+        g = state.screen_grads
+        if g is None:  # a step without loss
             return state
-        v = state.aux[self.key]
-        visible = (np.asarray(state.aux["radii"]).reshape(len(v), -1) > 0).all(axis=1)
-        return state.replace(rows=add_grad_stats(state.rows, v, visible.astype(np.float64), state.aux["num_static"]))
+        v = g.v_means2d_abs if self.absgrad else g.v_means2d
+        visible = (np.asarray(g.radii).reshape(len(v), -1) > 0).all(axis=1)
+        return state.replace(rows=add_grad_stats(state.rows, v, visible.astype(np.float64), g.num_static))
 
 
 class Prune(Plugin):
@@ -121,7 +172,7 @@ class Prune(Plugin):
 
     def __init__(self, config: ExperimentConfig, extent: float, masks):
         # the oversized rule's unit: the camera extent until on_init measures the scene's size
-        # (optimise.size_extent) from the initial points
+        # (learning_rates.size_extent) from the initial points
         self.config, self.extent = config, extent
         self.masks = list(masks)  # (H, W) bool per frame, or None each
         self.has_masks = all(m is not None for m in self.masks)  # as Scene.has_masks
@@ -246,7 +297,9 @@ class DepthMemory(Plugin):
 
     - The matches of the video (``correspond.correspondences`` with the pose solver's settings,
       cached in the run folder, so the solver and the term compute them once), by frame:
-      ``partners(f)`` lists (g, pts_f, pts_g) for every used pair of f.
+      ``partners(f)`` lists (g, pts_f, pts_g) for every used pair of f. Computed (or read from
+      the cache) at the first step, as the pose solver's: the set-up writes nothing into the run
+      folder (``train/setup.py``).
       ``matches``, a list of (k, j, pts_k, pts_j), replaces them (matches of your own, tests).
     - Each frame's rendered depth from its own last step (``store``; NaN where alpha is below
       POSE_DEPTH_ALPHA_MIN) with the render's scale (sx, sy) to full-resolution pixels, read by
@@ -278,9 +331,6 @@ class DepthMemory(Plugin):
             self._by_frame = self._index([(p.k, p.j, p.pts_k, p.pts_j) for p in corr.used])
             self.note(f"L_reproj: {sum(p.num_matches for p in corr.used)} matches in {len(corr.used)} frame pairs")
         return self._by_frame
-
-    def on_init(self, model):
-        self._pairs()
 
     def partners(self, f):
         """[(g, pts_f (M, 2), pts_g (M, 2)), ...]: the matches of frame f with each partner g."""

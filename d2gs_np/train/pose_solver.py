@@ -162,7 +162,7 @@ class PoseSolver(Plugin):
         self.history.append(entry)
         if self.run_dir is not None:
             atomic_write_text(self.run_dir / HISTORY_FILE, json.dumps(self.history, indent=1))
-        return state.replace(record={**state.record, "pose_solver": entry})
+        return state.replace(record=state.record.replace(pose_solver=entry))
 
     def refine(self, state: TrainState):
         """(state with refined poses, a summary dict) of one solver call."""

@@ -9,10 +9,14 @@ Persistent part (checkpointed, so a resumed run is exact):
 
 The step's part, set by the loop before the plugins run: ``step``, ``sched`` (the step the
 schedules were read at), ``prev_sched`` (the one the periods compare against), ``stage``,
-``record`` (the step's record: loss, loss terms, train PSNR, ...; plugins add to it, e.g.
-``heldout_psnr``), ``aux`` (what the step's backward exposes: the screen-space mean gradients
-``v_means2d`` and ``v_means2d_abs`` (M, 2) in full-resolution pixels, ``radii``, ``num_static``; empty for a step
-without loss) and ``last`` (the run's last step: iterations done or time budget spent).
+``last`` (the run's last step: iterations done or time budget spent), and the step's two
+channels, each a record with named fields:
+- ``record`` (``StepRecord``): what the step did (frame, render scale and size, loss, each loss
+  term's value, train PSNR); plugins add theirs with ``record.replace`` (``heldout_psnr``,
+  ``pose_solver``); the log row is written from it;
+- ``screen_grads`` (``ScreenGrads``): what the step's backward exposes, the screen-space mean
+  gradients and which Gaussians were visible (densification's statistics read them); None for a
+  step without loss.
 
 The state is immutable: a plugin returns ``state.replace(...)`` (or ``state.resize_rows(...)``)
 and never edits arrays in place.
@@ -29,9 +33,41 @@ from d2gs_np.train import rows as rows_mod
 from d2gs_np.train.model import Model
 from d2gs_np.train.stages import Stage
 
-__all__ = ["TrainState", "entered_period"]
+__all__ = ["TrainState", "StepRecord", "ScreenGrads", "entered_period"]
 
 ADAM_KEY = "adam/"
+
+
+@dataclass(frozen=True)
+class StepRecord:
+    """What one step did (``Trainer.step``); its log row is written from it."""
+
+    step: int
+    frame: int  # the frame trained on
+    stage: str  # the stage's name (train/stages.py)
+    scale: float  # the render scale
+    width: int  # render size, pixels
+    height: int
+    views: int = 0  # virtual views rendered: n with the blur model, else 1; 0 for a step without loss
+    loss: float = float("nan")  # the weighted sum of the terms; NaN for a step without loss (no pixel carried any)
+    train_psnr: float = float("nan")  # of the render against its target, on the pixels that carry loss
+    losses: dict = field(default_factory=dict)  # term name -> its unweighted value (log column loss_<name>)
+    heldout_psnr: Optional[float] = None  # plugins.HeldOutPSNR on its steps (None also without sharp frames)
+    pose_solver: Optional[dict] = None  # pose_solver.PoseSolver on its steps: the summary of its call
+
+    def replace(self, **changes) -> "StepRecord":
+        return dataclasses.replace(self, **changes)
+
+
+@dataclass(frozen=True, eq=False)
+class ScreenGrads:
+    """What a step's backward exposes to the plugins, for the M rendered Gaussians (static rows
+    first): densification's statistics (``plugins.GradientStatistics``) read it."""
+
+    v_means2d: np.ndarray  # (M, 2) screen-space gradient of each mean, full-resolution pixels, summed over sub-frames
+    v_means2d_abs: np.ndarray  # (M, 2) the same as sums of absolute per-pixel terms (DensifyConfig.absgrad)
+    radii: np.ndarray  # (M, 2) the render's radii (max over sub-frames); 0: not visible
+    num_static: int  # rows [0, num_static) are the static set's, the others the dynamic set's
 
 
 @dataclass(frozen=True, eq=False)
@@ -44,8 +80,8 @@ class TrainState:
     sched: int = -1
     prev_sched: int = -1
     stage: Optional[Stage] = None
-    record: dict = field(default_factory=dict)
-    aux: dict = field(default_factory=dict)
+    record: Optional[StepRecord] = None
+    screen_grads: Optional[ScreenGrads] = None
     last: bool = False
 
     @property

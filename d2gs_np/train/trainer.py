@@ -1,4 +1,5 @@
-"""The trainer: runs the steps, and owns the run's log, checkpoints and time budget.
+"""The trainer: runs the steps of a run set up by ``train/setup.py``, and owns its log rows,
+checkpoints and time budget.
 
 One step (``Trainer.step``, then the plugins in ``Trainer.run``):
   sample     stage, frame and render scale (``train/stages.py``), the target at that scale
@@ -7,23 +8,25 @@ One step (``Trainer.step``, then the plugins in ``Trainer.run``):
              of n renders along the exposure (docs/method.md §4), else one sharp render;
   losses     the loss terms (``train/terms.py``, docs/method.md §6), weighted and summed;
   backward   their cotangents back through the render to every parameter block;
-  optimiser  Adam on the blocks the stage trains (``train/optimise.py``, docs/method.md §8);
-  plugins    ``on_step(state) -> state`` on the training state (``train/state.py``): held-out
-             evaluation, densification statistics, pruning, densification, then any plugin
-             passed in (``train/plugins.py``);
-then a log row, a checkpoint every ``checkpoint_every`` steps or ``checkpoint_seconds`` of wall
-clock, and a clean stop when the time budget is spent. A checkpoint holds the model, Adam's state,
-per-row statistics, the schedule clock, every plugin's ``state_dict`` and the scene's record
-(``data.fingerprint``), so a resumed run continues bitwise as if never interrupted, and only on
-the frames it was trained on. New parts plug in without changing this loop: a regulariser is a
-loss term, a pose solver or a neighbour refresh a plugin, an initialisation rule
-``Model.from_scene``, a budget schedule a change of ``schedule.schedule_step``.
+  optimiser  Adam on the blocks the stage trains (``train/learning_rates.py``, docs/method.md §8);
+  plugins    ``on_step(state) -> state`` on the training state (``train/state.py``), which
+             carries the step's record (``StepRecord``) and screen-space gradients
+             (``ScreenGrads``): held-out PSNR, densification statistics, pruning,
+             densification, then any plugin passed in (``train/plugins.py``);
+then a log row from the step's record, a checkpoint every ``checkpoint_every`` steps or
+``checkpoint_seconds`` of wall clock, and a clean stop when the time budget is spent. A
+checkpoint holds the model, Adam's state, per-row statistics, the schedule clock, every plugin's
+``state_dict`` and the scene's record (``data.fingerprint``), so a resumed run continues bitwise
+as if never interrupted, and only on the frames it was trained on. New parts plug in without
+changing this loop: a regulariser is a loss term, a pose solver or a neighbour refresh a plugin,
+an initialisation rule ``Model.from_scene``, a budget schedule a change of
+``schedule.schedule_step``.
 
-The run folder is written only once setup is done (``Trainer._open_run_folder``): a new run's
-first act is its step-0 checkpoint, and only then are an earlier run's results in the folder
-(``overwrite``) removed; so a failed or interrupted setup leaves the folder as it was, and at no
-moment does it hold neither the old result nor a checkpoint of the new run. Ctrl-C during the
-steps finishes the step, writes a checkpoint and raises ``TrainingInterrupted``.
+The run folder is written only once the set-up is done (``Trainer._open_run_folder``): a new
+run's first act is its step-0 checkpoint, and only then are an earlier run's results in the
+folder (``overwrite``) removed; so a failed or interrupted set-up leaves the folder as it was,
+and at no moment does it hold neither the old result nor a checkpoint of the new run. Ctrl-C
+during the steps finishes the step, writes a checkpoint and raises ``TrainingInterrupted``.
 """
 from __future__ import annotations
 
@@ -32,41 +35,31 @@ import os
 import signal
 import threading
 import time
+from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
 
 import numpy as np
 
-from d2gs_np.data import fingerprint
 from d2gs_np.data.scene import Scene
-from d2gs_np.optim import adam
-from d2gs_np.pose.given import initial_poses
 from d2gs_np.render.api import warm_up
 from d2gs_np.scene.gaussians import STATIC, num_static
-from d2gs_np.train.checkpoint import atomic_write_text, load_checkpoint, load_checkpoint_meta, save_checkpoint
-from d2gs_np.train.components import Components, composition_notes, decide_components
+from d2gs_np.train.checkpoint import atomic_write_text, save_checkpoint
 from d2gs_np.train.config import ExperimentConfig
-from d2gs_np.train.log import RunLog, Stopwatch, psnr_from_mse
+from d2gs_np.train.learning_rates import centre_endpoint_grads, optimiser_step
+from d2gs_np.train.log import Stopwatch, psnr_from_mse
 from d2gs_np.train.model import Model, frame_render_bwd, frame_render_fwd
-from d2gs_np.train.optimise import (centre_endpoint_grads, learning_rates, optimiser_step, position_extent,
-                                    scene_extent)
-from d2gs_np.train.plugins import DepthMemory
-from d2gs_np.train.setup import default_plugins
+from d2gs_np.train.plugins import plugin_states
 from d2gs_np.train.pose_solver import HISTORY_FILE
-from d2gs_np.train.schedule import TargetCache, schedule_step, training_progress
-from d2gs_np.train.stages import Planner, make_stages
-from d2gs_np.train.state import TrainState
-from d2gs_np.train.terms import TermInputs, loss_terms, terms_fwd_bwd
+from d2gs_np.train.run_folder import CHECKPOINT_NAME, CONFIG_NAME, FINAL_NAME, METRICS_NAME, REPORT_NAME
+from d2gs_np.train.schedule import schedule_step, training_progress
+from d2gs_np.train.setup import set_up_run
+from d2gs_np.train.state import ScreenGrads, StepRecord
+from d2gs_np.train.terms import TermInputs, terms_fwd_bwd
 
-CHECKPOINT_NAME = "checkpoint.npz"
-FINAL_NAME = "final.npz"
-CONFIG_NAME = "config.json"
-METRICS_NAME = "metrics.json"  # written by evaluate.evaluate_run
-REPORT_NAME = "report.html"  # d2gs report's default output
 # Files of an earlier run that a new run in the same folder removes once its first checkpoint is
 # written (checkpoint.npz, config.json and the log it rewrites).
 REPLACED_RESULTS = (FINAL_NAME, METRICS_NAME, HISTORY_FILE, REPORT_NAME)
-PLUGINS_KEY = "plugins/"
 _BACKWARD_VIEWS_STREAM = 0xB1  # the seed stream of blur.backward_views' draws (apart from the frame order's)
 
 
@@ -74,71 +67,6 @@ def backward_views_rng(seed: int, step: int) -> np.random.Generator:
     """The generator a training step draws its backward's views from (``blur.backward_views``):
     a function of (seed, step) only, so a resumed run draws what the uninterrupted one drew."""
     return np.random.default_rng((seed, step, _BACKWARD_VIEWS_STREAM))
-
-
-def latest_checkpoint(run_dir):
-    """The checkpoint of a run with the most steps (final.npz or checkpoint.npz), or None."""
-    best, best_step = None, -1
-    for name in (CHECKPOINT_NAME, FINAL_NAME):
-        path = Path(run_dir) / name
-        if path.exists():
-            step = int(load_checkpoint_meta(path)["step"])
-            if step > best_step:
-                best, best_step = path, step
-    return best
-
-
-def check_run_folder(run_dir, resume: bool = False, overwrite: bool = False, flags=("resume=True", "overwrite=True")):
-    """Refuse, before any work, to train into ``run_dir`` where that would lose or mix results:
-    a folder that is not empty needs ``resume`` (go on from its latest checkpoint) or ``overwrite``
-    (replace it); ``resume`` needs a checkpoint there. ``flags``: how the message names the two
-    options (the CLI's ``--resume``, ``--overwrite``)."""
-    run_dir = Path(run_dir)
-    resume_flag, overwrite_flag = flags
-    if resume and overwrite:
-        raise ValueError(f"{resume_flag} continues the run in {run_dir} and {overwrite_flag} replaces it; give one "
-                         "of them")
-    if run_dir.exists() and not run_dir.is_dir():
-        raise ValueError(f"run folder {run_dir} exists and is not a folder; choose another output folder")
-    contents = sorted(p.name for p in run_dir.iterdir()) if run_dir.is_dir() else []
-    if resume:
-        if latest_checkpoint(run_dir) is None:
-            raise FileNotFoundError(f"{resume_flag}: no checkpoint in {run_dir}; train without {resume_flag} first"
-                                    + (f" ({overwrite_flag} to start over in it)" if contents else ""))
-    elif contents and not overwrite:
-        shown = ", ".join(contents[:6]) + (f" and {len(contents) - 6} more" if len(contents) > 6 else "")
-        raise ValueError(f"run folder {run_dir} is not empty ({shown}); pass {resume_flag} to continue its training "
-                         f"or {overwrite_flag} to replace it (kept until the new run's first checkpoint), or "
-                         "choose a new folder")
-
-
-def run_scene_record(meta: dict) -> dict:
-    """The record (``data.fingerprint.scene_record``) of the scene a checkpoint was trained on;
-    ``digest`` is None in checkpoints from before it was recorded."""
-    return {"times": list(meta["times"]), "sizes": list(zip(meta["width"], meta["height"])),
-            "digest": meta.get("scene_digest")}
-
-
-def check_scene_of_run(meta: dict, scene: Scene, run_dir, action: str, fix: str, record=None) -> list:
-    """Raise ValueError naming what differs when ``scene`` is not the scene of the run whose
-    checkpoint ``meta`` is (``action``: what was asked, ``fix``: what to do instead); else return
-    notes (another folder holding the same frames; a run without an image digest).
-    ``record``: the scene's ``fingerprint.scene_record`` if already computed."""
-    record = fingerprint.scene_record(scene) if record is None else record
-    saved_root = meta.get("scene_root")
-    diffs = fingerprint.differences(run_scene_record(meta), record)
-    if diffs:
-        where = f"scene {scene.root}" if scene.root is not None else "the scene"
-        raise ValueError(f"{action}: {where} is not the scene run {run_dir} was trained on"
-                         + (f" ({saved_root})" if saved_root else "") + f": {'; '.join(diffs)}; {fix}")
-    notes = []
-    if meta.get("scene_digest") is None:
-        notes.append("the run's checkpoint records no image digest (an older run): the scene was checked on frame "
-                     "count, times and image sizes only")
-    elif scene.root is not None and saved_root and Path(scene.root).resolve() != Path(saved_root):
-        notes.append(f"scene folder {Path(scene.root).resolve()} is not the run's ({saved_root}) but holds the same "
-                     "frames (image digest)")
-    return notes
 
 
 class TrainingInterrupted(KeyboardInterrupt):
@@ -175,116 +103,40 @@ def _interrupt_after_the_step():
         signal.signal(signal.SIGINT, previous if previous is not None else signal.default_int_handler)
 
 
-def validate_scene_for_training(scene: Scene):
-    if scene.num_frames < 2:
-        raise ValueError(f"training needs at least 2 frames; the scene has {scene.num_frames}")
-    for i, f in enumerate(scene.frames):
-        if f.image is None:
-            raise ValueError(f"frame {i} ({f.file_path}) has no image loaded; load the scene with load_images=True")
-        if f.image.shape != (f.height, f.width, 3):
-            raise ValueError(f"frame {i} ({f.file_path}) image has shape {f.image.shape}; expected {(f.height, f.width, 3)}")
-        if not np.all(np.isfinite(f.image)):
-            raise ValueError(f"frame {i} ({f.file_path}) image contains NaN or inf")
-    # every image one flat colour (a single flat frame: load_scene warns)
-    if all(np.all(f.image == f.image[0, 0]) for f in scene.frames):
-        colour = ", ".join(f"{v:.3g}" for v in scene.frames[0].image[0, 0])
-        raise ValueError(f"every training image is one flat colour (frame 0: RGB {colour}): there is nothing to "
-                         "reconstruct, and a render of the flat colour would score an infinite PSNR; check that the "
-                         "images were exported (file_path of each frame)")
+@dataclass(frozen=True)
+class RunResult:
+    """What ``Trainer.run`` did: the steps the run has done, its training seconds (JIT warm-up
+    and evaluation excluded) and the record of its last step (None when nothing was left to train)."""
 
-
-def validate_scene_for_dynamic(scene: Scene, config: ExperimentConfig):
-    """Unless ``config.train.dynamic`` is off, refuse what the dynamic set cannot learn from, before any
-    work (docs/dataset_format.md §5): motion masks on only some frames, or moving pixels in frames that
-    all share one time."""
-    from d2gs_np.base.checks import name_items
-
-    if config.train.dynamic == "off":
-        return
-    lacking = scene.frames_without_masks
-    if lacking:
-        raise ValueError(
-            f"{len(lacking)} of the {scene.num_frames} training frames {'has' if len(lacking) == 1 else 'have'} "
-            "no motion mask ("
-            f"{name_items([f'frame {i} ({scene.frames[i].file_path})' for i in lacking])}) while the others have one, "
-            "and the dynamic set needs a mask on every frame: add mask_path to those frames (an all-zero mask where "
-            "nothing moves), or train without the dynamic set (--dynamic off)")
-    times = {f.time for f in scene.frames}
-    if len(times) == 1 and scene.has_moving_pixels:
-        raise ValueError(
-            f"all {scene.num_frames} training frames have time {scene.frames[0].time:g}, but the motion masks mark "
-            "moving pixels and the deformation model needs each frame's time: give frame k of N the time k / (N - 1) "
-            "in transforms.json, or train without the dynamic set (--dynamic off)")
+    steps: int
+    train_seconds: float
+    last: Optional[StepRecord] = None
 
 
 class Trainer:
-    """Trains a model of ``scene`` with ``config`` into the folder ``run_dir``. A folder that is
-    not empty needs ``resume`` (go on from its latest checkpoint, on the same scene and config) or
-    ``overwrite`` (replace the run there; its files stay until the new run's first checkpoint).
-    ``plugins``: step plugins run after the default ones. Nothing is written into ``run_dir``
-    before ``run`` (or ``checkpoint``) is called."""
+    """Trains a model of ``scene`` with ``config`` into the folder ``run_dir``: the set-up
+    (``train/setup.py``, ``set_up_run``) builds everything the run trains with, and the trainer
+    keeps what it returns and only trains. A folder that is not empty needs ``resume`` (go on
+    from its latest checkpoint, on the same scene and config) or ``overwrite`` (replace the run
+    there; its files stay until the new run's first checkpoint). ``plugins``: step plugins run
+    after the default ones, each a plugin or a builder of one from the run's ``RunContext``
+    (``train/plugins.py``). Nothing is written into ``run_dir`` before ``run`` (or
+    ``checkpoint``) is called."""
 
     def __init__(self, scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resume: bool = False,
                  overwrite: bool = False):
-        check_run_folder(run_dir, resume, overwrite)
-        validate_scene_for_training(scene)
-        validate_scene_for_dynamic(scene, config)
+        run = set_up_run(scene, config, run_dir, plugins, resume, overwrite)
         self.scene, self.config, self.frames = scene, config, scene.frames
-        self.run_dir, self.resume = Path(run_dir), resume
+        self.run_dir, self.extent = run.context.run_dir, run.context.extent
+        self.log, self.terms, self.plugins = run.log, run.terms, run.plugins
+        self.state, self.step_index, self.stopwatch = run.state, run.step, Stopwatch(run.seconds)
+        self.position_extent, self.planner, self.adam_config = run.position_extent, run.planner, run.adam_config
+        self.cache, self.scene_record = run.cache, run.scene_record
+        self._resumed_from = run.resumed_from
         self._opened = False  # whether the run has written into run_dir (_open_run_folder)
-        self._saved_step, self._saved_path, self._last_save = None, None, time.perf_counter()
-        self.scene_record = fingerprint.scene_record(scene)
-        self.cache = TargetCache.from_scene(scene, mask_threshold=config.schedule.mask_threshold)
-        self.stopwatch = Stopwatch()
-        self.step_index = 0
-        self.extent = scene_extent(np.stack([f.cam_T_world for f in self.frames]).astype(np.float64),
-                                   scene.scene_scale)
-        # What the run models decides which loss terms apply (no dynamic set: no L_ts); their
-        # notes wait for the log, whose columns follow the terms.
-        pending = []
-        # the input's warnings (printed when issued: docs/dataset_format.md §5), kept in the run log
-        pending += [f"warning: {m}" for m in scene.warnings + config.train.lr.implausible()]
-        if resume:
-            ckpt = self._resumed_from = latest_checkpoint(self.run_dir)
-            saved = load_checkpoint(ckpt)  # read once: the components here, the rest in _restore
-            pending += self._check_resume(ckpt, saved[1])  # before any setup
-            components = Components(**saved[1]["components"])
-        else:
-            components = decide_components(scene, config, pending.append)
-        self.terms = loss_terms(config.loss, components, pending.append, scene=scene, run_dir=self.run_dir,
-                                pose_solver=config.pose_solver)
-        self.log = RunLog(self.run_dir, quiet=config.train.quiet, resume=resume,
-                          extra_fields=[f"loss_{t.name}" for t in self.terms])
-        for line in pending:
-            self.log.note(line)
-        # plugins that loss terms read from (term.plugins) run after the default ones; they were
-        # built before the log, so their later lines (L_reproj's match count) go to it from here
-        term_plugins = [p for t in self.terms for p in getattr(t, "plugins", ())]
-        for p in term_plugins:
-            if isinstance(p, DepthMemory):
-                p.note = self.log.note
-        self.plugins = (default_plugins(scene, config, self.extent, self.log.note, run_dir=self.run_dir)
-                        + term_plugins + list(plugins))
-        if resume:
-            self._restore(ckpt, *saved)
-        else:
-            for line in composition_notes([t.name for t in self.terms], [p.name for p in self.plugins]):
-                self.log.note(line)
-            model = Model.from_scene(scene, config, components, self.log.note,
-                                     poses=initial_poses(scene, config, self.log.note))
-            for p in self.plugins:
-                p.on_init(model)
-            self.state = TrainState(model, adam.adam_init(model.params), self._initial_rows(model.params))
-            # the position rates' length, from the initial points (kept in the checkpoints for a resume)
-            self.position_extent = position_extent(config.train.lr, self.extent, model.poses_est,
-                                                   model.params[f"{STATIC}.means"])
-            if config.train.lr.means_unit == "scene":
-                self.log.note(f"position learning rates in units of the scene's size {self.position_extent:.3g} "
-                              f"(camera extent {self.extent:.3g}; train.lr.means_unit)")
-        self.planner = Planner(config, [(f.width, f.height) for f in self.frames],
-                               make_stages(config.train, self.components.dynamic))
-        self.adam_config = learning_rates(self.params, config.train.lr, self.position_extent, config.train.iters,
-                                          len(self.frames), centred=self.components.centred)
+        # the latest checkpoint: its step and path (a resumed run's is the one it resumed)
+        self._saved_step, self._saved_path = (run.step, run.resumed_from) if run.resumed_from else (None, None)
+        self._last_save = time.perf_counter()
 
     # ------------------------------------------------------------------ views of the state
     @property
@@ -321,36 +173,31 @@ class Trainer:
     def left_out(self) -> list:
         return self.components.left_out([t.name for t in self.terms], [p.name for p in self.plugins])
 
-    def _initial_rows(self, params) -> dict:
-        rows = {}
-        for p in self.plugins:
-            rows.update(p.rows(params))
-        return rows
-
     # ------------------------------------------------------------------ one step
-    def step(self, step: int, sched: Optional[int] = None) -> dict:
-        """Sample, forward, losses, backward and optimiser of one step; returns the step's record.
-        ``sched`` is the step the schedules are read at (``schedule_step``: further along than
-        ``step`` when a time budget binds); default ``step``."""
+    def step(self, step: int, sched: Optional[int] = None) -> StepRecord:
+        """Sample, forward, losses, backward and optimiser of one step; returns the step's record
+        (``StepRecord``) and leaves its screen-space gradients in ``state.screen_grads``. ``sched``
+        is the step the schedules are read at (``schedule_step``: further along than ``step``
+        when a time budget binds); default ``step``."""
         plan = self.planner.plan(step, step if sched is None else sched)
         state, k = self.state, plan.frame
         tgt = self.cache.get(k, plan.scale)
-        record = {"step": step, "frame": k, "stage": plan.stage.name, "scale": plan.scale, "width": tgt.width,
-                  "height": tgt.height, "views": 0}
+        record = StepRecord(step=step, frame=k, stage=plan.stage.name, scale=plan.scale, width=tgt.width,
+                            height=tgt.height)
         # Moving pixels carry no loss while only the static set is rendered (warm-up stage).
         ignore = tgt.mask if (plan.stage.static_only and tgt.mask is not None) else None
         loss_mask = None if ignore is None else (~ignore).astype(state.params[f"{STATIC}.means"].dtype)
         if loss_mask is not None and not loss_mask.any():  # every pixel moving: nothing static to learn from
-            self.state = state.replace(aux={})
-            return {**record, "loss": float("nan"), "train_psnr": float("nan")}
+            self.state = state.replace(screen_grads=None)
+            return record  # loss and train PSNR NaN, no views
         out, saved = frame_render_fwd(state.model, k, tgt.K, tgt.width, tgt.height, plan.stage.static_only)
-        record["views"] = int(out["poses"].shape[0]) if "poses" in out else 1
+        views = int(out["poses"].shape[0]) if "poses" in out else 1
         inputs = TermInputs(out, tgt.image, loss_mask, state.model, k, plan.stage, tgt.mask)
         loss, values, v_render, v_terms = terms_fwd_bwd(self.terms, inputs)
         # The views a subset backward runs through (blur.backward_views) depend only on (seed, step),
         # so a resumed run draws the same ones.
         rng = backward_views_rng(self.config.train.seed, step)
-        grads, aux = frame_render_bwd(saved, **{f"v_{n}": v for n, v in v_render.items()}, rng=rng)
+        grads, v_means2d, v_means2d_abs = frame_render_bwd(saved, **{f"v_{n}": v for n, v in v_render.items()}, rng=rng)
         for n, g in v_terms.items():
             grads[n] = grads[n] + g if n in grads else g
         if self.components.centred:
@@ -359,22 +206,21 @@ class Trainer:
                                             k, plan.lr_scale)
         sq = (out["image"] - tgt.image) ** 2
         mse = float(np.mean(sq)) if ignore is None else float(np.mean(sq[~ignore]))
-        aux.update(radii=out["radii"], num_static=num_static(state.params))
-        self.state = state.replace(model=state.model.replace(params=params), adam=adam_state, aux=aux)
-        return {**record, "loss": float(loss), "train_psnr": psnr_from_mse(mse),
-                **{f"loss_{n}": v for n, v in values.items()}}
+        screen = ScreenGrads(v_means2d=v_means2d, v_means2d_abs=v_means2d_abs, radii=out["radii"],
+                             num_static=num_static(state.params))
+        self.state = state.replace(model=state.model.replace(params=params), adam=adam_state, screen_grads=screen)
+        return record.replace(views=views, loss=float(loss), train_psnr=psnr_from_mse(mse), losses=values)
 
     # ------------------------------------------------------------------ the loop
-    def run(self) -> dict:
-        """Train to the end of the schedule (or of the time budget); returns the last step's
-        record with ``steps`` and ``train_seconds``. Ctrl-C: ``TrainingInterrupted`` after a
-        checkpoint (module docstring)."""
+    def run(self) -> RunResult:
+        """Train to the end of the schedule (or of the time budget); returns the steps done, the
+        training seconds and the last step's record (``RunResult``). Ctrl-C:
+        ``TrainingInterrupted`` after a checkpoint (module docstring)."""
         tc = self.config.train
         total = tc.iters
         if self.step_index >= total:  # a resumed run that has nothing left to do: its folder stays as it is
             self.log.note(f"nothing to train: the run in {self.run_dir} is at step {self.step_index} of {total}")
-            return {"steps": self.step_index, "train_seconds": self.stopwatch.seconds(), "loss": float("nan"),
-                    "train_psnr": float("nan")}
+            return RunResult(self.step_index, self.stopwatch.seconds())
         t_start = time.perf_counter()
         warm_up(self.config.render)
         for term in self.terms:  # loss terms with kernels of their own (L_freq)
@@ -391,7 +237,7 @@ class Trainer:
         with _interrupt_after_the_step() as interrupted:
             try:
                 self._open_run_folder()
-                info = self._loop(interrupted)
+                record = self._loop(interrupted)
             except TrainingInterrupted:
                 raise
             except KeyboardInterrupt:  # a second Ctrl-C, mid-step: the last checkpoint stands
@@ -403,14 +249,14 @@ class Trainer:
             self.log.note(f"finished at step {self.step_index}: {self.stopwatch.seconds():.1f}s of training "
                           f"({wall:.1f}s wall including evaluation)")
             self.log.save()
-        return {"steps": self.step_index, "train_seconds": self.stopwatch.seconds(), **info}
+        return RunResult(self.step_index, self.stopwatch.seconds(), record)
 
-    def _loop(self, interrupted) -> dict:
-        """The steps from ``step_index`` to the end, then the final checkpoint (``run``);
-        ``interrupted``: non-empty once Ctrl-C was pressed."""
+    def _loop(self, interrupted) -> StepRecord:
+        """The steps from ``step_index`` to the end, then the final checkpoint (``run``); returns
+        the last step's record. ``interrupted``: non-empty once Ctrl-C was pressed."""
         tc = self.config.train
         total, budget = tc.iters, tc.time_budget
-        last_stage, info = None, {"loss": float("nan"), "train_psnr": float("nan")}
+        last_stage = None
         while self.step_index < total:
             step = self.step_index
             # The step the schedules are read at: the step itself, or further along when a time
@@ -422,13 +268,13 @@ class Trainer:
                                                                         if sched != step else ""))
                 last_stage = stage.name
             self.stopwatch.start()
-            info = self.step(step, sched)
+            record = self.step(step, sched)
             out_of_time = budget is not None and self.stopwatch.seconds() >= budget
             # Periodic plugins fire when the schedule step enters a new period (without a budget:
             # exactly at multiples of the period, as 3DGS).
             prev = self.state.last_sched if budget is not None else step - 1
             state = self.state.replace(step=step, sched=sched, prev_sched=prev, last_sched=sched, stage=stage,
-                                       record=info, last=step + 1 >= total or out_of_time)
+                                       record=record, last=step + 1 >= total or out_of_time)
             for plugin in self.plugins:
                 state = self._on_step(plugin, state)
             self.stopwatch.pause()
@@ -446,7 +292,7 @@ class Trainer:
                               f"{sched} of {total}: schedule complete); stopping")
                 break
         self.checkpoint(final=True)
-        return info
+        return self.state.record
 
     def _on_step(self, plugin, state):
         if plugin.timed:
@@ -458,17 +304,17 @@ class Trainer:
             self.stopwatch.start()
 
     def _log_row(self, state):
-        tc, info = self.config.train, state.record
-        heldout = info.get("heldout_psnr")
-        if state.step % tc.log_every == 0 or state.last or heldout is not None:
+        tc, record = self.config.train, state.record
+        if state.step % tc.log_every == 0 or state.last or record.heldout_psnr is not None:
             seconds = self.stopwatch.seconds()
             # how far the run is after this step: what a time budget has bought (1 when it is spent)
             progress = min(1.0, training_progress(state.step + 1, seconds, tc.iters, tc.time_budget))
-            self.log.row(step=state.step, seconds=round(seconds, 4), stage=state.stage.name, loss=info["loss"],
-                         train_psnr=info["train_psnr"], heldout_psnr=heldout, scale=round(info["scale"], 4),
-                         num_gaussians=self.num_gaussians(), progress=round(progress, 4),
-                         views=info.get("views"), **{f"loss_{t.name}": info.get(f"loss_{t.name}") for t in self.terms})
-            self.log.progress(self.step_index, tc.iters, seconds, info["loss"], info["train_psnr"], state.stage.name,
+            self.log.row(step=state.step, seconds=round(seconds, 4), stage=state.stage.name, loss=record.loss,
+                         train_psnr=record.train_psnr, heldout_psnr=record.heldout_psnr,
+                         scale=round(record.scale, 4), num_gaussians=self.num_gaussians(),
+                         progress=round(progress, 4), views=record.views,
+                         **{f"loss_{t.name}": record.losses.get(t.name) for t in self.terms})
+            self.log.progress(self.step_index, tc.iters, seconds, record.loss, record.train_psnr, state.stage.name,
                               fraction=progress)
 
     # ------------------------------------------------------------------ checkpoints
@@ -486,7 +332,7 @@ class Trainer:
         for name in (CHECKPOINT_NAME, FINAL_NAME, CONFIG_NAME, "log.json", HISTORY_FILE):
             for tmp in d.glob(f".{name}.*.tmp"):  # of an atomic write (train.checkpoint) a killed run left
                 tmp.unlink(missing_ok=True)
-        if self.resume:
+        if self._resumed_from is not None:
             final = d / FINAL_NAME
             if final.exists():
                 if final == self._resumed_from:
@@ -516,13 +362,8 @@ class Trainer:
 
     def _save(self, name: str, final: bool):
         arrays, meta = self.state.to_checkpoint()
-        meta["plugins"] = {}
-        for p in self.plugins:
-            for key, v in p.state_dict().items():
-                if isinstance(v, np.ndarray):
-                    arrays[f"{PLUGINS_KEY}{p.name}/{key}"] = v
-                else:
-                    meta["plugins"].setdefault(p.name, {})[key] = v
+        plugin_arrays, meta["plugins"] = plugin_states(self.plugins)
+        arrays.update(plugin_arrays)
         meta.update(step=self.step_index, seconds=self.stopwatch.seconds(), final=final, left_out=self.left_out(),
                     position_extent=self.position_extent,
                     scene_root=str(Path(self.scene.root).resolve()) if self.scene.root is not None else None,
@@ -530,32 +371,3 @@ class Trainer:
         path = self.run_dir / name
         save_checkpoint(path, arrays, meta)
         self._saved_step, self._saved_path, self._last_save = self.step_index, path, time.perf_counter()
-
-    def _check_resume(self, path, meta) -> list:
-        """Refuse to resume the checkpoint ``path`` with another config or scene; returns notes."""
-        saved_cfg = ExperimentConfig.from_dict(meta["config"])
-        # A resumed run continues the saved experiment: only the run length, housekeeping and output may change.
-        free = {"iters", "time_budget", "quiet", "checkpoint_every", "checkpoint_seconds"}
-        changed = [f"train.{k}" for k, v in self.config.train.__dict__.items()
-                   if k not in free and getattr(saved_cfg.train, k) != v]
-        changed += [k for k in saved_cfg.__dict__ if k != "train" and getattr(saved_cfg, k) != getattr(self.config, k)]
-        if changed:
-            raise ValueError(f"--resume with a config that differs from the saved run in {changed}; resume with the "
-                             f"run's own config (RUN/config.json), changing only {sorted(free)}")
-        return check_scene_of_run(meta, self.scene, path.parent, "--resume",
-                                  "resume with the run's scene, or start a new run (another --out, or --overwrite "
-                                  "to replace this one)", self.scene_record)
-
-    def _restore(self, path, arrays, meta):
-        params = {k[len("params/"):]: v for k, v in arrays.items() if k.startswith("params/")}
-        state = TrainState.from_checkpoint(arrays, meta, self._initial_rows(params))
-        self.state = state.replace(model=state.model.replace(config=self.config))
-        for p in self.plugins:
-            prefix = f"{PLUGINS_KEY}{p.name}/"
-            p.load_state_dict({**meta.get("plugins", {}).get(p.name, {}),
-                               **{k[len(prefix):]: v for k, v in arrays.items() if k.startswith(prefix)}})
-        self.position_extent = float(meta.get("position_extent", self.extent))
-        self.step_index = int(meta["step"])
-        self.stopwatch = Stopwatch(meta["seconds"])
-        self._saved_step, self._saved_path = self.step_index, path
-        self.log.note(f"resumed from {path} at step {self.step_index} ({meta['seconds']:.1f}s of training)")

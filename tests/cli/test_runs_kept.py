@@ -15,6 +15,8 @@ import numpy as np
 import pytest
 
 from d2gs_np.cli import main
+from d2gs_np.train import run_folder
+from d2gs_np.train import setup as train_setup
 from d2gs_np.train import trainer as trainer_module
 from d2gs_np.train.checkpoint import load_checkpoint, load_checkpoint_meta, save_checkpoint
 
@@ -116,7 +118,7 @@ def test_case1_a_setup_that_fails_with_overwrite_leaves_the_run_as_it_was(traine
     def fails(*args, **kwargs):
         raise ValueError("initialisation failed (test)")
 
-    monkeypatch.setattr(trainer_module.Model, "from_scene", fails)  # the long setup, after every check
+    monkeypatch.setattr(train_setup.Model, "from_scene", fails)  # the long set-up, after every check
     assert main(["train", str(scene), "--out", str(run), "--overwrite", "--config", str(cfg), "--quiet"]) == 2
     _one_line_error(capsys, "initialisation failed")
     assert _snapshot(run) == before
@@ -366,7 +368,7 @@ def test_sigkill_at_random_moments_then_resume_loses_at_most_one_checkpoint_peri
     plan = [plan[i] for i in rng.permutation(len(plan))]
     kills = []
     for moment in plan:
-        latest = trainer_module.latest_checkpoint(run) if run.exists() else None
+        latest = run_folder.latest_checkpoint(run) if run.exists() else None
         start = _step_of(latest) if latest is not None else 0
         how = ["--resume"] if latest is not None else (["--overwrite"] if run.exists() else [])
         started = time.time()
@@ -382,7 +384,7 @@ def test_sigkill_at_random_moments_then_resume_loses_at_most_one_checkpoint_peri
         proc.wait()
         proc.stderr.close()
         done = max(_logged_steps(run), default=-1) + 1 if (run / "log.csv").exists() else 0
-        latest = trainer_module.latest_checkpoint(run) if run.exists() else None
+        latest = run_folder.latest_checkpoint(run) if run.exists() else None
         kept = _step_of(latest) if latest is not None else 0
         kills.append((moment[0], start, done, kept))
         # never behind the state it resumed from; nothing lost beyond the last checkpoint period

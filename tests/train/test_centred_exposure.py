@@ -8,7 +8,7 @@ from d2gs_np.data.synthetic import make_scene
 from d2gs_np.geometry.se3 import se3_exp, se3_interpolate, se3_log
 from d2gs_np.train.components import decide_components
 from d2gs_np.train.config import ExperimentConfig, LearningRates, TrainConfig
-from d2gs_np.train.optimise import block_learning_rate, centre_endpoint_grads
+from d2gs_np.train.learning_rates import block_learning_rate, centre_endpoint_grads
 from d2gs_np.train.trainer import Trainer
 from d2gs_np.blur.config import TrajectoryConfig
 from d2gs_np.blur.endpoints import XI_END, XI_START

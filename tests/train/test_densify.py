@@ -109,6 +109,7 @@ def test_absgrad_reads_the_absolute_sums_against_its_own_threshold():
     from types import SimpleNamespace
 
     from d2gs_np.train.plugins import GradientStatistics
+    from d2gs_np.train.state import ScreenGrads
 
     rng = np.random.default_rng(4)
     p = _params(rng)
@@ -117,9 +118,10 @@ def test_absgrad_reads_the_absolute_sums_against_its_own_threshold():
     plain[0, 0] = 5e-4 * 2 / width  # static 0: over the plain threshold 2e-4, under the abs one 8e-4
     absolute[0, 0] = plain[0, 0]
     absolute[1, 0] = 1e-3 * 2 / width  # static 1: cancelled in the plain gradient, 1e-3 in the abs sum
-    aux = dict(v_means2d=plain, v_means2d_abs=absolute, radii=np.ones((9, 2)), num_static=6)
+    screen = ScreenGrads(v_means2d=plain, v_means2d_abs=absolute, radii=np.ones((9, 2)), num_static=6)
     for flag in (False, True):
-        state = SimpleNamespace(aux=aux, rows=init_grad_stats(p), replace=lambda **kw: SimpleNamespace(**kw))
+        state = SimpleNamespace(screen_grads=screen, rows=init_grad_stats(p),
+                                replace=lambda **kw: SimpleNamespace(**kw))
         rows = GradientStatistics(absgrad=flag).on_step(state).rows
         cfg = DensifyConfig(enabled=True, absgrad=flag)  # thresholds: plain 2e-4, abs 8e-4 (NDC)
         out, _, _, info = densify(p, adam.adam_init(p), rows, cfg, extent=1.0, width=width,

@@ -166,7 +166,7 @@ def test_one_step_equals_the_public_functions_written_out(scene, tmp_path):
     tr = Trainer(scene, cfg, tmp_path / "run")
     params = {n: v.copy() for n, v in tr.params.items()}
     info = tr.step(0)
-    k = info["frame"]
+    k = info.frame
     f = scene.frames[k]
     poses = np.stack([g.cam_T_world for g in scene.frames]).astype(np.float64)
     times = np.array([g.time for g in scene.frames], dtype=np.float64)
@@ -190,7 +190,7 @@ def test_one_step_equals_the_public_functions_written_out(scene, tmp_path):
     rows = {n: grads.pop(n) for n in ("camera.xi_start", "camera.xi_end")}
     expect, state = adam.adam_update(grads, adam.adam_init(params), params, tr.adam_config)
     expect, _ = adam.adam_update_rows(rows, {n: [k] for n in rows}, state, expect, tr.adam_config)
-    assert info["loss"] == float(total)
+    assert info.loss == float(total)
     assert sorted(tr.params) == sorted(expect)
     for name in expect:
         np.testing.assert_array_equal(tr.params[name], expect[name], err_msg=name)

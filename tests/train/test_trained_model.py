@@ -12,7 +12,7 @@ from d2gs_np.train.checkpoint import load_checkpoint, save_checkpoint
 from d2gs_np.train.components import Components, composition_notes, decide_components
 from d2gs_np.train.config import ExperimentConfig, LearningRates, TrainConfig
 from d2gs_np.train.model import Model
-from d2gs_np.train.optimise import block_learning_rate
+from d2gs_np.train.learning_rates import block_learning_rate
 from d2gs_np.train.trainer import Trainer
 
 TINY = dict(width=40, height=24, num_frames=5)
@@ -140,4 +140,4 @@ def test_a_training_step_runs_no_validation(scene, tmp_path, monkeypatch):
                          (trajectory, "_check_params")):
         monkeypatch.setattr(module, name, forbidden)
     info = tr.step(0)
-    assert np.isfinite(info["loss"])
+    assert np.isfinite(info.loss)

@@ -44,7 +44,7 @@ def dynamic_scene():
 def test_training_reduces_the_loss(sharp_scene, tmp_path):
     cfg = _config(iters=60, progressive=False, warmup_fraction=0.0, deform_fraction=0.0)
     tr = Trainer(sharp_scene, cfg, tmp_path / "run")
-    first = np.mean([tr.step(s)["loss"] for s in range(6)])  # one epoch at the initial state
+    first = np.mean([tr.step(s).loss for s in range(6)])  # one epoch at the initial state
     tr.step_index = 6
     tr.run()
     last = np.mean([r["loss"] for r in tr.log.rows[-6:]])
@@ -122,7 +122,7 @@ def test_time_budget_stops_early_and_keeps_the_result(sharp_scene, tmp_path):
     cfg = _config(iters=10_000, time_budget=1e-9)
     tr = Trainer(sharp_scene, cfg, tmp_path / "run")
     result = tr.run()
-    assert result["steps"] < 10_000
+    assert result.steps < 10_000
     assert (tmp_path / "run" / "final.npz").exists()
     assert any("time budget" in n for n in tr.log.notes)
 
@@ -217,7 +217,7 @@ def test_only_the_trained_frame_moves_its_camera_endpoints(dynamic_scene, tmp_pa
     before = tr.params["camera.xi_start"].copy()
     info = tr.step(0)
     moved = np.flatnonzero(np.any(tr.params["camera.xi_start"] != before, axis=1))
-    np.testing.assert_array_equal(moved, [info["frame"]])
+    np.testing.assert_array_equal(moved, [info.frame])
 
 
 def test_warmup_survives_frames_whose_ssim_interior_is_all_moving(dynamic_scene, tmp_path):
@@ -328,8 +328,8 @@ def test_heldout_is_evaluated_before_pruning_and_densification(dynamic_scene, tm
 
     counts, seen = [], []
     tr = Trainer(dynamic_scene, cfg, tmp_path / "run", plugins=[Count()])
-    evaluate = next(p for p in tr.plugins if p.name == "evaluate")
-    monkeypatch.setattr(evaluate, "heldout_psnr", lambda model: seen.append(model.num_gaussians()) or 20.0)
+    heldout = next(p for p in tr.plugins if p.name == "heldout_psnr")
+    monkeypatch.setattr(heldout, "heldout_psnr", lambda model: seen.append(model.num_gaussians()) or 20.0)
     after_adam, step = [], tr.step
 
     def step_then_count(*args):  # the number of Gaussians the Adam step left
@@ -404,7 +404,7 @@ def test_a_loss_term_added_to_the_list_enters_the_total_the_gradient_and_the_log
     pulled.terms.append(OpacityPull())
     before = pulled.params["static.opacity_logits"].copy()
     a, b = plain.step(0), pulled.step(0)
-    assert b["loss"] == a["loss"] + 0.5 * b["loss_pull"] and b["loss_pull"] == float(np.mean(before))
+    assert b.loss == a.loss + 0.5 * b.losses["pull"] and b.losses["pull"] == float(np.mean(before))
     assert not np.array_equal(plain.params["static.opacity_logits"], pulled.params["static.opacity_logits"])
     np.testing.assert_array_equal(plain.params["static.colors"], pulled.params["static.colors"])
 
@@ -417,7 +417,7 @@ def test_a_time_budget_buys_a_finished_schedule(dynamic_scene, tmp_path):
     cfg = cfg.replace(blur=dataclasses.replace(cfg.blur, n_schedule="fixed"))
     tr = Trainer(dynamic_scene, cfg, tmp_path / "run")
     out = tr.run()
-    assert out["steps"] < 10000
+    assert out.steps < 10000
     rows = tr.log.rows
     assert rows[-1]["scale"] == 1.0, rows[-1]
     assert rows[0]["scale"] < 1.0
@@ -478,7 +478,7 @@ def test_prune_removes_oversized_and_escaped_gaussians_and_keeps_state_in_step(d
 
 
 def test_position_rates_take_the_scene_size_as_their_unit(dynamic_scene, tmp_path):
-    from d2gs_np.train.optimise import scene_extent, size_extent
+    from d2gs_np.train.learning_rates import scene_extent, size_extent
 
     camera = Trainer(dynamic_scene, _config(iters=2, lr=LearningRates(means_unit="camera")), tmp_path / "camera")
     scene = Trainer(dynamic_scene, _config(iters=2), tmp_path / "scene")  # the default
@@ -499,7 +499,7 @@ def test_position_rates_take_the_scene_size_as_their_unit(dynamic_scene, tmp_pat
 
 
 def test_size_extent_follows_the_scene_when_the_camera_barely_moves():
-    from d2gs_np.train.optimise import scene_extent, size_extent
+    from d2gs_np.train.learning_rates import scene_extent, size_extent
 
     rng = np.random.default_rng(0)
     # forward-facing: camera centres within 0.1 of the origin, points on a wall 5 units away

@@ -1,4 +1,4 @@
-"""The optimiser step of training: Adam over named blocks with a learning rate per block kind.
+"""Learning rates per parameter block, and the optimiser step of training that applies them (Adam).
 
 Learning-rate policy (3DGS's, docs/method.md §8), decided per block from its name:
 
@@ -92,7 +92,7 @@ def block_learning_rate(name: str, lr: LearningRates, extent: float, iters: int,
     if kind in _RATE_FIELDS:
         return _constant_or_decay(getattr(lr, kind), lr.final_ratio, iters)
     raise ValueError(f"no learning rate for block {name!r}: add a field {kind!r} to LearningRates "
-                     "(train/config.py), or a rule for the block to block_learning_rate (train/optimise.py)")
+                     "(train/config.py), or a rule for the block to block_learning_rate (train/learning_rates.py)")
 
 
 def _constant_or_decay(rate: float, final_ratio: float, iters: int):
