@@ -54,8 +54,8 @@ class MaskConfig:
     # depth is trusted within this distance (fraction of max(W, H)) of a sparse point seen in the
     # frame; farther away only the epipolar (depth-free) part of the disagreement is used
     support_fraction: float = 0.08
-    # "any": moving if one neighbour disagrees (higher IoU than "all" on the suite, docs/results.md
-    # §13; the photometric gate already rejects disocclusions, which "all" was meant to)
+    # "any": moving if one neighbour disagrees (a higher IoU than "all": docs/results.md §13; the
+    # photometric gate already rejects disocclusions, which "all" was meant to)
     combine: str = "any"
     flow: str = "farneback"  # or "dis" (observed_flow)
     # photometric gate: a pixel is moving only if the observed flow explains its colour better than
@@ -75,7 +75,7 @@ class MaskConfig:
     prune_rounds: int = 1
     prune_share: float = 0.3
     # fill holes (background pixels enclosed by a mask component): a blurred mover's flat interior
-    # has no flow to observe (the crossing card's centre); the IoU rises or holds on the suite
+    # has no flow to observe (the crossing card's centre); the IoU rises on most suite scenes
     # (docs/results.md §13)
     fill_holes: bool = True
 
