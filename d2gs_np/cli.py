@@ -340,7 +340,7 @@ def _cmd_experiment(args):
 DEMO_PRESET = "cube_sign"  # the suite scene with every component on: movers, blur, noisy poses
 DEMO_SCENE = {"num_frames": 12, "width": 160, "height": 90}
 DEMO_ITERS = 2000  # the schedule's length; DEMO_BUDGET decides where it ends
-DEMO_BUDGET = 420.0  # seconds of training; measured: 450 s wall on an idle 2-core machine, cold JIT cache included
+DEMO_BUDGET = 420.0  # seconds of training: the demo in about 7.5 min wall, cold JIT cache included (docs/results.md §2)
 DEMO_QUICK_SCENE = {"num_frames": 6, "width": 96, "height": 54}
 DEMO_QUICK_ITERS = 80  # a smoke run: every stage, the blur model and the report, in about a minute
 

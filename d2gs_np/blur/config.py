@@ -37,10 +37,9 @@ class BlurConfig:
         frame and step from the blur's current length in render pixels (``blur_length_px`` of
         the current endpoints and scene, ``views_for_length``): just enough views to keep
         neighbouring views at most ``view_spacing_px`` render pixels apart, at most n. It
-        follows the render scale too, and gives a short blur few views. The default: on the
-        five suite scenes (blurry input, true poses, 600 s, one thread, two runs at a time) it
-        made 1.10-1.70x the steps of "fixed" and deblurred as well or better on every scene
-        (+0.05 to +1.02 dB; docs/method.md §4).
+        follows the render scale too, and gives a short blur few views. The default: more steps
+        than "fixed" in the same time, and as good or better on every suite scene
+        (docs/results.md §8).
     view_spacing_px: the largest gap, in render pixels, between neighbouring virtual views of
         the "length" schedule (> 0).
     backward_views: m, how many of a step's virtual views its backward runs through (0: all).
@@ -50,10 +49,9 @@ class BlurConfig:
         is drawn at random and carries its run's share of the weight. The backward costs about
         twice the forward, so the backward of m = 2 of n = 8 views costs a quarter of the
         exact one. Views of one exposure see the scene from poses a few pixels apart, so their
-        gradients are nearly the same and the estimate's noise is small. Default 2: on the
-        five suite scenes (blurry input, true poses, 600 s) it made 1.20-1.37x the steps of the
-        exact backward and deblurred better on every scene (+0.16 to +0.62 dB); m = 1 lost
-        0.47 dB against m = 2 on cube_sign (docs/method.md §4).
+        gradients are nearly the same and the estimate's noise is small. Default 2: more steps
+        than the exact backward in the same time, and better on every suite scene; m = 1 was
+        worse (docs/results.md §8).
     """
 
     num_virtual: int = 8
@@ -87,9 +85,8 @@ class TrajectoryConfig:
     output_init_scale: PoseNet output-layer weight scale at initialisation (d2gs_np.blur.endpoints).
     init: "velocity" (default): the direct endpoints start on the camera's motion, estimated from
         the neighbouring estimated poses (``velocity_endpoints``), with init_spread only as a
-        floor; "random": a tiny spread in a random direction. The velocity start matters: with a
-        tiny random spread the endpoints open far too slowly (measured on the dynamic preset:
-        learned exposure rotations 0.03-0.57 deg against 0.6-1.6 deg true after 2000 steps).
+        floor; "random": a tiny spread in a random direction. The velocity start matters: from a
+        tiny random spread the endpoints open far too slowly (docs/results.md §8).
     velocity_window: h, the frames k-h..k+h the "velocity" start reads: 1 is the central
         difference of the two neighbours; h >= 2 fits a quadratic in time to the tangents of those
         frames relative to frame k by least squares (``velocity_endpoints``), which averages the
@@ -99,7 +96,7 @@ class TrajectoryConfig:
         exposure stays centred on the given pose, xi_start = -xi_end, and only its spread is
         learned (at ``LearningRates.camera_spread``): trusted poses get no pose refinement, from
         the solver or from Adam; otherwise both endpoints are free. "on" / "off" force it
-        ("on" needs kind "direct"). Measured, docs/method.md §4.
+        ("on" needs kind "direct"). Why: docs/method.md §4; the suite's figures: docs/results.md §4.
     """
 
     kind: str = "direct"

@@ -170,14 +170,10 @@ PRESETS = {
     # moving objects; exposure 0 (rendered once per frame); true poses given as the estimates
     "sharp": SyntheticConfig(exposure_fraction=0.0, subframes=1, rot_noise_deg=0.0, trans_noise_fraction=0.0),
     # moving objects; blurry: exposure 0.7 of the frame interval and a slow, wide hand shake (8x the
-    # base amplitudes at 1/4 of the base frequencies), so the inputs are clearly degraded (seed 0,
-    # 240x135: PSNR blurry vs sharp 24.35 dB mean over frames 0, 5, 11, 17, 23; true rotation
-    # spread 0.5-3.8 deg per exposure) while the path inside one exposure stays close to the
-    # model's geodesic: a sharp render at the geodesic midpoint of the true endpoints scores
-    # 37.7 dB against the sharp frame. (The base shake, 5.5-9 cycles per clip, curves so much
-    # within an exposure that at 2.5x amplitude that render scores 22.9 dB, below the blurry
-    # inputs' 25.2 dB: no geodesic blur model could deblur it. Measured by
-    # examples/blur_ceiling.py.) Noisy poses.
+    # base amplitudes at 1/4 of the base frequencies), so the inputs are clearly degraded while the
+    # path inside one exposure stays close to the model's geodesic (the base shake curves so much
+    # within an exposure that no geodesic blur model could deblur it; examples/blur_ceiling.py,
+    # docs/results.md §14). Noisy poses.
     "dynamic": SyntheticConfig(shake_scale=8.0, shake_freq_scale=0.25),
 }
 

@@ -30,7 +30,7 @@ from d2gs_np.geometry.se3 import se3_exp, se3_inverse, se3_log
 
 __all__ = ["motion_kernel", "frame_blur_kernel", "richardson_lucy", "deblur_scene"]
 
-RL_ITERATIONS = 10  # measured (cube_sign, 6 frames 120x68, kernels from the noisy poses): input 25.21 dB, 5 it 24.68, 10 it 24.05, 20 it 22.61
+RL_ITERATIONS = 10  # Richardson-Lucy iterations of the two-stage baseline (PSNR per count: docs/results.md §14)
 _KERNEL_SUPERSAMPLE = 8  # sub-pixel samples per pixel of the segment's length when drawing the kernel
 
 

@@ -40,12 +40,8 @@ __all__ = ["reprojection_fwd", "reprojection_bwd", "reprojection_jacobian", "pos
            "bundle_adjust", "poses_to_params", "params_to_poses"]
 
 # The Schur solver's first Levenberg-Marquardt lambda (relative to diag(H)). The robust problems of
-# pose_init have several local minima, and the first steps choose among them. Measured (first-round
-# cost, examples/bench_bundle.py and tests/pose/test_given.py's 160 x 90 photo_room): 1e-3 reached the
-# lowest of {1e-4, 1e-3, 1e-2} on wall_disk (98.9; 170.5 at 1e-4), big_mover (437.1; 505.5 at 1e-4),
-# cube_sign seed 0 (124.3; 135.0 at 1e-2), the small photo_room (52.37; 57.74 at 1e-2) and tied on
-# photo_room seeds 0 / 1 and cube_sign seed 1; only crossing ended higher (104.6 against 102.9).
-# 1 lost photo_room seed 1's convergence (ATE 0.0209 against 0.0093).
+# pose_init have several local minima, and the first steps choose among them: 1e-3 reached the
+# lowest first-round cost on all suite scenes but one (docs/results.md §12).
 SCHUR_DAMPING_INIT = 1e-3
 
 

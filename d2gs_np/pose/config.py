@@ -99,19 +99,16 @@ class FeatureConfig:
 class CorrespondConfig:
     """Which frame pairs are matched and how (``pose/correspond.py``; ``features``: detector, ratio, RANSAC)."""
 
-    # Detection tuned for small blurry frames: OpenCV's SIFT defaults (contrast 0.02 here already,
-    # sigma 1.6, ratio 0.75, 1 px) found 0-22 verified matches per pair on the 160 x 90 wall_disk
-    # suite scene (most pairs skipped); contrast 0.002, sigma 1.0, ratio 0.85 and 1.5 px found
-    # 32-99 per pair at inlier ratios 0.6-0.9 (measured once, the reason for these values).
+    # Detection tuned for small blurry frames: with OpenCV's SIFT defaults most pairs of the
+    # 160 x 90 wall_disk suite scene had too few verified matches (docs/results.md §12).
     features: FeatureConfig = field(default_factory=lambda: FeatureConfig(
         contrast_threshold=0.002, sigma=1.0, ratio=0.85, ransac_threshold_px=1.5))
     gaps: tuple = (1, 2)  # pairs (k, k + g): consecutive frames and frames two apart
     min_pair_matches: int = 12  # a pair with fewer verified matches is skipped (and reported)
     # Guided matching: a keypoint of frame k is matched only within max_flow_fraction x width x gap
     # pixels of itself in frame k + gap (0 = anywhere). RANSAC on F cannot reject a wrong match
-    # along an epipolar line, and a sideways-moving camera has horizontal epipolar lines: on the
-    # wall_disk suite scene (repeating texture) ~46 % of the F-verified matches were off by ~50 px
-    # along x; with the window they are not proposed.
+    # along an epipolar line, and a sideways-moving camera has horizontal epipolar lines: on
+    # repeating texture many F-verified matches were tens of pixels off (docs/results.md §12).
     max_flow_fraction: float = 0.06
 
     def __post_init__(self):
@@ -139,16 +136,10 @@ class TrackConfig:
     quality: float = 0.005  # Shi-Tomasi quality (share of the best corner's score): low, blur lowers corner scores
     min_distance_px: int = 5  # corners (new and active) at least this far apart
     window_px: int = 15  # Lucas-Kanade window; 15 px: a few px of blur fits inside
-    # points that fail (step 1) with window_px are tracked again with this window (0: no retry). The
-    # fast shake of the suite's crossing, seed 1, streaks its star field along a turning direction:
-    # with 15 px alone only 11-14 static tracks span frames 10-12, the static world cannot be
-    # registered across them, and the registration bridged them on the crossing card (relative
-    # rotation errors of 4.7 deg per frame in frames 12-16). Retrying at 21 px keeps 50-60 there.
-    # Import accuracy (examples/import_accuracy.py, seeds 0 / 1), ATE/depth and mask IoU, 0 -> 21:
-    # crossing 0.99 / 1.91 % -> 0.91 / 1.57 %, IoU 0.47 / 0.27 -> 0.58 / 0.60; cube_sign ATE 0.40 /
-    # 0.18 % -> 1.49 / 0.19 %; the rest within 0.14 % ATE and 0.02 IoU; the static photo_room marks
-    # 0.5 / 1.1 -> 0.5 / 2.2 % of its pixels. A 21 px window for every point instead: big_mover seed 1
-    # fails (ATE 3.9 %), photo_room marks 2.4 / 4.0 %
+    # points that fail (step 1) with window_px are tracked again with this window (0: no retry): a
+    # fast shake streaks the frames along a turning direction (the suite's crossing, seed 1), and
+    # with 15 px alone too few static tracks crossed them to register the static world; a 21 px
+    # window for every point did worse (docs/results.md §12)
     retry_window_px: int = 21
     levels: int = 3  # pyramid levels (3: displacements of ~30 px between neighbouring frames)
     fb_px: float = 0.5  # forward-backward error above which a track ends
@@ -183,21 +174,17 @@ class PoseInitConfig:
     mode: str = "auto"
     # The tracker without its retry window (TrackConfig.retry_window_px): the retry keeps
     # more tracks through streaked frames, which the importer needs to connect a video, but they
-    # are less precise, and this adjustment starts from poses that already connect the frames.
-    # Measured (the suite's noisy poses, seeds 0 / 1, ATE after the adjustment, retry on -> off):
-    # photo_room 0.0208 / 0.0155 -> 0.0155 / 0.0093, cube_sign 0.0373 / 0.0087 -> 0.0221 / 0.0070,
-    # big_mover 0.0184 / 0.0101 -> 0.0126 / 0.0072, wall_disk (seed 0) 0.0042 -> 0.0041, crossing
-    # 0.0532 / 0.0189 -> 0.0571 / 0.0190. The pose solver's track check uses the same tracks. Trained
-    # 600 s (seed 0, README): the trained ATE better on 4 of 5 scenes, deblurred +0.09 dB on average.
+    # are less precise, and this adjustment starts from poses that already connect the frames:
+    # without the retry the adjusted ATE is lower on most suite scenes (docs/results.md §12). The
+    # pose solver's track check uses the same tracks.
     tracks: TrackConfig = field(default_factory=lambda: TrackConfig(retry_window_px=0))
     min_views: int = 3  # a track needs this many frames to be triangulated
     min_parallax_deg: float = 1.0  # how far its rays open (triangulate_tracks)
     min_points: int = 50  # fewer triangulated tracks: the given poses are kept
     # A frame with fewer observations (of triangulated tracks; counted again after the outliers are
-    # dropped) is held at its given pose: the prior alone did not hold it. Crossing seed 0 (noisy
-    # poses, tracks with the retry window): frame 9, seen by 6 observations in the streaked frames,
-    # was turned 3.0 deg off the truth (0.3 deg given) and the adjustment raised the ATE from 0.070
-    # to 0.094 (held: 0.053). 10 observations are 20 equations for a pose's 6 unknowns.
+    # dropped) is held at its given pose: the prior alone did not hold a streaked frame that a few
+    # observations turned by degrees (docs/results.md §12). 10 observations are 20 equations for a
+    # pose's 6 unknowns.
     min_frame_observations: int = 10
     outlier_px: float = 3.0  # observations further than this from their projection are dropped (round 2)
     robust_px: float = 1.0  # soft-L1 scale of the adjustment
@@ -237,12 +224,10 @@ class PoseInitConfig:
 class GaussNewtonConfig:
     """Settings of the pose solver (``pose/gauss_newton.py``; its robust loss and damping: ``pose/lm.py``)."""
 
-    max_iters: int = 40  # 15 before the pose prior; with its tight default, calls at 15 stopped at max_iters
+    max_iters: int = 40  # the tight pose prior needs them to converge (docs/results.md §11)
     # Weight of the relative depth residual: the paper's 100 reduced to 10, and the Cauchy loss at
-    # 1 px, as measured on the wall_disk suite scene (docs/method.md §5): on the initial model and on
-    # a model trained 93 steps, Cauchy / 1 px / beta 10 lowered ATE 0.069 -> 0.037 and 0.067 -> 0.046
-    # and RPE_r 0.94 -> 0.46 and 0.88 -> 0.58 deg, where Huber / 2 px / beta 100 gave 0.055 and 0.070
-    # (worse than the start) and RPE_r 0.90 and 1.03 deg.
+    # 1 px: on the wall_disk suite scene they lowered the pose error where the paper's beta with a
+    # Huber loss raised it (docs/results.md §11).
     beta: float = 10.0
     robust: str = "cauchy"  # "none", "huber" or "cauchy" (IRLS)
     robust_scale: float = 1.0  # d of the robust loss, in residual units (pixels)

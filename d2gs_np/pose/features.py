@@ -141,7 +141,7 @@ def detect_features(image, config: FeatureConfig = None, mask=None) -> Keypoints
         det_mask = static_detector_mask(mask, config.mask_dilation_px)
     if config.detector == "sift":
         # enable_precise_upscale: without it OpenCV's doubled first octave shifts every keypoint by
-        # +0.25 px in x and y (measured on Gaussian blobs: mean offset (0.250, 0.250) +- 0.005 px).
+        # +0.25 px in x and y (docs/results.md §12).
         det = cv2.SIFT_create(
             config.max_features, config.octave_layers, config.contrast_threshold, config.edge_threshold,
             config.sigma, True,

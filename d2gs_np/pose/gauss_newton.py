@@ -14,10 +14,9 @@ mid pose ``M_k = T_s exp(log(T_s^-1 T_e) / 2)`` (geodesic midpoint), so:
 - optionally (``PoseProblem.prior_poses``), each free frame's mid pose is held near a given pose
   G_k (the poses the video came with) by 6 rows ``(c(M_k) - c(G_k)) / sigma_t`` (camera centres)
   and ``log(R(M_k) R(G_k)^T) / sigma_r`` (rotation), the maximum a posteriori form of "the given
-  poses are right to about sigma". Measured why (docs/method.md §5): without it the depths of a
-  partly trained scene, biased low by semi-transparent Gaussians, pulled the cameras together
-  call after call; on photo_room (12 frames 160x90, noisy poses) the trajectory shrank to 0.52x
-  its size and turned 2.5 deg while the centre-aligned ATE, blind to both, fell;
+  poses are right to about sigma". Why (docs/method.md §5): without it the depths of a partly
+  trained scene, biased low by semi-transparent Gaussians, pulled the cameras together call after
+  call, while the centre-aligned ATE, blind to it, fell (docs/results.md §11);
 - Levenberg-Marquardt damping makes every step solvable even where the data leave directions
   unobserved (a frame without matches, matches on a line, points at infinity).
 

@@ -3,13 +3,11 @@
 The pose solver of ``train/pose_solver.py`` refines the poses against depths rendered from the
 scene being trained, which is fitted to the same poses it tests: it fixes the error between
 neighbouring frames (the i.i.d. part of the pose noise) but not the slow drift, which the scene
-absorbs. Measured on the suite's noisy scenes (600 s, 2 cores): photo_room's trained poses kept a
-relative rotation error of 0.72 deg between frames 8 apart (0.89 deg given), and adding pairs 4 and
-8 frames apart to the solver made it worse (1.85 deg), because the rendered depths agree with the
-poses they were fitted to. A classical bundle adjustment has no such loop: its 3D points are
-unknowns of the same problem. The video importer's (``video/``) recovers the suite's trajectories
-from the blurry frames alone to 0.1-0.9 % of the scene depth, where the given poses are off by
-1.5 %. So before training, when the poses are not trusted:
+absorbs; adding pairs of distant frames to the solver made it worse, because the rendered depths
+agree with the poses they were fitted to. A classical bundle adjustment has no such loop: its 3D
+points are unknowns of the same problem, and the video importer's (``video/``) recovers the
+suite's trajectories from the blurry frames alone better than the given poses are
+(docs/results.md §12). So before training, when the poses are not trusted:
 
 1. tracks through the blurry frames (KLT, ``pose/tracks.py``), none inside the motion masks;
 2. each track with ``min_views`` observations or more triangulated with the *given* poses (linear,

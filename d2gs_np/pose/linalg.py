@@ -2,7 +2,7 @@
 
 Their normal equations are small (6 x frames, or 6 x cameras + 1) and solved many times per call.
 A plain single-threaded Numba factorisation is used on purpose: on a 2-core machine whose cores
-are shared, a threaded LAPACK call on these sizes was measured at 12-800 ms, 100-1000 x its cost.
+are shared, a threaded LAPACK call on these sizes cost hundreds of times more (docs/results.md §12).
 """
 from __future__ import annotations
 

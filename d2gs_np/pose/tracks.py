@@ -2,8 +2,8 @@
 
 Why not SIFT matching alone: on the suite's blurry 240x135 frames a SIFT keypoint's descriptor
 changes with the blur direction (the hand shake turns it from frame to frame) and repetitive
-texture (brick, gravel) fails the ratio test, so only 20-40 of ~300 keypoints per frame match the
-next frame (crossing, seed 0) and tracks rarely reach 3 frames: too little parallax per track and
+texture (brick, gravel) fails the ratio test, so few keypoints match the next frame
+(docs/results.md §12) and tracks rarely reach 3 frames: too little parallax per track and
 frames that share too few 3D points with the rest break the registration. Lucas-Kanade follows a
 corner by its local intensity pattern over a small displacement, which blur of a few pixels does
 not destroy, and keeps following it while it stays visible.

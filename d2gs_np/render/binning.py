@@ -185,7 +185,7 @@ def _box_range(c, r, lo, hi, half, one):
     pixel left out still lies beyond r - e, where sigma >= cut (1 - e / r)^2 >= cut - 2.6e-6 cut
     (r >= 1 there), far inside the ALPHA_CUTOFF_SAFETY = 1e-3 that the cut carries above
     ln(255 o) (constants.py). Either way the pixels left out are only pixels the 1/255 rule
-    skips. (Before, the interval was widened by one more pixel on each side: 1.5-2 px in all.)
+    skips. (The speed-up of this margin over the earlier 1.5-2 px: docs/results.md §6.)
     """
     m = half * half * half * half * half * half  # 1/64 px, exact and in the kernel's dtype
     fa = np.ceil(c - r - half - m)

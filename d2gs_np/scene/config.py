@@ -91,8 +91,7 @@ class InitConfig:
 
     features: FeatureConfig = field(default_factory=FeatureConfig)
     # pair frame k with k + s for each s (clamped to N - 1). Wide baselines: with independent
-    # per-frame pose noise, consecutive frames triangulate poorly (measured on the synthetic
-    # "dynamic" scene: median depth error 14% for (1, 2, 4) vs 8% for (2, 4, 8) at 1 deg parallax)
+    # per-frame pose noise, consecutive frames triangulate poorly (docs/results.md §9)
     frame_skips: tuple = (2, 4, 8)
     max_static_points: int = 20000  # triangulated points kept (seeded random subset beyond)
     random_fill_points: int = 2000  # extra static points at random depths in the view frusta
@@ -104,14 +103,12 @@ class InitConfig:
     dense_outlier_rel: float = 0.15  # drop a sparse depth that differs this much from its neighbours' median
     stereo: StereoConfig = field(default_factory=StereoConfig)  # the dense seeds' depths (scene/stereo.py)
     # random fill at the depth interpolated from the triangulated and dense points seen in its frame
-    # (uniform in [near, far] where they give none); False: uniform everywhere. Measured (photo_room,
-    # half size): uniform fill put Gaussians between the camera and the walls whose fog made the
-    # initial render's depth 0.2x the true depth, and 0.4x after 800 steps.
+    # (uniform in [near, far] where they give none); False: uniform everywhere, which puts a fog of
+    # Gaussians between the camera and the walls that training does not clear (docs/results.md §9).
     fill_on_surface: bool = True
     # Largest initial scale, in pixels of the point's source frame (scale <= max_scale_px * z / fx
     # there; 0 = no cap). 3DGS's neighbour-distance scale makes a lone point near the camera a
-    # blob tens of pixels wide that veils everything behind it (photo_room, half size: the
-    # initial render's depth was 0.42x the true depth with the seeds themselves within 1 %).
+    # blob tens of pixels wide that veils everything behind it (docs/results.md §9).
     max_scale_px: float = 3.0
     dynamic_points: int = 2000  # points seeded inside the motion masks
     max_reprojection_error_px: float = 2.0  # max over both views
@@ -121,10 +118,8 @@ class InitConfig:
     fallback_depth_range: tuple = (0.25, 2.0)  # x scene_scale, when nothing was triangulated
     # Robust depth range (scene/initialize.py's docstring, step 4): the percentiles are clipped to the median depth
     # times exp(+-k sigma), sigma = 1.4826 MAD of the log depths (k = depth_range_mad; 0: no clip).
-    # Measured (cube_sign, 240x135, noisy poses after the bundle adjustment): 30 % of the 126
-    # two-view points sat at 0.04-0.6 x the true depth (mismatches along the horizontal epipolar
-    # lines of a panning camera on brick and grass); the 5th percentile put the sweep's near end
-    # at 0.13, and its 128 hypotheses left about 2 for the true range.
+    # Against two-view mismatches that stretch the sweep far below the true depths (cube_sign with
+    # noisy poses, docs/results.md §9).
     depth_range_mad: float = 0.0  # 0: the plain percentiles (default; 3 with distinct_px = 1: docs/method.md §8)
     dynamic_depth_factor: float = 0.8  # dynamic depth = factor x frame's median static depth
     dynamic_depth_jitter: float = 0.05  # relative half-width of the uniform depth jitter

@@ -34,18 +34,15 @@ rather than moving it. We use the masks once more:
    the one that reprojects right at that depth);
 5. base position and polynomial + Fourier coefficients are fitted to those
    targets by ridge-regularised least squares (ridge on the coefficients only,
-   ``ridge`` x the track's frames; 1e-2 shrank a sweep of 0.35 scene units by
-   2 %, about 1 px on big_mover, so it is 1e-4: enough to pose a track shorter
-   than the 1 + K coefficients).
+   ``ridge`` x the track's frames; 1e-4: enough to pose a track shorter than
+   the 1 + K coefficients, small enough not to shrink a mover's sweep,
+   docs/results.md §9).
 
 The maps follow the object's texture, not its mask: where the object is cut
 by the image border, blurred into the background or partly occluded, the
-centroid of what is visible moves differently from the object. Measured
-against the true motion of the suite's movers (true poses, median over
-frames of the seeds' median reprojection error where the object is in view;
-``examples/motion_init_accuracy.py``), centroid / similarity / flow at ridge
-1e-4: big_mover 5.74 / 1.41 / 0.55 px, cube_sign 7.04 / 4.59 / 1.62,
-wall_disk 0.84 / 0.90 / 0.68, crossing 2.33 / 3.02 / 1.37.
+centroid of what is visible moves differently from the object. Against the
+true motion of the suite's movers the flow rule is the closest on every scene
+(``examples/motion_init_accuracy.py``; docs/results.md §9).
 
 Seeds whose pixel lies in no tracked component keep zero coefficients. Only
 the means are initialised; rotations and colours start with zero residuals.

@@ -2,9 +2,9 @@
 
 Used by the initialisation (``scene/initialize.py``, dense seeding) so that photographic detail
 starts at the right depth. A few hundred sparse SIFT triangulations interpolated over a frame
-put the dense seeds at 0.3-1.0 times the true depth on the suite's photo rooms (half size:
-median 0.69, 10th percentile 0.27), and training then never recovers the geometry: the fit
-settles on semi-transparent layers near the camera that average the texture of several views.
+put the dense seeds well in front of the true depth (docs/results.md §9), and training then never
+recovers the geometry: the fit settles on semi-transparent layers near the camera that average
+the texture of several views.
 
 Method (classical plane sweep, e.g. Collins 1996; Gallup et al. 2007), all on plain arrays:
 
@@ -30,12 +30,11 @@ Method (classical plane sweep, e.g. Collins 1996; Gallup et al. 2007), all on pl
    inside the sweep (not at either end), and not on a moving pixel of the reference.
    ``info["rejected_share"]`` gives the share of pixels each check rejects on its own.
 
-Why the distinctness is measured in source pixels (docs/method.md §8): it used to compare with
-hypotheses two steps away. On the suite's cube_sign (a small camera translation) the 128
-hypotheses are 0.04-0.17 source pixels apart, so that neighbour lay inside the minimum's own
-basin (a 5 x 5 window's cost rises over about a pixel, more slowly on blurred frames) and the
-check rejected 60-90 % of the pixels; with true poses the stereo kept 1.3 % of them at full size
-and 0.02 % at the demo's 160 x 90. One source pixel: 14 % and 4-6 %.
+Why the distinctness can be measured in source pixels (docs/method.md §8): with a small camera
+translation (the suite's cube_sign) the hypotheses two steps away lie a fraction of a source pixel
+from the best, inside the minimum's own basin (a 5 x 5 window's cost rises over about a pixel,
+more slowly on blurred frames), and the check rejects most pixels; one source pixel
+(``StereoConfig.distinct_px = 1``) keeps many more (docs/results.md §9).
 
 Accuracy: with D = 128 hypotheses and the parabola the depth error on textured, sharp
 synthetic planes is well below 1 % (tests/scene/test_stereo.py measures it against the

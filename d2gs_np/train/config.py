@@ -90,16 +90,11 @@ class LearningRates:
     """Adam learning rates per block kind (3DGS's, the positions' scaled to the scene's size)."""
 
     # Positions: times the length of ``means_unit``; decays exponentially to means_final. 2x 3DGS's
-    # 1.6e-4 in the scene's units, measured (blurry input, true poses, 600 s; docs/method.md §8):
-    # the multiple of the camera extent that the scene's units give is ~20 on cube_sign and ~22 on
-    # crossing; cube_sign deblurred 28.92 dB at 1x (camera units), 29.38 / 29.60 / 29.78 / 29.60 at
-    # 10x / 20x / 40x / 80x; crossing 28.37 at 1x, 28.95 in scene units, 29.24 at twice that.
+    # 1.6e-4 in the scene's units: the rate that scored best on the suite (docs/results.md §7).
     means: float = 3.2e-4
     means_final: float = 3.2e-6
-    # Twice 3DGS's 5e-3, measured with the two-view backward (blurry input, true poses, 600 s;
-    # docs/method.md §8): photo_room 31.26 -> 31.53 dB, wall_disk 30.64 -> 30.90, cube_sign
-    # 30.07 -> 30.31, crossing 29.40 -> 29.68, big_mover 34.48 -> 35.36; colors at twice their
-    # rate lost on cube_sign (29.67).
+    # Twice 3DGS's 5e-3: better on all five suite scenes; colors at twice their rate were not
+    # (docs/results.md §7).
     log_scales: float = 1e-2
     quats: float = 1e-3
     opacity_logits: float = 5e-2
@@ -108,24 +103,20 @@ class LearningRates:
     deform_other: float = 1e-3
     camera: float = 1e-3  # trajectory endpoints xi_start / xi_end and PoseNet weights; decays to camera_final
     camera_final: float = 1e-5
-    # The spread of a centred exposure (trusted poses, TrajectoryConfig.centre): measured on the
-    # suite with true poses, Adam at 1e-3 walked the learned spread to 0.07-0.25 deg from the true
-    # exposure's rotation; its velocity start was within 0.001-0.13 deg (docs/method.md §4).
+    # The spread of a centred exposure (trusted poses, TrajectoryConfig.centre): a tenth of the
+    # camera rate, at which Adam walked it away from the true exposure's (docs/results.md §7).
     camera_spread: float = 1e-4
     camera_spread_final: float = 1e-6
     exposure: float = 1e-2
     # The constant-rate Gaussian blocks (log_scales, quats, opacity_logits, colors, deform_other)
-    # decay log-linearly to final_ratio x their rate over the run; 1 keeps them constant (3DGS).
-    # Measured: 0.1 lost 0.46 dB on cube_sign (blurry input, true poses, 600 s, positions at 10x
-    # the camera extent: 29.38 -> 28.92 dB), so the default stays 1.
+    # decay log-linearly to final_ratio x their rate over the run; 1 keeps them constant (3DGS):
+    # a decay to 0.1 lost on cube_sign (docs/results.md §7).
     final_ratio: float = 1.0
     # The length that scales the position rates (means, deform): "camera", 3DGS's camera extent
-    # (train.learning_rates.scene_extent), or "scene", the scene's size
-    # (train.learning_rates.size_extent: the larger of that and 1.1 x the 90th percentile distance
-    # of the initial points from the cameras' mean). A hand-held camera moves little against the
-    # depth it sees (the suite: camera extents 0.3-0.8 against walls 5-6 away), so in camera units
-    # a Gaussian moved ~0.003 px a step and ~1 000 CPU steps left the positions where the
-    # initialisation put them.
+    # (train.learning_rates.scene_extent), or "scene", the scene's size (train.learning_rates.size_extent: the
+    # larger of that and 1.1 x the 90th percentile distance of the initial points from the cameras'
+    # mean). A hand-held camera moves little against the depth it sees, so in camera units a CPU
+    # budget left the positions where the initialisation put them (docs/results.md §7).
     means_unit: str = "scene"
 
     def __post_init__(self):
@@ -228,10 +219,8 @@ class PoseSolverConfig:
     ``accept``: "converged" writes a call's poses only when the solver converged (relative cost
     decrease or step below tolerance, not stopped by ``max_iters`` or the damping limit) with a
     full-rank normal matrix (every free frame observed); "always" writes every call's result.
-    Measured: the calls that moved the poses away from the truth all stopped at max_iters (the
-    demo scene: ATE 0.015 -> 0.34 with 8 of 21 pairs unmatched, rank 120/132; wall_disk at half
-    size after 150 steps: 0.074 -> 0.225), while 64 of the 65 calls of the 600 s suite runs
-    converged and lowered ATE."""
+    The calls that moved the poses away from the truth all stopped at max_iters, while nearly
+    every converged call lowered ATE (docs/results.md §11)."""
 
     mode: str = "auto"
     every: int = 150  # schedule steps between solver calls (R; the paper's 500 is for GPU-length runs)
@@ -241,25 +230,17 @@ class PoseSolverConfig:
     accept: str = "converged"
     # The pose prior of pose/gauss_newton.py: every call holds the mid poses near the GIVEN poses
     # (sigma_r = prior_rot_deg, sigma_t = prior_trans_rel x the median rendered depth of the
-    # matches); 0 turns that part off. Measured (600 s, the suite's noisy photo_room and cube_sign,
-    # loaded machine, 270-320 steps; docs/method.md §5): at the poses' own error level (1 deg, 2 %)
-    # photo_room still drifted into a 6 deg yaw by its last frame (mean rotation error 0.67 ->
-    # 2.7 deg, novel views 12.7 dB); at 0.3 deg / 0.6 % (with 40 solver iterations, which the
-    # tighter prior needs to converge) 0.67 -> 0.78 deg and 18.4 dB, and cube_sign 0.67 -> 0.43 deg,
-    # ATE 0.074 -> 0.043, novel views 19.9 dB (18.96 dB with the looser prior). The data's
-    # residuals are not independent (the scene is fitted to the poses they test), so the prior
-    # is set tighter than the poses' true error. hold_scale: after each call
-    # the refined camera centres are rescaled about frame 0's so the trajectory keeps the size it
-    # had before the call (the scale is a gauge the rendered depths fix only softly, and biased).
-    # Measured without both (docs/method.md §5): photo_room at 12 frames 160x90, noisy poses: the
-    # calls shrank the trajectory to 0.52x and turned it 2.5 deg (centre error 0.080 -> 0.242).
+    # matches); 0 turns that part off. The data's residuals are not independent (the scene is
+    # fitted to the poses they test), so the prior is set tighter than the poses' true error: at
+    # their own error level photo_room still drifted (docs/results.md §11). hold_scale: after each
+    # call the refined camera centres are rescaled about frame 0's so the trajectory keeps the size
+    # it had before the call (the scale is a gauge the rendered depths fix only softly, and biased).
+    # Without both the calls shrank and turned the trajectory (docs/results.md §11).
     # Real (not schedule) steps a call needs since the previous call, or since the start: the
     # depths a call reads come from the scene Adam fitted since. The cadence ``every`` runs on the
-    # schedule's clock (a budget run makes ~13 calls whatever its speed), so on a slow or loaded
-    # machine the calls came every ~12 real steps, from the first at real step 12 (photo_room,
-    # noisy poses, 160 steps in 600 s): the scene never caught up. 40 is about the real steps one
-    # period takes on an idle machine in the 600 s suite runs (2000-step schedule in ~700 steps),
-    # so it changes nothing there.
+    # schedule's clock, so on a loaded machine the calls came every few real steps and the scene
+    # never caught up; 40 is about one period's real steps on an idle machine, so it changes
+    # nothing there (docs/results.md §11).
     min_steps: int = 40
     prior_rot_deg: float = 0.3
     prior_trans_rel: float = 0.006
@@ -268,11 +249,8 @@ class PoseSolverConfig:
     # triangulated with the current and with the proposed mid poses (pose_init.
     # track_reprojection_rms); a solve whose poses explain the tracks worse, by more than
     # track_tolerance (relative rise of the rms), is not written. The solver's residuals read
-    # rendered depths of a scene fitted to the poses they test; the tracks depend on none.
-    # Measured (wall_disk, noisy poses after the bundle adjustment, 600 s): one converged solve
-    # moved the cameras 0.83 deg on average and raised ATE 0.0043 -> 0.0426; the tracks' rms
-    # went 0.141 -> 0.478 px (truth: 0.145). Where solves helped (photo_room from the given poses,
-    # ATE 0.077 -> 0.039) it fell 2.35 -> 0.45 px.
+    # rendered depths of a scene fitted to the poses they test; the tracks depend on none. A
+    # converged solve that raised ATE tenfold raised the tracks' rms too (docs/results.md §11).
     track_check: bool = True
     track_tolerance: float = 0.1
 
@@ -310,7 +288,7 @@ class ExperimentConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
     loss: LossConfig = field(default_factory=LossConfig)
     # training steps rasterise in float32 (RenderConfig.raster_float32; docs/method.md §8): a step
-    # ~1.2x faster on a trained scene; evaluation and Model.render stay float64
+    # ~1.2x faster on a trained scene (docs/results.md §7); evaluation and Model.render stay float64
     render: RenderConfig = field(default_factory=lambda: RenderConfig(raster_float32=True))
     deform: DeformConfig = field(default_factory=DeformConfig)
     blur: BlurConfig = field(default_factory=BlurConfig)

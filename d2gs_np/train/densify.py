@@ -35,8 +35,8 @@ from d2gs_np.train.rows import SETS, num_rows, resize_rows
 
 @dataclass(frozen=True)
 class DensifyConfig:
-    # On by default, measured: sharp preset (24 frames 240x135, 2000 steps) DVS 31.3 dB without,
-    # 39.3 dB with (158 s -> 277 s of training); blurry demo scene 19.34 -> 19.99 dB.
+    # On by default: much sharper renders on the sharp preset for under twice the training time
+    # (docs/results.md §10).
     enabled: bool = True
     start_fraction: float = 0.1
     stop_fraction: float = 0.6
@@ -98,11 +98,8 @@ def densify(params, adam_state, rows, config: DensifyConfig, extent, width, rng)
 
     When the candidates exceed what ``max_gaussians`` leaves, the static set takes the room first
     (its highest gradients), the dynamic set what is left. Giving the room to the highest
-    gradients of both sets together was measured (blurry input, true poses, 600 s, paired runs):
-    on big_mover the dynamic set then got 4 342 of the 5 428 rows at the step the cap was reached
-    and ended with 16.6k Gaussians instead of 14.6k, but the deblurred views did
-    not gain (big_mover 28.96 -> 28.86 dB, cube_sign 29.08 -> 29.05, wall_disk 29.70 -> 29.67;
-    docs/method.md §8): the moving pixels are not short of Gaussians. Not adopted."""
+    gradients of both sets together gave the dynamic set more rows but did not gain: the moving
+    pixels are not short of Gaussians (docs/results.md §10)."""
     threshold = (config.grad_threshold_abs_ndc if config.absgrad else config.grad_threshold_ndc) * 2.0 / float(width)
     info = {"cloned": 0, "split": 0}
     info.update({f"{p}_{kind}": 0 for p in SETS for kind in ("cloned", "split")})

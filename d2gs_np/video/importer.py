@@ -58,9 +58,8 @@ class ImportConfig:
     start: float = None  # seconds (video only)
     end: float = None
     masks: bool = True  # compute motion masks
-    # registration passes without features on masked pixels, each followed by new masks. Measured
-    # (suite, seeds 0 / 1): ATE/depth cube_sign 2.40 / 1.58 % with none, 0.91 / 0.19 % with 1; 2 passes
-    # help big_mover seed 1 (2.73 -> 1.81 %) but hurt cube_sign seed 0 (0.91 -> 1.76 %)
+    # registration passes without features on masked pixels, each followed by new masks; one
+    # helps, a second helps one scene and hurts another (docs/results.md §13)
     mask_rounds: int = 1
     # which rigid motion is the static world (``static_motion``): when the smaller of two groups of
     # tracks that move together holds at least this share of them (0: never checked), the group

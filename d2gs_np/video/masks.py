@@ -54,8 +54,7 @@ class MaskConfig:
     # depth is trusted within this distance (fraction of max(W, H)) of a sparse point seen in the
     # frame; farther away only the epipolar (depth-free) part of the disagreement is used
     support_fraction: float = 0.08
-    # "any": moving if one neighbour disagrees (pooled mask IoU on the suite's seed-0 wall_disk 0.81 vs
-    # 0.61 for "all", cube_sign 0.43 vs 0.23, static photo_room 1.2 % vs 0.6 % false positives; the
+    # "any": moving if one neighbour disagrees (a higher IoU than "all": docs/results.md §13; the
     # photometric gate already rejects disocclusions, which "all" was meant to)
     combine: str = "any"
     flow: str = "farneback"  # or "dis" (observed_flow)
@@ -65,27 +64,19 @@ class MaskConfig:
     photo_threshold: float = 0.01
     photo_sigma_px: float = 1.5
     # geometric gate (steps 3 and the epipolar test) before the photometric one. Off: on the blurry
-    # suite Farneback's flow is wrong on most static brick and gravel (static pixels' median
-    # disagreement 4 px on cube_sign seed 0 frame 9, 58 % above the threshold, all rejected by the
-    # photometric gate), while on a slow mover it follows the background (the swinging sign: 22 %
-    # above the threshold, 68 % pass the photometric gate). Pooled IoU with the gate off vs on,
-    # seeds 0 / 1: cube_sign 0.58 / 0.54 vs 0.43 / 0.45, wall_disk 0.83 / 0.83 vs 0.77 / 0.78,
-    # big_mover 0.21 / 0.37 vs 0.05 / 0.16; static photo_room 0.1 / 0.4 % vs 0.1 / 0.1 % marked
+    # suite Farneback's flow is wrong on most static brick and gravel, while on a slow mover it
+    # follows the background; the masks are better without it (docs/results.md §13)
     geometric: bool = False
     # static_motion_masks: sparse points with more than prune_share of their observations inside the
     # masks are taken for points on movers and left out of the depth, then the masks are made again
     # (prune_rounds times). A triangulated point on a slow mover gets a depth that lets the static
-    # warp nearly explain the mover around it. Measured with the suite's registrations (seeds 0 / 1,
-    # 1 round, share 0.3): IoU cube_sign 0.58 -> 0.60 / 0.54 -> 0.59, crossing 0.28 -> 0.42 /
-    # 0.21 -> 0.27, big_mover 0.21 -> 0.26 / 0.37 -> 0.43; more rounds or share 0 gain a little
-    # more but grow false positives on the static photo_room (0.4 -> 1.4-2.3 % of pixels, seed 1)
+    # warp nearly explain the mover around it. One round at share 0.3 raises the IoU on the movers;
+    # more rounds or share 0 mark static pixels (docs/results.md §13)
     prune_rounds: int = 1
     prune_share: float = 0.3
     # fill holes (background pixels enclosed by a mask component): a blurred mover's flat interior
-    # has no flow to observe (the crossing card's centre). Measured on the masks the importer wrote
-    # (suite, seeds 0 / 1), pooled IoU without -> with: cube_sign 0.61 -> 0.64 / 0.65 -> 0.69,
-    # crossing 0.42 -> 0.47 / 0.27 -> 0.26, big_mover 0.27 -> 0.27 / 0.57 -> 0.61, wall_disk +0.004
-    # / +0.006; the static photo_room's marked share unchanged
+    # has no flow to observe (the crossing card's centre); the IoU rises on most suite scenes
+    # (docs/results.md §13)
     fill_holes: bool = True
 
     def __post_init__(self):
@@ -114,10 +105,8 @@ def observed_flow(img0, img1, method="farneback"):
     """Dense flow (H, W, 2) from img0 to img1 (pixel displacement, x then y).
 
     "farneback": Farneback's polynomial expansion (pyramid 0.5 x 4 levels, window 15, 5 iterations,
-    poly_n 7, sigma 1.5); "dis": DIS, medium preset. Measured on the blurry suite scene wall_disk
-    (frames 5, 12, 18): static pixels' 90th-percentile disagreement with the camera-explained flow
-    1.0-1.8 px for Farneback vs 0.9-7.4 px for DIS (which fails on blurred repetitive brick), at
-    the same disagreement (4-5 px) on the mover."""
+    poly_n 7, sigma 1.5); "dis": DIS, medium preset, which fails on blurred repetitive brick
+    (docs/results.md §13)."""
     a, b = to_gray_u8(img0), to_gray_u8(img1)
     if method == "dis":
         return cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(a, b, None).astype(np.float64)

@@ -4,10 +4,9 @@ Why: a registration follows whatever rigid motion best explains the tracks. A sc
 at different depths (a large panel swaying in front of a wall) is a trap: for any two image
 motions of the layers there is a camera rotation plus translation that explains both, so the
 panel's tracks are triangulated as static points and the camera path absorbs the panel's sway,
-with every reprojection residual under a pixel (the suite's big_mover, seed 0: ATE 6.9 % of the
-scene depth; 0.3 % from the background's tracks alone). Epipolar geometry cannot tell the layers
-apart; the image motion of each layer can: between two frames one homography maps most of a
-layer's tracks.
+with every reprojection residual under a pixel (the suite's big_mover: docs/results.md §13).
+Epipolar geometry cannot tell the layers apart; the image motion of each layer can: between two
+frames one homography maps most of a layer's tracks.
 
 ``track_groups``: for each frame pair (k, k + gap), a homography by RANSAC takes its inliers as one
 group and a second homography on the rest as the other; two tracks' affinity is the share of the

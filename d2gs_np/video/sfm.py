@@ -66,9 +66,8 @@ class SfmConfig:
     # SIFT at a low contrast threshold: blurry frames lose DoG contrast (as in InitConfig)
     features: FeatureConfig = field(default_factory=lambda: FeatureConfig(contrast_threshold=0.01))
     # "klt": Lucas-Kanade tracks (d2gs_np.pose.tracks: why); "sift": SIFT matches of each frame with the
-    # next match_window frames joined into tracks. Measured on the blurry suite, seeds 0 / 1, ATE/depth
-    # sift -> klt: photo_room 0.54 / 0.76 -> 0.16 / 0.17 %, wall_disk 0.93 / 4.10 -> 0.10 / 0.08 %,
-    # cube_sign 2.63 / 2.02 -> 2.40 / 1.58 %, crossing refused / refused -> 0.99 / 1.91 %
+    # next match_window frames joined into tracks. KLT registers the blurry suite better on every
+    # scene (docs/results.md §13)
     tracker: str = "klt"
     tracks: TrackConfig = field(default_factory=TrackConfig)
     match_window: int = 4  # match frame k with k+1 .. k+window (longer tracks: more parallax per track)

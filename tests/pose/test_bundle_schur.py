@@ -64,11 +64,9 @@ def _noisy_problem(seed, C=6, P=150, outliers=0.2):
 def test_schur_and_scipy_reach_the_same_optimum(with_prior, with_focal):
     # 6 cameras, 150 points, 0.3 px noise, ~20 % outliers (soft_l1, 1 px). Gauge: cameras 0 and 1 held at
     # the truth (rotation, translation, scale), or with the prior no camera fixed. SciPy's trust region
-    # converges slowly here (measured: 1000 evaluations still 2e-6 relative above the optimum, 6 s), so
-    # the comparison is made both ways:
+    # converges slowly here (docs/results.md §15), so the comparison is made both ways:
     # 1. from the same start, SciPy (300 evaluations) ends no lower than the Schur solver, within 1e-4
-    #    relative (it approaches from above: 4630.91 at 300, 4630.903 at 1000 against 4630.895; with the
-    #    focal free it is slower: 3e-5 above at 300);
+    #    relative (it approaches from above);
     # 2. SciPy started at the Schur solver's result finds no lower cost (its own stopping rule, ftol
     #    1e-12) and does not move it: measured 2e-13 relative and 1e-6 on the points, so 1e-10 on the
     #    cost and 1e-5 on cameras and points (the weakest direction of a point, along its rays, has

@@ -184,8 +184,7 @@ def noisy_room():
 def test_adjust_given_poses_halves_the_pose_error_on_a_suite_scene(noisy_room):
     # Measured (this scene): ATE 0.071 -> 0.0054, mean rotation error 0.67 -> 0.27 deg, 4.6 s. The
     # bounds (half, 0.6x) leave room for other platforms' OpenCV and SciPy, and fail if the
-    # adjustment does nothing or drifts (on the 240 x 135 suite scene, frame 0 fixed and no prior
-    # with a similarity on the centres afterwards, it ended 3.9 deg turned).
+    # adjustment does nothing or drifts (as it did without the prior: docs/results.md §15).
     scene = noisy_room
     G = np.stack([f.cam_T_world for f in scene.frames])
     gt = np.stack([f.gt_cam_T_world for f in scene.frames])

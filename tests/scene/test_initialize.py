@@ -307,8 +307,7 @@ def _depth_ratio(points, src, frames, depth_maps):
 # Dense seeds at their stereo depth (or interpolated between stereo pixels), and the fill on the
 # surface the seeds describe, against the ray-cast depth at the pixel. Measured on this scene
 # (spheres before a wall: depth edges everywhere): |ratio - 1| dense median 0.6 %, 90th
-# percentile 13 %; fill 0.5 %, 11 %. Without stereo (interpolated from triangulated points) the
-# dense seeds had 2.3 %, 17 %; the uniform fill 19 %, 45 %. The 90th percentile is set by depth
+# percentile 13 %; fill 0.5 %, 11 % (docs/results.md §15). The 90th percentile is set by depth
 # edges (a seed between a sphere and the wall behind it), hence the loose bound.
 SEED_DEPTH_MEDIAN_REL_TOL = 0.02
 SEED_DEPTH_P90_REL_TOL = 0.20

@@ -13,11 +13,9 @@ from d2gs_np.scene.stereo import plane_sweep_depth
 # poses: small enough for a test, textured like the suite.
 KW = dict(width=120, height=68, num_frames=9, exposure_fraction=0.0, rot_noise_deg=0.0, trans_noise=0.0,
           num_test_views=0)
-# Measured on this scene, reference frame 4 with sources 0, 2, 6, 8 (5 degrees of yaw apart),
-# range [1, 8] widened to [0.5, 12], 128 hypotheses: 39 % of the pixels trusted, |depth / true - 1|
-# median 1.1 %, 90th percentile 3.6 % (8 hypotheses: median 56 %). Bounds with room for other
-# platforms' rounding, far below what a wrong geometry gives (the older seeds interpolated from
-# a few hundred triangulated points: median 31 % on photo_room).
+# Measured on this scene (docs/results.md §15): 39 % of the pixels trusted, |depth / true - 1| median
+# 1.1 %, 90th percentile 3.6 %. Bounds with room for other platforms' rounding, far below what a
+# wrong geometry gives.
 MEDIAN_REL_TOL = 0.02
 P90_REL_TOL = 0.06
 MIN_KEPT = 0.2

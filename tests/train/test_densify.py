@@ -61,7 +61,8 @@ def test_budget_caps_growth():
 def test_the_static_set_takes_the_room_first():
     # Room for 2 more rows; 6 static candidates just above the threshold and 2 dynamic ones far
     # above it: the static set takes both rows (its highest gradients), the dynamic set none
-    # (the documented order; giving the room by gradient over both sets measured no better).
+    # (the documented order; giving the room by gradient over both sets was no better:
+    # docs/results.md §10).
     rng = np.random.default_rng(4)
     p = _params(rng)
     width = 100

@@ -63,13 +63,10 @@ PINNED = {
 # The last bits are not portable across machines: OpenBLAS picks its kernels by CPU, NumPy and OpenCV
 # dispatch by instruction set, and 16 steps of densification, pruning and Adam (whose normalised
 # step turns a rounding-level change of a near-zero gradient into a full step) amplify one-ulp
-# differences. ``python examples/pin_spread.py`` runs the pinned config under emulated CPU kinds
-# (AVX2 Haswell and Zen, SSE4 Nehalem; OpenBLAS core type, LLVM target and NumPy/OpenCV dispatch),
-# 1 and 2 threads, and float64 rasterisation; the largest moves from this machine's values were
-# 0.060 dB and 1.6e-2 relative ATE (SSE4), 0.049 dB and 2.0e-3 (AVX2); a second real machine kind
-# moved them by 0.021 dB and 1.8e-3; thread count changed nothing. The tolerances are twice the
-# largest measured move; the hash is compared only on the machine kind that recorded it, and bitwise
-# determinism on one machine is checked by the resume test and the written-out step below.
+# differences. The tolerances are twice the largest move measured under emulated CPU kinds
+# (``python examples/pin_spread.py``, docs/results.md §1); the hash is compared only on the machine
+# kind that recorded it, and bitwise determinism on one machine is checked by the resume test and
+# the written-out step below.
 PSNR_TOL = 0.12  # dB
 ATE_RTOL = 3e-2
 
