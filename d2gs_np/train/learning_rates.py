@@ -53,14 +53,10 @@ def size_extent(poses, points, camera_extent) -> float:
     90th percentile distance of the initial points from the camera centres' mean.
 
     3DGS measures its size rules in units of the camera extent, which for a camera that circles the
-    scene is the scene's size. A hand-held camera looking forward moves little against the depth
-    it sees: on the suite's photo_room the camera radius is 0.51 against walls 5.5 away, so the
-    oversized rule (0.1 x extent = 0.051, two pixels at the wall) pruned every seed larger than
-    two pixels and the sharp render lost 3.2 dB (25.76 against 29.00 dB with the rule off,
-    700 steps). The point cloud says how large the scene is, whichever way the camera moves.
-    Densification keeps the camera extent for its clone/split boundary: measured in this unit it
-    clones where it should split, and fine photographic detail fits worse (photo_room 28.23
-    against 29.00 dB, 700 steps)."""
+    scene is the scene's size; a hand-held camera looking forward moves little against the depth it
+    sees, so in that unit the oversized rule pruned every seed over two pixels. The point cloud says
+    how large the scene is, whichever way the camera moves. Densification keeps the camera extent
+    for its clone/split boundary, which fitted fine detail better (docs/results.md §10)."""
     if points is None or len(points) == 0:
         return float(camera_extent)
     centres = np.array([-T[:3, :3].T @ T[:3, 3] for T in poses])
