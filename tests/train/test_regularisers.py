@@ -255,7 +255,7 @@ def test_neighbour_lists_follow_every_change_of_the_dynamic_rows(dynamic_scene, 
 
 
 def test_resume_is_exact_with_l_ts_and_densification(dynamic_scene, tmp_path):
-    from d2gs_np.train.densify import DensifyConfig
+    from d2gs_np.train.config import DensifyConfig
 
     dens = DensifyConfig(enabled=True, every=3, start_fraction=0.0, stop_fraction=1.0, grad_threshold_ndc=1e-6)
     cfg = _config(iters=10, checkpoint_every=5, loss=dataclasses.replace(ALL_ON, ts_knn_every=4)).replace(
