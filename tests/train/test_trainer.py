@@ -494,7 +494,7 @@ def test_position_rates_take_the_scene_size_as_their_unit(dynamic_scene, tmp_pat
     # other blocks do not depend on the unit
     assert scene.adam_config.lr("static.colors", 0) == camera.adam_config.lr("static.colors", 0)
     assert any("units of the scene's size" in n for n in scene.log.notes)
-    with pytest.raises(ValueError, match="means_unit must be 'camera' or 'scene'"):
+    with pytest.raises(ValueError, match=r"means_unit must be one of \('camera', 'scene'\)"):
         LearningRates(means_unit="extent")
 
 
