@@ -390,8 +390,7 @@ def adam_extend(state, block_prefix, num_new):
     moments and keeps the step count). Blocks not yet in the state need nothing: they get zero
     moments at their first update.
     """
-    if isinstance(num_new, bool) or not isinstance(num_new, numbers.Integral) or num_new < 0:
-        raise ValueError(f"num_new must be an integer >= 0; got {num_new!r}")
+    check_int(num_new, "num_new", 0)
     new_state = {slot: dict(blocks) for slot, blocks in state.items()}  # keeps "row_step" too
     for name in _prefixed(state, block_prefix):
         for key in ("m", "v"):

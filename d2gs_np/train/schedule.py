@@ -30,7 +30,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
-from d2gs_np.base.checks import check_choice, check_number
+from d2gs_np.base.checks import check_choice, check_int, check_number
 from d2gs_np.geometry.camera import check_intrinsics, scale_intrinsics, scaled_size
 
 __all__ = [
@@ -262,8 +262,7 @@ class TargetCache:
         if not (0.0 <= mask_threshold < 1.0):
             raise ValueError(f"mask_threshold must be in [0, 1); got {mask_threshold}")
         self._mask_threshold = float(mask_threshold)
-        if isinstance(max_entries, bool) or not isinstance(max_entries, numbers.Integral) or max_entries < 1:
-            raise ValueError(f"max_entries must be an int >= 1; got {max_entries!r}")
+        check_int(max_entries, "max_entries", 1)
         self._max_entries = int(max_entries)
         self._cache = OrderedDict()
 
@@ -299,8 +298,7 @@ class TargetCache:
     def get(self, frame_index, scale):
         """The Target of frame ``frame_index`` at render scale ``scale`` in (0, 1]."""
         k = self._check_index(frame_index)
-        if isinstance(scale, bool) or not isinstance(scale, numbers.Real) or not (0.0 < scale <= 1.0):
-            raise ValueError(f"scale must be a real number in (0, 1]; got {scale!r}")
+        check_number(scale, "scale", 0.0, 1.0, lo_open=True)
         img = self._images[k]
         H, W = img.shape[:2]
         w, h = scaled_size(W, H, scale)
