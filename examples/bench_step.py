@@ -33,7 +33,7 @@ from d2gs_np.data.synthetic import make_scene
 from d2gs_np.evaluation.runs import evaluate, load_run
 from d2gs_np.train.checkpoint import load_checkpoint
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
-from d2gs_np.train.densify import DensifyConfig
+from d2gs_np.train.config import DensifyConfig
 from d2gs_np.train.trainer import Trainer
 
 SCENE = dict(width=64, height=36, num_frames=8)

@@ -13,6 +13,8 @@ from dataclasses import dataclass
 
 import numpy as np
 
+from d2gs_np.base.checks import check_choice, check_int, check_number
+
 __all__ = [
     "N_SCHEDULES",
     "BlurConfig",
@@ -61,11 +63,8 @@ class BlurConfig:
 
     def __post_init__(self):
         _check_n(self.num_virtual, "BlurConfig.num_virtual")
-        if self.n_schedule not in N_SCHEDULES:
-            raise ValueError(f"BlurConfig.n_schedule must be one of {N_SCHEDULES}; got {self.n_schedule!r}")
-        d = self.view_spacing_px
-        if isinstance(d, bool) or not isinstance(d, numbers.Real) or not (0.0 < d < float("inf")):
-            raise ValueError(f"BlurConfig.view_spacing_px must be a finite number of pixels > 0; got {d!r}")
+        check_choice(self.n_schedule, "BlurConfig.n_schedule", N_SCHEDULES)
+        check_number(self.view_spacing_px, "BlurConfig.view_spacing_px", 0.0, lo_open=True, hint="pixels")
         _check_backward_views(self.backward_views, "BlurConfig.backward_views")
 
 
@@ -110,30 +109,19 @@ class TrajectoryConfig:
     centre: str = "auto"
 
     def __post_init__(self):
-        if self.centre not in ("auto", "on", "off"):
-            raise ValueError(f"TrajectoryConfig.centre must be 'auto', 'on' or 'off'; got {self.centre!r}")
+        check_choice(self.centre, "TrajectoryConfig.centre", ("auto", "on", "off"))
         if self.centre == "on" and self.kind != "direct":
             raise ValueError("TrajectoryConfig.centre = 'on' needs kind 'direct' (a PoseNet's endpoints cannot be "
                              "tied row by row); use centre 'auto' or 'off'")
-        v = self.velocity_window
-        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
-            raise ValueError(f"TrajectoryConfig.velocity_window must be an int >= 1 (frames on each side); got {v!r}")
-        if self.init not in ("velocity", "random"):
-            raise ValueError(f"TrajectoryConfig.init must be 'velocity' or 'random'; got {self.init!r}")
-        if self.kind not in TRAJECTORY_KINDS:
-            raise ValueError(f"TrajectoryConfig.kind must be one of {TRAJECTORY_KINDS}; got {self.kind!r}")
-        if self.activation not in ACTIVATIONS:
-            raise ValueError(f"TrajectoryConfig.activation must be one of {ACTIVATIONS}; got {self.activation!r}")
+        check_int(self.velocity_window, "TrajectoryConfig.velocity_window", 1, hint="frames on each side")
+        check_choice(self.init, "TrajectoryConfig.init", ("velocity", "random"))
+        check_choice(self.kind, "TrajectoryConfig.kind", TRAJECTORY_KINDS)
+        check_choice(self.activation, "TrajectoryConfig.activation", ACTIVATIONS)
         for name in ("hidden_layers", "hidden_width"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
-                raise ValueError(f"TrajectoryConfig.{name} must be an int >= 1; got {v!r}")
-        if not (isinstance(self.init_spread, numbers.Real) and 0.0 < self.init_spread < 1.0):
-            raise ValueError(
-                f"TrajectoryConfig.init_spread must be in (0, 1) (a tiny symmetry-breaking spread; "
-                f"0 is a critical point); got {self.init_spread!r}")
-        if not (isinstance(self.output_init_scale, numbers.Real) and self.output_init_scale >= 0.0):
-            raise ValueError(f"TrajectoryConfig.output_init_scale must be >= 0; got {self.output_init_scale!r}")
+            check_int(getattr(self, name), f"TrajectoryConfig.{name}", 1)
+        check_number(self.init_spread, "TrajectoryConfig.init_spread", 0.0, 1.0, lo_open=True, hi_open=True,
+                     hint="a tiny symmetry-breaking spread; 0 is a critical point")
+        check_number(self.output_init_scale, "TrajectoryConfig.output_init_scale", 0.0)
 
 
 # ---------------------------------------------------------------------------------------------
@@ -142,14 +130,11 @@ class TrajectoryConfig:
 
 
 def _check_n(n, what="n (number of virtual poses)"):
-    if isinstance(n, bool) or not isinstance(n, numbers.Integral) or n < 1:
-        raise ValueError(f"{what} must be an int >= 1; got {n!r}")
-    return int(n)
+    return check_int(n, what, 1)
 
 
 def _check_backward_views(m, what):
-    if isinstance(m, bool) or not isinstance(m, numbers.Integral) or m < 0:
-        raise ValueError(f"{what} must be an int >= 0 (0: every view); got {m!r}")
+    check_int(m, what, 0, hint="0: every view")
 
 
 def _check_real(x, name, low=None):

@@ -42,10 +42,9 @@ Public API: ``init_trajectory``, ``endpoints_fwd``, ``endpoints_bwd``, ``traject
 """
 from __future__ import annotations
 
-import numbers
-
 import numpy as np
 
+from d2gs_np.base.checks import check_int
 from d2gs_np.blur.config import TrajectoryConfig
 from d2gs_np.constants import POSENET_INPUT_STD_MIN
 from d2gs_np.geometry.se3 import check_rigid, se3_inverse, se3_log
@@ -121,8 +120,7 @@ def velocity_endpoints(poses_est, times, exposure_fraction, window=1):
     the local frame interval, so xi_start = -v tau / 2 and xi_end = +v tau / 2
     (T(t) ~ exp((t - t_k) v) T_k).
     """
-    if isinstance(window, bool) or not isinstance(window, numbers.Integral) or window < 1:
-        raise ValueError(f"velocity_endpoints: window must be an int >= 1 (frames on each side); got {window!r}")
+    check_int(window, "velocity_endpoints: window", 1, hint="frames on each side")
     N = poses_est.shape[0]
     P = np.asarray(poses_est, dtype=np.float64)
     t = np.asarray(times, dtype=np.float64)

@@ -14,10 +14,10 @@ gradient comes from the blurred render's backward (d2gs_np.blur.render).
 from __future__ import annotations
 
 import math
-import numbers
 
 import numpy as np
 
+from d2gs_np.base.checks import check_int
 from d2gs_np.blur.config import _check_real
 
 __all__ = [
@@ -32,9 +32,7 @@ EXPOSURE_BLOCK = "camera.exposure_logit"
 
 
 def _check_num_frames(num_frames):
-    if isinstance(num_frames, bool) or not isinstance(num_frames, numbers.Integral) or num_frames < 1:
-        raise ValueError(f"num_frames must be an int >= 1; got {num_frames!r}")
-    return int(num_frames)
+    return check_int(num_frames, "num_frames", 1)
 
 
 def exposure_from_scene(exposure_fraction, num_frames):

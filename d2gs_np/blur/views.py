@@ -20,10 +20,10 @@ unbiased for the gradient of the mean of the n views.
 from __future__ import annotations
 
 import math
-import numbers
 
 import numpy as np
 
+from d2gs_np.base.checks import check_choice, check_number
 from d2gs_np.blur.config import N_SCHEDULES, _check_backward_views, _check_n, _check_real
 from d2gs_np.geometry.camera import project_points
 from d2gs_np.geometry.se3 import se3_exp
@@ -48,10 +48,8 @@ def views_at_scale(n, scale, schedule="fixed"):
     model) stays 1. Example, n = 8: r = 0.2 -> 3, r = 0.5 -> 5, r = 1 -> 8.
     """
     n = _check_n(n)
-    if isinstance(scale, bool) or not isinstance(scale, numbers.Real) or not (0.0 < scale <= 1.0):
-        raise ValueError(f"scale must be a real number in (0, 1]; got {scale!r}")
-    if schedule not in N_SCHEDULES:
-        raise ValueError(f"n schedule must be one of {N_SCHEDULES}; got {schedule!r}")
+    check_number(scale, "scale", 0.0, 1.0, lo_open=True)
+    check_choice(schedule, "n schedule", N_SCHEDULES)
     if schedule == "length":
         raise ValueError("the 'length' n schedule depends on the frame's blur, not only the scale: use "
                          "views_for_length(n, blur_length_px(...), spacing)")

@@ -11,10 +11,9 @@ and the depth through the pixel centres (``cast_depth``). Pixel (i, j) has its c
 """
 from __future__ import annotations
 
-import numbers
-
 import numpy as np
 
+from d2gs_np.base.checks import check_int
 from d2gs_np.geometry.camera import check_intrinsics
 from d2gs_np.geometry.se3 import check_rigid
 
@@ -57,8 +56,7 @@ def check_view(cam_T_world, K, width, height):
     K = np.asarray(K, dtype=np.float64)
     check_intrinsics(K)
     for name, v in (("width", width), ("height", height)):
-        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
-            raise ValueError(f"{name} must be a positive int; got {v!r}")
+        check_int(v, name, 1)
     return T, K
 
 
@@ -70,8 +68,7 @@ def cast_view(cast, cam_T_world, K, width, height, supersample=2):
     moving object.
     """
     T, K = check_view(cam_T_world, K, width, height)
-    if isinstance(supersample, bool) or not isinstance(supersample, numbers.Integral) or supersample < 1:
-        raise ValueError(f"supersample must be a positive int; got {supersample!r}")
+    check_int(supersample, "supersample", 1)
     origin, dirs = pixel_rays(T, K, width, height, supersample)
     rgb, _, dyn = cast(origin, dirs)
     s = supersample

@@ -47,12 +47,12 @@ from __future__ import annotations
 import dataclasses
 import functools
 import json
-import numbers
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from d2gs_np.base.checks import check_choice, check_int, check_number
 from d2gs_np.data.camera_paths import as_times, eval_sines, random_sines
 from d2gs_np.data.raycast import cast_depth, cast_view
 from d2gs_np.data.scene import Scene
@@ -220,40 +220,27 @@ class SuiteConfig:
     seed: int = 0
 
     def __post_init__(self):
-        if self.family not in FAMILIES:
-            raise ValueError(f"SuiteConfig.family must be one of {sorted(FAMILIES)}; got {self.family!r}")
-        for name in ("width", "height", "num_frames", "subframes", "supersample", "num_test_views", "seed"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral):
-                raise TypeError(f"SuiteConfig.{name} must be an int; got {type(v).__name__} {v!r}")
-        for name in ("exposure_fraction", "pan", "yaw_deg", "shake", "shake_cycles", "rot_noise_deg", "trans_noise", "drift",
-                     "test_offset_fraction", "fov_x_deg"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v):
-                raise ValueError(f"SuiteConfig.{name} must be a finite number; got {v!r}")
-        if self.width < 16 or self.height < 16:
-            raise ValueError(f"SuiteConfig width and height must be >= 16; got {self.width}x{self.height}")
-        if self.num_frames < 2:
-            raise ValueError(f"SuiteConfig.num_frames must be >= 2; got {self.num_frames}")
-        if not 0.0 <= self.exposure_fraction <= 1.0:
-            raise ValueError(f"SuiteConfig.exposure_fraction must be in [0, 1]; got {self.exposure_fraction}")
+        check_choice(self.family, "SuiteConfig.family", tuple(sorted(FAMILIES)))
+        check_int(self.width, "SuiteConfig.width", 16)
+        check_int(self.height, "SuiteConfig.height", 16)
+        check_int(self.num_frames, "SuiteConfig.num_frames", 2)
+        check_int(self.subframes, "SuiteConfig.subframes", 1)
+        check_int(self.supersample, "SuiteConfig.supersample", 1)
+        check_int(self.num_test_views, "SuiteConfig.num_test_views", 0, self.num_frames, hint="at most num_frames")
+        check_int(self.seed, "SuiteConfig.seed", 0)
+        check_number(self.exposure_fraction, "SuiteConfig.exposure_fraction", 0.0, 1.0)
         if self.exposure_fraction > 0 and self.subframes < 2:
             raise ValueError("SuiteConfig.subframes must be >= 2 when exposure_fraction > 0; use >= 16 for "
                              "smooth blur, or exposure_fraction = 0 for a sharp video")
-        if self.supersample < 1 or self.subframes < 1:
-            raise ValueError("SuiteConfig.supersample and subframes must be >= 1")
-        if min(self.shake, self.rot_noise_deg, self.trans_noise, self.test_offset_fraction) < 0:
-            raise ValueError("SuiteConfig shake, pose noise and test offset must be >= 0")
-        if self.shake_cycles <= 0:
-            raise ValueError(f"SuiteConfig.shake_cycles must be > 0; got {self.shake_cycles}")
-        if not 0.0 <= self.drift <= 1.0:
-            raise ValueError(f"SuiteConfig.drift must be in [0, 1]; got {self.drift}")
-        if not 0 <= self.num_test_views <= self.num_frames:
-            raise ValueError(f"SuiteConfig.num_test_views must be in [0, {self.num_frames}]; got {self.num_test_views}")
-        if not 10.0 <= self.fov_x_deg <= 120.0:
-            raise ValueError(f"SuiteConfig.fov_x_deg must be in [10, 120]; got {self.fov_x_deg}")
-        if self.seed < 0:
-            raise ValueError(f"SuiteConfig.seed must be >= 0; got {self.seed}")
+        check_number(self.shake, "SuiteConfig.shake", 0.0)
+        for name in ("rot_noise_deg", "trans_noise"):
+            check_number(getattr(self, name), f"SuiteConfig.{name}", 0.0, hint="pose noise")
+        check_number(self.test_offset_fraction, "SuiteConfig.test_offset_fraction", 0.0)
+        check_number(self.shake_cycles, "SuiteConfig.shake_cycles", 0.0, lo_open=True)
+        check_number(self.drift, "SuiteConfig.drift", 0.0, 1.0)
+        check_number(self.fov_x_deg, "SuiteConfig.fov_x_deg", 10.0, 120.0, hint="degrees")
+        for name in ("pan", "yaw_deg"):
+            check_number(getattr(self, name), f"SuiteConfig.{name}")
 
 
 # ============================================================================ worlds

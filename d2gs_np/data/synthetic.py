@@ -48,12 +48,12 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import numbers
 from dataclasses import dataclass
 from pathlib import Path
 
 import numpy as np
 
+from d2gs_np.base.checks import check_bool, check_int, check_number
 from d2gs_np.data.camera_paths import as_times, eval_sines, random_sines
 from d2gs_np.data.raycast import cast_depth, cast_view
 from d2gs_np.data.scene import Frame, Scene
@@ -111,57 +111,26 @@ class SyntheticConfig:
     seed: int = 0  # seeds textures, paths' phases, pose noise
 
     def __post_init__(self):
-        ints = ("width", "height", "num_frames", "subframes", "supersample", "num_test_views", "seed")
-        for name in ints:
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral):
-                raise TypeError(f"SyntheticConfig.{name} must be an int; got {type(v).__name__} {v!r}")
-        floats = ("exposure_fraction", "rot_noise_deg", "trans_noise_fraction", "test_offset_fraction", "fov_x_deg",
-                  "shake_scale", "shake_freq_scale")
-        for name in floats:
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real):
-                raise TypeError(f"SyntheticConfig.{name} must be a real number; got {type(v).__name__} {v!r}")
-            if not np.isfinite(v):
-                raise ValueError(f"SyntheticConfig.{name} must be finite; got {v}")
-        if not isinstance(self.moving_objects, bool):
-            raise TypeError(f"SyntheticConfig.moving_objects must be a bool; got {self.moving_objects!r}")
-        if self.width < 1 or self.height < 1:
-            raise ValueError(f"SyntheticConfig width and height must be >= 1; got {self.width}x{self.height}")
-        if self.num_frames < 2:
-            raise ValueError(f"SyntheticConfig.num_frames must be >= 2 (times are k / (N - 1)); got {self.num_frames}")
-        if not 0.0 <= self.exposure_fraction <= 1.0:
-            raise ValueError(f"SyntheticConfig.exposure_fraction must be in [0, 1]; got {self.exposure_fraction}")
-        if self.subframes < 1:
-            raise ValueError(f"SyntheticConfig.subframes must be >= 1; got {self.subframes}")
+        check_int(self.width, "SyntheticConfig.width", 1)
+        check_int(self.height, "SyntheticConfig.height", 1)
+        check_int(self.num_frames, "SyntheticConfig.num_frames", 2, hint="times are k / (N - 1)")
+        check_int(self.subframes, "SyntheticConfig.subframes", 1)
+        check_int(self.supersample, "SyntheticConfig.supersample", 1)
+        check_int(self.num_test_views, "SyntheticConfig.num_test_views", 0, self.num_frames, hint="at most num_frames")
+        check_int(self.seed, "SyntheticConfig.seed", 0)
+        check_bool(self.moving_objects, "SyntheticConfig.moving_objects")
+        check_number(self.exposure_fraction, "SyntheticConfig.exposure_fraction", 0.0, 1.0)
         if self.exposure_fraction > 0 and self.subframes < 2:
             raise ValueError(
                 f"SyntheticConfig.subframes must be >= 2 when exposure_fraction > 0 (got subframes="
                 f"{self.subframes}, exposure_fraction={self.exposure_fraction}); use >= 16 for smooth blur, "
                 "or set exposure_fraction=0 for a sharp video"
             )
-        if self.supersample < 1:
-            raise ValueError(f"SyntheticConfig.supersample must be >= 1; got {self.supersample}")
-        if self.shake_scale < 0:
-            raise ValueError(f"SyntheticConfig.shake_scale must be >= 0; got {self.shake_scale}")
-        if self.shake_freq_scale <= 0:
-            raise ValueError(f"SyntheticConfig.shake_freq_scale must be > 0; got {self.shake_freq_scale}")
-        if self.rot_noise_deg < 0 or self.trans_noise_fraction < 0:
-            raise ValueError(
-                f"SyntheticConfig pose noise must be >= 0; got rot_noise_deg={self.rot_noise_deg}, "
-                f"trans_noise_fraction={self.trans_noise_fraction}"
-            )
-        if not 0 <= self.num_test_views <= self.num_frames:
-            raise ValueError(
-                f"SyntheticConfig.num_test_views must be in [0, num_frames={self.num_frames}]; "
-                f"got {self.num_test_views}"
-            )
-        if self.test_offset_fraction < 0:
-            raise ValueError(f"SyntheticConfig.test_offset_fraction must be >= 0; got {self.test_offset_fraction}")
-        if not 10.0 <= self.fov_x_deg <= 120.0:
-            raise ValueError(f"SyntheticConfig.fov_x_deg must be in [10, 120] degrees; got {self.fov_x_deg}")
-        if self.seed < 0:
-            raise ValueError(f"SyntheticConfig.seed must be >= 0; got {self.seed}")
+        check_number(self.shake_scale, "SyntheticConfig.shake_scale", 0.0)
+        check_number(self.shake_freq_scale, "SyntheticConfig.shake_freq_scale", 0.0, lo_open=True)
+        for name in ("rot_noise_deg", "trans_noise_fraction", "test_offset_fraction"):
+            check_number(getattr(self, name), f"SyntheticConfig.{name}", 0.0)
+        check_number(self.fov_x_deg, "SyntheticConfig.fov_x_deg", 10.0, 120.0, hint="degrees")
 
 
 PRESETS = {

@@ -40,12 +40,12 @@ from __future__ import annotations
 
 import functools
 import math
-import numbers
 
 import numpy as np
 import scipy.fft
 from numba import njit
 
+from d2gs_np.base.checks import check_number
 from d2gs_np.constants import FREQ_AMPLITUDE_ZERO, FREQ_MASK_EDGE, FREQ_PHASE_GATE_AMPLITUDE
 
 __all__ = ["highpass_mask", "target_spectrum", "frequency_fwd", "frequency_bwd", "warm_up"]
@@ -117,8 +117,8 @@ def frequency_fwd(render, target, mask=None, cutoff: float = 0.1, target_fft=Non
             raise ValueError(f"mask must be an array of shape {render.shape[:2]}; got {got}")
         if not (np.all(np.isfinite(mask)) and np.all(mask >= 0.0)):
             raise ValueError("mask must hold finite weights >= 0")
-    if isinstance(cutoff, bool) or not isinstance(cutoff, numbers.Real) or not 0.0 < cutoff < np.sqrt(2.0):
-        raise ValueError(f"cutoff must be a normalised radial frequency in (0, sqrt 2); got {cutoff!r}")
+    check_number(cutoff, "cutoff", 0.0, np.sqrt(2.0), lo_open=True, hi_open=True,
+                 hint="a normalised radial frequency up to sqrt 2")
     if target_fft is not None:
         H, W, C = render.shape
         if not isinstance(target_fft, np.ndarray) or target_fft.shape != (H, W // 2 + 1, C) \

@@ -13,10 +13,9 @@ With lambda = 0 the SSIM term is not evaluated (so images smaller than 11x11 are
 """
 from __future__ import annotations
 
-import numbers
-
 import numpy as np
 
+from d2gs_np.base.checks import check_number
 from d2gs_np.losses.ssim import _check_images, _ssim_fwd_weighted, ssim_bwd
 
 __all__ = ["photometric_fwd", "photometric_bwd"]
@@ -30,8 +29,7 @@ def photometric_fwd(render, target, lambda_ssim=0.2, mask=None):
     mask: None or (H, W) non-negative weights of that dtype, not all zero.
     Returns (loss scalar of the images' dtype, saved).
     """
-    if isinstance(lambda_ssim, bool) or not isinstance(lambda_ssim, numbers.Real) or not 0.0 <= lambda_ssim <= 1.0:
-        raise ValueError(f"lambda_ssim must be a number in [0, 1]; got {lambda_ssim!r}")
+    check_number(lambda_ssim, "lambda_ssim", 0.0, 1.0)
     lam = float(lambda_ssim)
     if lam > 0.0:
         _check_images(render, target)  # also enforces H, W >= 11

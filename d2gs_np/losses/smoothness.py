@@ -33,6 +33,7 @@ import numbers
 import numpy as np
 from scipy.spatial import cKDTree
 
+from d2gs_np.base.checks import check_int, check_number
 from d2gs_np.constants import TS_NORM_EPS
 from d2gs_np.scene.config import DeformConfig
 from d2gs_np.scene.deformation import deform_basis
@@ -55,8 +56,7 @@ def knn(points, k: int):
     if not isinstance(points, np.ndarray) or points.ndim != 2 or points.shape[1] != 3:
         got = points.shape if isinstance(points, np.ndarray) else type(points).__name__
         raise ValueError(f"points must be an (N, 3) array; got {got}")
-    if isinstance(k, bool) or not isinstance(k, numbers.Integral) or k < 1:
-        raise ValueError(f"k must be an integer >= 1; got {k!r}")
+    check_int(k, "k", 1)
     if not np.all(np.isfinite(points)):
         raise ValueError("points contains NaN or inf; every position must be finite")
     n = points.shape[0]
@@ -86,8 +86,7 @@ def _check(coefs, t, config):
         if not np.all(np.isfinite(c)):
             raise ValueError(f"coefs[{i}] contains NaN or inf")
         n = c.shape[0]
-    if isinstance(t, bool) or not isinstance(t, numbers.Real) or not np.isfinite(t):
-        raise ValueError(f"t must be a finite real time; got {t!r}")
+    check_number(t, "t", hint="a time")
     return n
 
 

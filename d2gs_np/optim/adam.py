@@ -37,6 +37,7 @@ from typing import Mapping, Union
 
 import numpy as np
 
+from d2gs_np.base.checks import check_int, check_number
 from d2gs_np.constants import ADAM_EPS
 
 __all__ = [
@@ -53,13 +54,6 @@ __all__ = [
 ]
 
 
-def _check_lr(name, value, allow_zero=True):
-    if isinstance(value, bool) or not isinstance(value, numbers.Real) or not math.isfinite(value):
-        raise ValueError(f"{name} must be a finite real number; got {value!r}")
-    if value < 0.0 or (value == 0.0 and not allow_zero):
-        raise ValueError(f"{name} must be {'>= 0' if allow_zero else '> 0'}; got {value!r}")
-
-
 @dataclass(frozen=True)
 class Constant:
     """The same learning rate at every step."""
@@ -67,7 +61,7 @@ class Constant:
     lr: float
 
     def __post_init__(self):
-        _check_lr("Constant.lr", self.lr)
+        check_number(self.lr, "Constant.lr", 0.0)
 
     def __call__(self, step: int) -> float:
         return float(self.lr)
@@ -93,20 +87,16 @@ class ExponentialDecay:
     delay_mult: float = 1.0
 
     def __post_init__(self):
-        _check_lr("ExponentialDecay.lr_init", self.lr_init)
-        _check_lr("ExponentialDecay.lr_final", self.lr_final)
+        check_number(self.lr_init, "ExponentialDecay.lr_init", 0.0)
+        check_number(self.lr_final, "ExponentialDecay.lr_final", 0.0)
         if (self.lr_init == 0.0) != (self.lr_final == 0.0):
             raise ValueError(
                 "ExponentialDecay needs lr_init and lr_final both > 0 (log-linear interpolation) or both 0; "
                 f"got lr_init={self.lr_init}, lr_final={self.lr_final}"
             )
-        for name in ("max_steps", "delay_steps"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
-                raise ValueError(f"ExponentialDecay.{name} must be an integer >= 0; got {value!r}")
-        if self.max_steps == 0:
-            raise ValueError("ExponentialDecay.max_steps must be > 0")
-        _check_lr("ExponentialDecay.delay_mult", self.delay_mult)
+        check_int(self.max_steps, "ExponentialDecay.max_steps", 1)
+        check_int(self.delay_steps, "ExponentialDecay.delay_steps", 0)
+        check_number(self.delay_mult, "ExponentialDecay.delay_mult", 0.0)
 
     def __call__(self, step: int) -> float:
         if step < 0 or (self.lr_init == 0.0 and self.lr_final == 0.0):
@@ -188,8 +178,7 @@ class AdamConfig:
         if len(betas) != 2 or not all(isinstance(b, numbers.Real) and 0.0 <= b < 1.0 for b in betas):
             raise ValueError(f"AdamConfig.betas must be two numbers in [0, 1); got {self.betas!r}")
         object.__setattr__(self, "betas", (float(betas[0]), float(betas[1])))
-        if isinstance(self.eps, bool) or not isinstance(self.eps, numbers.Real) or not (self.eps > 0.0):
-            raise ValueError(f"AdamConfig.eps must be > 0; got {self.eps!r}")
+        check_number(self.eps, "AdamConfig.eps", 0.0, lo_open=True)
 
     def schedule_for(self, block: str) -> Schedule:
         """The schedule of ``block``: exact name, else field name after the set prefix, else "*"."""
@@ -313,8 +302,7 @@ def _prefixed(state, block_prefix):
 
 
 def _check_lr_step_scale(scale):
-    if isinstance(scale, bool) or not isinstance(scale, numbers.Real) or not (0.0 < scale < float("inf")):
-        raise ValueError(f"lr_step_scale must be a finite number > 0; got {scale!r}")
+    check_number(scale, "lr_step_scale", 0.0, lo_open=True)
 
 
 def _lr_step(count, scale):
@@ -402,8 +390,7 @@ def adam_extend(state, block_prefix, num_new):
     moments and keeps the step count). Blocks not yet in the state need nothing: they get zero
     moments at their first update.
     """
-    if isinstance(num_new, bool) or not isinstance(num_new, numbers.Integral) or num_new < 0:
-        raise ValueError(f"num_new must be an integer >= 0; got {num_new!r}")
+    check_int(num_new, "num_new", 0)
     new_state = {slot: dict(blocks) for slot, blocks in state.items()}  # keeps "row_step" too
     for name in _prefixed(state, block_prefix):
         for key in ("m", "v"):

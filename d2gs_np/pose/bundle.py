@@ -29,6 +29,7 @@ import numpy as np
 import scipy.sparse as sp
 from scipy.optimize import least_squares
 
+from d2gs_np.base.checks import check_int
 from d2gs_np.constants import BA_POINT_EIG_FLOOR, DAMPING_DIAG_FLOOR
 from d2gs_np.geometry.so3 import hat, left_jacobian, left_jacobian_inv, so3_exp, so3_log
 from d2gs_np.pose.config import BUNDLE_SOLVERS
@@ -209,8 +210,7 @@ def _check_solver_args(solver, loss, f_scale, max_nfev, tol):
         raise TypeError(f"bundle_adjust: f_scale must be a number (pixels); got {type(f_scale).__name__}")
     if not (np.isfinite(f_scale) and f_scale > 0):
         raise ValueError(f"bundle_adjust: f_scale must be finite and > 0 (pixels); got {f_scale}")
-    if isinstance(max_nfev, bool) or not isinstance(max_nfev, (int, np.integer)) or max_nfev < 1:
-        raise ValueError(f"bundle_adjust: max_nfev must be an int >= 1; got {max_nfev!r}")
+    check_int(max_nfev, "bundle_adjust: max_nfev", 1)
     if not (np.isfinite(tol) and tol >= 0):
         raise ValueError(f"bundle_adjust: tol must be finite and >= 0; got {tol}")
 

@@ -6,11 +6,10 @@ the constants), so a config file can be checked, diffed or written without the s
 """
 from __future__ import annotations
 
-import math
 import numbers
 from dataclasses import dataclass, field
 
-import numpy as np
+from d2gs_np.base.checks import check_choice, check_int, check_number
 
 __all__ = [
     "DETECTORS",
@@ -58,41 +57,17 @@ class FeatureConfig:
     # distance (px), before the ratio test (guided matching between nearby video frames); 0 = anywhere
 
     def __post_init__(self):
-        if self.detector not in DETECTORS:
-            raise ValueError(f"FeatureConfig.detector must be one of {DETECTORS}; got {self.detector!r}")
-        for name in ("ratio", "ransac_threshold_px", "ransac_confidence", "contrast_threshold",
-                     "edge_threshold", "sigma", "max_displacement_px"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v):
-                raise TypeError(f"FeatureConfig.{name} must be a finite real number; got {v!r}")
-        for name in ("ransac_max_iters", "mask_dilation_px", "max_features", "min_matches", "seed", "octave_layers"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral):
-                raise TypeError(f"FeatureConfig.{name} must be an int; got {type(v).__name__} {v!r}")
-        if not 0.0 < self.ratio <= 1.0:
-            raise ValueError(f"FeatureConfig.ratio must be in (0, 1]; got {self.ratio}")
-        if self.ransac_threshold_px <= 0:
-            raise ValueError(f"FeatureConfig.ransac_threshold_px must be > 0; got {self.ransac_threshold_px}")
-        if not 0.0 < self.ransac_confidence < 1.0:
-            raise ValueError(f"FeatureConfig.ransac_confidence must be in (0, 1); got {self.ransac_confidence}")
-        if self.max_displacement_px < 0:
-            raise ValueError(f"FeatureConfig.max_displacement_px must be >= 0 (0 = no limit); got {self.max_displacement_px}")
-        if self.octave_layers < 1:
-            raise ValueError(f"FeatureConfig.octave_layers must be >= 1; got {self.octave_layers}")
-        if self.ransac_max_iters < 1:
-            raise ValueError(f"FeatureConfig.ransac_max_iters must be >= 1; got {self.ransac_max_iters}")
-        if self.mask_dilation_px < 0 or self.max_features < 0 or self.seed < 0:
-            raise ValueError(
-                "FeatureConfig.mask_dilation_px, max_features and seed must be >= 0; got "
-                f"{self.mask_dilation_px}, {self.max_features}, {self.seed}"
-            )
-        if self.contrast_threshold <= 0 or self.edge_threshold <= 0 or self.sigma <= 0:
-            raise ValueError("FeatureConfig.contrast_threshold, edge_threshold and sigma must be > 0")
-        if self.min_matches < _MIN_RANSAC_MATCHES:
-            raise ValueError(
-                f"FeatureConfig.min_matches must be >= {_MIN_RANSAC_MATCHES} (RANSAC on F needs 8 points); "
-                f"got {self.min_matches}"
-            )
+        check_choice(self.detector, "FeatureConfig.detector", DETECTORS)
+        check_number(self.ratio, "FeatureConfig.ratio", 0.0, 1.0, lo_open=True)
+        for name in ("ransac_threshold_px", "contrast_threshold", "edge_threshold", "sigma"):
+            check_number(getattr(self, name), f"FeatureConfig.{name}", 0.0, lo_open=True)
+        check_number(self.ransac_confidence, "FeatureConfig.ransac_confidence", 0.0, 1.0, lo_open=True, hi_open=True)
+        check_number(self.max_displacement_px, "FeatureConfig.max_displacement_px", 0.0, hint="0 = no limit")
+        for name in ("octave_layers", "ransac_max_iters"):
+            check_int(getattr(self, name), f"FeatureConfig.{name}", 1)
+        for name in ("mask_dilation_px", "max_features", "seed"):
+            check_int(getattr(self, name), f"FeatureConfig.{name}", 0)
+        check_int(self.min_matches, "FeatureConfig.min_matches", _MIN_RANSAC_MATCHES, hint="RANSAC on F needs 8 points")
 
 
 @dataclass(frozen=True)
@@ -119,12 +94,8 @@ class CorrespondConfig:
                 or len(set(gaps)) != len(gaps):
             raise ValueError(f"CorrespondConfig.gaps must be distinct ints >= 1, e.g. (1, 2); got {self.gaps!r}")
         object.__setattr__(self, "gaps", gaps)
-        f = self.max_flow_fraction
-        if isinstance(f, bool) or not isinstance(f, numbers.Real) or not 0.0 <= f <= 1.0:
-            raise ValueError(f"CorrespondConfig.max_flow_fraction must be in [0, 1] (0 = no window); got {f!r}")
-        v = self.min_pair_matches
-        if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
-            raise ValueError(f"CorrespondConfig.min_pair_matches must be an int >= 1; got {v!r}")
+        check_number(self.max_flow_fraction, "CorrespondConfig.max_flow_fraction", 0.0, 1.0, hint="0 = no window")
+        check_int(self.min_pair_matches, "CorrespondConfig.min_pair_matches", 1)
 
 
 @dataclass(frozen=True)
@@ -147,21 +118,16 @@ class TrackConfig:
     mask_dilation_px: int = 4  # as FeatureConfig.mask_dilation_px: keep off the border of a mover
 
     def __post_init__(self):
-        for name in ("max_corners", "min_distance_px", "window_px", "levels", "mask_dilation_px", "retry_window_px"):
-            v = getattr(self, name)
-            lo = 0 if name in ("levels", "mask_dilation_px", "retry_window_px") else 1
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < lo:
-                raise ValueError(f"TrackConfig.{name} must be an int >= {lo}; got {v!r}")
-        if self.window_px < 3:
-            raise ValueError(f"TrackConfig.window_px must be >= 3; got {self.window_px}")
+        for name in ("max_corners", "min_distance_px"):
+            check_int(getattr(self, name), f"TrackConfig.{name}", 1)
+        check_int(self.window_px, "TrackConfig.window_px", 3)
+        for name in ("levels", "mask_dilation_px", "retry_window_px"):
+            check_int(getattr(self, name), f"TrackConfig.{name}", 0)
         if 0 < self.retry_window_px < 3:
             raise ValueError(f"TrackConfig.retry_window_px must be 0 (no retry) or >= 3; got {self.retry_window_px}")
-        for name in ("quality", "fb_px", "ransac_px"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v) or v <= 0:
-                raise ValueError(f"TrackConfig.{name} must be a finite number > 0; got {v!r}")
-        if self.quality >= 1:
-            raise ValueError(f"TrackConfig.quality must be in (0, 1); got {self.quality}")
+        check_number(self.quality, "TrackConfig.quality", 0.0, 1.0, lo_open=True, hi_open=True)
+        for name in ("fb_px", "ransac_px"):
+            check_number(getattr(self, name), f"TrackConfig.{name}", 0.0, lo_open=True)
 
 
 @dataclass(frozen=True)
@@ -202,22 +168,16 @@ class PoseInitConfig:
     max_change_rel: float = 0.1  # nor one that moves a centre by more than this x the median point depth
 
     def __post_init__(self):
-        if self.mode not in _MODES:
-            raise ValueError(f"PoseInitConfig.mode must be one of {_MODES}; got {self.mode!r}")
-        if self.solver not in BUNDLE_SOLVERS:
-            raise ValueError(f"PoseInitConfig.solver must be one of {BUNDLE_SOLVERS}; got {self.solver!r}")
+        check_choice(self.mode, "PoseInitConfig.mode", _MODES)
+        check_choice(self.solver, "PoseInitConfig.solver", BUNDLE_SOLVERS)
         if not isinstance(self.tracks, TrackConfig):
             raise TypeError(f"PoseInitConfig.tracks must be a TrackConfig; got {type(self.tracks).__name__}")
-        for name in ("min_views", "max_nfev", "min_points", "min_frame_observations"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < (2 if name == "min_views" else 1):
-                raise ValueError(f"PoseInitConfig.{name} must be an int >= {2 if name == 'min_views' else 1}; "
-                                 f"got {v!r}")
+        check_int(self.min_views, "PoseInitConfig.min_views", 2)
+        for name in ("max_nfev", "min_points", "min_frame_observations"):
+            check_int(getattr(self, name), f"PoseInitConfig.{name}", 1)
         for name in ("min_parallax_deg", "outlier_px", "robust_px", "max_rms_px", "max_change_deg", "max_change_rel",
                      "prior_rot_deg", "prior_trans_rel"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v) or v <= 0:
-                raise ValueError(f"PoseInitConfig.{name} must be a finite number > 0; got {v!r}")
+            check_number(getattr(self, name), f"PoseInitConfig.{name}", 0.0, lo_open=True)
 
 
 @dataclass(frozen=True)
@@ -239,21 +199,12 @@ class GaussNewtonConfig:
     xtol: float = 1e-10  # stop when |dx| < xtol (|x| + xtol)
 
     def __post_init__(self):
-        for name in ("beta", "robust_scale", "spread_sigma", "damping_init", "damping_up", "damping_down", "ftol",
-                     "xtol"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not math.isfinite(v):
-                raise TypeError(f"GaussNewtonConfig.{name} must be a finite real number; got {v!r}")
-        if isinstance(self.max_iters, bool) or not isinstance(self.max_iters, numbers.Integral) or self.max_iters < 0:
-            raise ValueError(f"GaussNewtonConfig.max_iters must be an int >= 0; got {self.max_iters!r}")
-        if self.robust not in ROBUST_LOSSES:
-            raise ValueError(f"GaussNewtonConfig.robust must be one of {ROBUST_LOSSES}; got {self.robust!r}")
         for name in ("beta", "robust_scale", "spread_sigma", "damping_init", "ftol", "xtol"):
-            if getattr(self, name) <= 0:
-                raise ValueError(f"GaussNewtonConfig.{name} must be > 0; got {getattr(self, name)}")
-        if self.damping_up <= 1.0 or not 0.0 < self.damping_down < 1.0:
-            raise ValueError(f"GaussNewtonConfig.damping_up must be > 1 and damping_down in (0, 1); got "
-                             f"{self.damping_up}, {self.damping_down}")
+            check_number(getattr(self, name), f"GaussNewtonConfig.{name}", 0.0, lo_open=True)
+        check_number(self.damping_up, "GaussNewtonConfig.damping_up", 1.0, lo_open=True)
+        check_number(self.damping_down, "GaussNewtonConfig.damping_down", 0.0, 1.0, lo_open=True, hi_open=True)
+        check_int(self.max_iters, "GaussNewtonConfig.max_iters", 0)
+        check_choice(self.robust, "GaussNewtonConfig.robust", ROBUST_LOSSES)
 
 
 @dataclass(frozen=True)
@@ -266,7 +217,5 @@ class PoseFitConfig:
     eps: float = 1e-12
 
     def __post_init__(self):
-        if isinstance(self.steps, bool) or not isinstance(self.steps, numbers.Integral) or self.steps < 0:
-            raise ValueError(f"PoseFitConfig.steps must be an int >= 0; got {self.steps!r}")
-        if not (isinstance(self.lr, numbers.Real) and 0.0 < self.lr < float("inf")):
-            raise ValueError(f"PoseFitConfig.lr must be a finite number > 0; got {self.lr!r}")
+        check_int(self.steps, "PoseFitConfig.steps", 0)
+        check_number(self.lr, "PoseFitConfig.lr", 0.0, lo_open=True)

@@ -3,9 +3,8 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 
-import numpy as np
-
 from d2gs_np import constants as C
+from d2gs_np.base.checks import check_bool, check_int, check_number
 
 
 @dataclass(frozen=True)
@@ -37,9 +36,7 @@ class RenderConfig:
                 f"RenderConfig needs 0 < near_plane < far_plane; got near_plane={self.near_plane}, "
                 f"far_plane={self.far_plane}"
             )
-        if self.eps2d < 0.0:
-            raise ValueError(f"RenderConfig.eps2d must be >= 0; got {self.eps2d}")
-        if int(self.tile_size) != self.tile_size or self.tile_size < 1:
-            raise ValueError(f"RenderConfig.tile_size must be a positive integer; got {self.tile_size}")
-        if not isinstance(self.raster_float32, (bool, np.bool_)):
-            raise TypeError(f"RenderConfig.raster_float32 must be True or False; got {self.raster_float32!r}")
+        check_number(self.eps2d, "RenderConfig.eps2d", 0.0)
+        check_int(self.tile_size, "RenderConfig.tile_size", 1, hint="pixels")
+        for name in ("antialiased", "raster_float32"):
+            check_bool(getattr(self, name), f"RenderConfig.{name}")

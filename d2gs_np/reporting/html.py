@@ -30,6 +30,7 @@ from pathlib import Path
 
 import numpy as np
 
+from d2gs_np.base.checks import check_int
 from d2gs_np.evaluation import metrics
 from d2gs_np.data.io import load_scene
 from d2gs_np.evaluation.runs import evaluate_run, load_run
@@ -287,8 +288,7 @@ def write_report(run_dirs, out_html, num_frames: int = 3, title: str = "d2gs_np 
     run_dirs = [run_dirs] if isinstance(run_dirs, (str, Path)) else list(run_dirs)
     if not run_dirs:
         raise ValueError("write_report needs at least one run folder")
-    if isinstance(num_frames, bool) or not isinstance(num_frames, int) or num_frames < 1:
-        raise ValueError(f"num_frames must be an int >= 1; got {num_frames!r}")
+    check_int(num_frames, "num_frames", 1)
     for d in run_dirs:
         if not (Path(d) / "final.npz").exists() and not (Path(d) / "checkpoint.npz").exists():
             raise FileNotFoundError(f"{d} is not a training run (no final.npz or checkpoint.npz); train it first "

@@ -11,8 +11,7 @@ import math
 import numbers
 from dataclasses import dataclass, field
 
-import numpy as np
-
+from d2gs_np.base.checks import check_bool, check_choice, check_int, check_number
 from d2gs_np.pose.config import FeatureConfig
 
 __all__ = ["DeformConfig", "InitConfig", "StereoConfig", "MotionInitConfig", "WARPS"]
@@ -37,13 +36,8 @@ class DeformConfig:
 
     def __post_init__(self):
         for name in ("degree", "order"):
-            value = getattr(self, name)
-            if isinstance(value, bool) or not isinstance(value, numbers.Integral) or value < 0:
-                raise ValueError(f"DeformConfig.{name} must be an integer >= 0; got {value!r}")
-        if isinstance(self.omega, bool) or not isinstance(self.omega, numbers.Real):
-            raise ValueError(f"DeformConfig.omega must be a real number; got {self.omega!r}")
-        if not (math.isfinite(self.omega) and self.omega > 0.0):
-            raise ValueError(f"DeformConfig.omega must be finite and > 0; got {self.omega!r}")
+            check_int(getattr(self, name), f"DeformConfig.{name}", 0)
+        check_number(self.omega, "DeformConfig.omega", 0.0, lo_open=True)
 
     @property
     def num_coefs(self) -> int:
@@ -67,22 +61,15 @@ class StereoConfig:
     distinct_px: float = 0.0
 
     def __post_init__(self):
-        for name in ("num_depths", "window", "min_sources"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
-                raise ValueError(f"StereoConfig.{name} must be an int >= 1; got {v!r}")
-        if self.num_depths < 3:
-            raise ValueError(f"StereoConfig.num_depths must be >= 3 (a parabola needs three); got {self.num_depths}")
+        check_int(self.num_depths, "StereoConfig.num_depths", 3, hint="a parabola needs three")
+        for name in ("window", "min_sources"):
+            check_int(getattr(self, name), f"StereoConfig.{name}", 1)
         if self.window % 2 == 0:
             raise ValueError(f"StereoConfig.window must be odd; got {self.window}")
-        if not 0.0 <= self.min_texture < float("inf"):
-            raise ValueError(f"StereoConfig.min_texture must be >= 0; got {self.min_texture}")
-        if not 0.0 < self.max_cost_ratio <= 1.0:
-            raise ValueError(f"StereoConfig.max_cost_ratio must be in (0, 1]; got {self.max_cost_ratio}")
-        if not (isinstance(self.distinct_px, numbers.Real) and 0.0 <= self.distinct_px < float("inf")):
-            raise ValueError(f"StereoConfig.distinct_px must be a finite number >= 0; got {self.distinct_px!r}")
-        if not 0.0 <= self.depth_margin < 1.0:
-            raise ValueError(f"StereoConfig.depth_margin must be in [0, 1); got {self.depth_margin}")
+        check_number(self.min_texture, "StereoConfig.min_texture", 0.0)
+        check_number(self.max_cost_ratio, "StereoConfig.max_cost_ratio", 0.0, 1.0, lo_open=True)
+        check_number(self.distinct_px, "StereoConfig.distinct_px", 0.0)
+        check_number(self.depth_margin, "StereoConfig.depth_margin", 0.0, 1.0, hi_open=True)
 
 
 @dataclass(frozen=True)
@@ -127,50 +114,30 @@ class InitConfig:
     def __post_init__(self):
         if not isinstance(self.features, FeatureConfig):
             raise TypeError(f"InitConfig.features must be a FeatureConfig; got {type(self.features).__name__}")
-        if not (isinstance(self.max_scale_px, numbers.Real) and 0.0 <= self.max_scale_px < float("inf")):
-            raise ValueError(f"InitConfig.max_scale_px must be a finite number >= 0 (0 = no cap); got "
-                             f"{self.max_scale_px!r}")
-        if not isinstance(self.fill_on_surface, bool):
-            raise ValueError(f"InitConfig.fill_on_surface must be true or false; got {self.fill_on_surface!r}")
+        check_number(self.max_scale_px, "InitConfig.max_scale_px", 0.0, hint="0 = no cap")
+        check_bool(self.fill_on_surface, "InitConfig.fill_on_surface")
         if not isinstance(self.stereo, StereoConfig):
             raise TypeError(f"InitConfig.stereo must be a StereoConfig; got {type(self.stereo).__name__}")
         skips = self.frame_skips
         if (not isinstance(skips, tuple) or len(skips) == 0
                 or not all(isinstance(s, numbers.Integral) and not isinstance(s, bool) and s >= 1 for s in skips)):
             raise ValueError(f"InitConfig.frame_skips must be a non-empty tuple of ints >= 1; got {skips!r}")
-        if not (isinstance(self.depth_range_mad, numbers.Real) and 0.0 <= self.depth_range_mad < float("inf")):
-            raise ValueError(f"InitConfig.depth_range_mad must be a finite number >= 0 (0 = no clip); got "
-                             f"{self.depth_range_mad!r}")
+        check_number(self.depth_range_mad, "InitConfig.depth_range_mad", 0.0, hint="0 = no clip")
         for name in ("max_static_points", "random_fill_points", "dynamic_points", "dense_frames"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 0:
-                raise ValueError(f"InitConfig.{name} must be an int >= 0; got {v!r}")
-        for name in ("max_reprojection_error_px", "min_parallax_deg", "fill_depth_margin",
-                     "dynamic_depth_factor", "dynamic_depth_jitter"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v):
-                raise TypeError(f"InitConfig.{name} must be a finite real number; got {v!r}")
-        if isinstance(self.dense_stride, bool) or not isinstance(self.dense_stride, numbers.Integral) \
-                or self.dense_stride < 1:
-            raise ValueError(f"InitConfig.dense_stride must be an int >= 1; got {self.dense_stride!r}")
-        if not (isinstance(self.dense_outlier_rel, numbers.Real) and 0.0 < self.dense_outlier_rel):
-            raise ValueError(f"InitConfig.dense_outlier_rel must be > 0; got {self.dense_outlier_rel!r}")
-        if self.max_reprojection_error_px <= 0:
-            raise ValueError(f"InitConfig.max_reprojection_error_px must be > 0; got {self.max_reprojection_error_px}")
-        if not 0.0 <= self.min_parallax_deg < 90.0:
-            raise ValueError(f"InitConfig.min_parallax_deg must be in [0, 90); got {self.min_parallax_deg}")
+            check_int(getattr(self, name), f"InitConfig.{name}", 0)
+        check_int(self.dense_stride, "InitConfig.dense_stride", 1)
+        check_number(self.dense_outlier_rel, "InitConfig.dense_outlier_rel", 0.0, lo_open=True)
+        check_number(self.max_reprojection_error_px, "InitConfig.max_reprojection_error_px", 0.0, lo_open=True)
+        check_number(self.min_parallax_deg, "InitConfig.min_parallax_deg", 0.0, 90.0, hi_open=True)
         lo, hi = _pair(self.fill_depth_percentiles, "fill_depth_percentiles")
         if not 0.0 <= lo <= hi <= 100.0:
             raise ValueError(f"InitConfig.fill_depth_percentiles must satisfy 0 <= lo <= hi <= 100; got {(lo, hi)}")
-        if not 0.0 <= self.fill_depth_margin < 1.0:
-            raise ValueError(f"InitConfig.fill_depth_margin must be in [0, 1); got {self.fill_depth_margin}")
+        check_number(self.fill_depth_margin, "InitConfig.fill_depth_margin", 0.0, 1.0, hi_open=True)
         lo, hi = _pair(self.fallback_depth_range, "fallback_depth_range")
         if not 0.0 < lo < hi:
             raise ValueError(f"InitConfig.fallback_depth_range must satisfy 0 < near < far; got {(lo, hi)}")
-        if not 0.0 < self.dynamic_depth_factor <= 1.0:
-            raise ValueError(f"InitConfig.dynamic_depth_factor must be in (0, 1]; got {self.dynamic_depth_factor}")
-        if not 0.0 <= self.dynamic_depth_jitter < 1.0:
-            raise ValueError(f"InitConfig.dynamic_depth_jitter must be in [0, 1); got {self.dynamic_depth_jitter}")
+        check_number(self.dynamic_depth_factor, "InitConfig.dynamic_depth_factor", 0.0, 1.0, lo_open=True)
+        check_number(self.dynamic_depth_jitter, "InitConfig.dynamic_depth_jitter", 0.0, 1.0, hi_open=True)
 
 
 def _pair(v, name):
@@ -195,13 +162,12 @@ class MotionInitConfig:
     warp: str = "flow"
 
     def __post_init__(self):
-        if not 0.0 <= self.min_area_fraction < 1.0:
-            raise ValueError(f"MotionInitConfig.min_area_fraction must be in [0, 1); got {self.min_area_fraction}")
-        if self.max_jump_fraction <= 0.0:
-            raise ValueError(f"MotionInitConfig.max_jump_fraction must be > 0; got {self.max_jump_fraction}")
-        if not self.ridge > 0.0:  # tracks shorter than 1 + K frames need it to be well posed
-            raise ValueError(f"MotionInitConfig.ridge must be > 0; got {self.ridge}")
-        if self.warp not in WARPS:
-            raise ValueError(f"MotionInitConfig.warp must be one of {WARPS}; got {self.warp!r}")
-        if self.min_rotation_inliers < 3:  # a similarity has 4 degrees of freedom: 2 points + 1 check
-            raise ValueError(f"MotionInitConfig.min_rotation_inliers must be >= 3; got {self.min_rotation_inliers}")
+        for name in ("enabled", "rotation"):
+            check_bool(getattr(self, name), f"MotionInitConfig.{name}")
+        check_number(self.min_area_fraction, "MotionInitConfig.min_area_fraction", 0.0, 1.0, hi_open=True)
+        check_number(self.max_jump_fraction, "MotionInitConfig.max_jump_fraction", 0.0, lo_open=True)
+        # tracks shorter than 1 + K frames need the ridge to be well posed
+        check_number(self.ridge, "MotionInitConfig.ridge", 0.0, lo_open=True)
+        check_choice(self.warp, "MotionInitConfig.warp", WARPS)
+        # a similarity has 4 degrees of freedom: 2 points + 1 check
+        check_int(self.min_rotation_inliers, "MotionInitConfig.min_rotation_inliers", 3)

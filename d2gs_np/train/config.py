@@ -9,7 +9,6 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import math
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -17,11 +16,9 @@ from typing import Optional
 
 from d2gs_np.blur.config import BlurConfig, TrajectoryConfig
 from d2gs_np.pose.config import CorrespondConfig, GaussNewtonConfig, PoseInitConfig
-from d2gs_np.base.checks import ConfigWarning, check_number, name_items, warn
+from d2gs_np.base.checks import ConfigWarning, check_bool, check_choice, check_int, check_number, name_items, warn
 from d2gs_np.render.config import RenderConfig
 from d2gs_np.scene.config import DeformConfig, InitConfig, MotionInitConfig
-from d2gs_np.train.densify import DensifyConfig
-from d2gs_np.train.prune import PruneConfig
 from d2gs_np.train.schedule import ScheduleConfig
 
 _AUTO = ("auto", "on", "off")
@@ -58,26 +55,16 @@ class LossConfig:
     lambda_reproj: float = 0.0
 
     def __post_init__(self):
-        if not 0.0 <= self.lambda_ssim <= 1.0:
-            raise ValueError(f"LossConfig.lambda_ssim must be in [0, 1]; got {self.lambda_ssim}")
+        check_number(self.lambda_ssim, "LossConfig.lambda_ssim", 0.0, 1.0)
         for name in ("lambda_ts", "ts_time_weight", "ts_spatial_weight", "lambda_gs", "lambda_freq", "lambda_reproj"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (0.0 <= v < float("inf")):
-                raise ValueError(f"LossConfig.{name} must be a finite number >= 0 (0 = term off); got {v!r}")
-        e = self.ts_time_offset
-        if isinstance(e, bool) or not isinstance(e, (int, float)) or not (0.0 < e < float("inf")):
-            raise ValueError(f"LossConfig.ts_time_offset must be a finite time offset > 0 (the method's 0.08); "
-                             f"got {e!r}")
+            check_number(getattr(self, name), f"LossConfig.{name}", 0.0, hint="0 = term off")
+        check_number(self.ts_time_offset, "LossConfig.ts_time_offset", 0.0, lo_open=True,
+                     hint="a time offset, the method's 0.08")
         for name in ("ts_neighbours", "ts_knn_every"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int) or v < 1:
-                raise ValueError(f"LossConfig.{name} must be an integer >= 1; got {v!r}")
-        if not isinstance(self.freq_static_only, bool):
-            raise ValueError(f"LossConfig.freq_static_only must be true or false; got {self.freq_static_only!r}")
-        c = self.freq_cutoff
-        if isinstance(c, bool) or not isinstance(c, (int, float)) or not 0.0 < c < 2.0 ** 0.5:
-            raise ValueError(f"LossConfig.freq_cutoff must be in (0, sqrt 2) (normalised radial frequency, the "
-                             f"method's 0.1); got {c!r}")
+            check_int(getattr(self, name), f"LossConfig.{name}", 1)
+        check_bool(self.freq_static_only, "LossConfig.freq_static_only")
+        check_number(self.freq_cutoff, "LossConfig.freq_cutoff", 0.0, 2.0 ** 0.5, lo_open=True, hi_open=True,
+                     hint="normalised radial frequency up to sqrt 2, the method's 0.1")
 
 
 # The method's regulariser weights (docs/method.md §6, Eq. 18), for turning the terms on
@@ -120,18 +107,11 @@ class LearningRates:
     means_unit: str = "scene"
 
     def __post_init__(self):
-        if self.means_unit not in ("camera", "scene"):
-            raise ValueError(f"LearningRates.means_unit must be 'camera' or 'scene'; got {self.means_unit!r}")
-        if not (isinstance(self.final_ratio, (int, float)) and not isinstance(self.final_ratio, bool)
-                and 0.0 < self.final_ratio <= 1.0):
-            raise ValueError(f"LearningRates.final_ratio must be in (0, 1] (1: constant rates); got {self.final_ratio!r}")
+        check_choice(self.means_unit, "LearningRates.means_unit", ("camera", "scene"))
+        check_number(self.final_ratio, "LearningRates.final_ratio", 0.0, 1.0, lo_open=True, hint="1: constant rates")
         for f in dataclasses.fields(self):
-            if f.name == "means_unit":
-                continue
-            v = getattr(self, f.name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not (v >= 0.0 and v < float("inf")):
-                raise ValueError(f"LearningRates.{f.name} must be a finite number >= 0 (0 freezes the block); "
-                                 f"got {v!r}")
+            if f.name not in ("means_unit", "final_ratio"):
+                check_number(getattr(self, f.name), f"LearningRates.{f.name}", 0.0, hint="0 freezes the block")
         for message in self.implausible():
             warn(message, ConfigWarning, stacklevel=3)
 
@@ -174,41 +154,30 @@ class TrainConfig:
     quiet: bool = False
 
     def __post_init__(self):
-        if isinstance(self.iters, bool) or not isinstance(self.iters, int) or self.iters < 1:
-            raise ValueError(f"TrainConfig.iters must be an integer >= 1; got {self.iters!r}")
+        check_int(self.iters, "TrainConfig.iters", 1)
         if not (0 <= self.warmup_fraction and 0 <= self.deform_fraction and self.warmup_fraction + self.deform_fraction <= 1):
             raise ValueError(
                 f"TrainConfig stage fractions must be >= 0 and sum to <= 1; got warmup_fraction="
                 f"{self.warmup_fraction}, deform_fraction={self.deform_fraction}")
         for name in ("dynamic", "blur", "learn_exposure"):
-            if getattr(self, name) not in _AUTO:
-                raise ValueError(f"TrainConfig.{name} must be one of {_AUTO}; got {getattr(self, name)!r}")
+            check_choice(getattr(self, name), f"TrainConfig.{name}", _AUTO)
         if isinstance(self.background, (str, bytes)) or not hasattr(self.background, "__len__") \
                 or len(self.background) != 3:
             raise ValueError(f"TrainConfig.background must have 3 values (R, G, B in [0, 1]); got {self.background!r}")
         for i, v in enumerate(self.background):
             check_number(v, f"TrainConfig.background[{i}]", 0.0, 1.0, hint="an RGB colour: 0 black, 1 white")
-        for name in ("iters", "log_every", "eval_every", "checkpoint_every", "prune_every", "eval_frames", "seed"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, int):
-                raise ValueError(f"TrainConfig.{name} must be an integer; got {v!r}")
-        if self.log_every < 1 or self.eval_frames < 1:
-            raise ValueError(f"TrainConfig.log_every and eval_frames must be >= 1; got {self.log_every}, {self.eval_frames}")
-        if min(self.eval_every, self.checkpoint_every, self.prune_every) < 0:
-            raise ValueError("TrainConfig.eval_every, checkpoint_every and prune_every must be >= 0 (0 = never)")
-        if not isinstance(self.progressive, bool) or not isinstance(self.quiet, bool):
-            raise ValueError(f"TrainConfig.progressive and quiet must be true or false; got {self.progressive!r}, "
-                             f"{self.quiet!r}")
-        if not 0.0 <= self.prune_opacity < 1.0:
-            raise ValueError(f"TrainConfig.prune_opacity must be in [0, 1); got {self.prune_opacity}")
-        if self.time_budget is not None and not 0 < self.time_budget < math.inf:  # NaN fails too
-            raise ValueError(f"TrainConfig.time_budget must be a finite number of seconds > 0; got {self.time_budget}")
-        if self.seed < 0:
-            raise ValueError(f"TrainConfig.seed must be >= 0 (a NumPy seed); got {self.seed}")
-        c = self.checkpoint_seconds
-        if isinstance(c, bool) or not isinstance(c, (int, float)) or not 0.0 <= c < float("inf"):
-            raise ValueError(f"TrainConfig.checkpoint_seconds must be finite seconds >= 0 (0 = no wall-clock "
-                             f"checkpoints); got {c!r}")
+        for name in ("log_every", "eval_frames"):
+            check_int(getattr(self, name), f"TrainConfig.{name}", 1)
+        for name in ("eval_every", "checkpoint_every", "prune_every"):
+            check_int(getattr(self, name), f"TrainConfig.{name}", 0, hint="0 = never")
+        check_int(self.seed, "TrainConfig.seed", 0, hint="a NumPy seed")
+        for name in ("progressive", "quiet"):
+            check_bool(getattr(self, name), f"TrainConfig.{name}")
+        check_number(self.prune_opacity, "TrainConfig.prune_opacity", 0.0, 1.0, hi_open=True)
+        if self.time_budget is not None:
+            check_number(self.time_budget, "TrainConfig.time_budget", 0.0, lo_open=True, hint="seconds")
+        check_number(self.checkpoint_seconds, "TrainConfig.checkpoint_seconds", 0.0,
+                     hint="seconds; 0 = no wall-clock checkpoints")
 
 
 @dataclass(frozen=True)
@@ -256,31 +225,65 @@ class PoseSolverConfig:
 
     def __post_init__(self):
         for name in ("prior_rot_deg", "prior_trans_rel"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, (int, float)) or not 0.0 <= v < float("inf"):
-                raise ValueError(f"PoseSolverConfig.{name} must be a finite number >= 0 (0 = no prior); got {v!r}")
+            check_number(getattr(self, name), f"PoseSolverConfig.{name}", 0.0, hint="0 = no prior")
         if (self.prior_rot_deg == 0.0) != (self.prior_trans_rel == 0.0):
             raise ValueError("PoseSolverConfig.prior_rot_deg and prior_trans_rel must both be > 0 (the pose prior) "
                              f"or both 0 (no prior); got {self.prior_rot_deg}, {self.prior_trans_rel}")
-        if isinstance(self.min_steps, bool) or not isinstance(self.min_steps, int) or self.min_steps < 0:
-            raise ValueError(f"PoseSolverConfig.min_steps must be an int >= 0 (real steps between calls); got "
-                             f"{self.min_steps!r}")
-        if not isinstance(self.track_check, bool):
-            raise ValueError(f"PoseSolverConfig.track_check must be true or false; got {self.track_check!r}")
-        t = self.track_tolerance
-        if isinstance(t, bool) or not isinstance(t, (int, float)) or not 0.0 <= t < float("inf"):
-            raise ValueError(f"PoseSolverConfig.track_tolerance must be a finite number >= 0 (a relative rise); got {t!r}")
-        if not isinstance(self.hold_scale, bool):
-            raise ValueError(f"PoseSolverConfig.hold_scale must be true or false; got {self.hold_scale!r}")
-        if self.mode not in _AUTO:
-            raise ValueError(f"PoseSolverConfig.mode must be one of {_AUTO}; got {self.mode!r}")
-        if self.accept not in ("converged", "always"):
-            raise ValueError(f"PoseSolverConfig.accept must be 'converged' or 'always'; got {self.accept!r}")
-        if isinstance(self.every, bool) or not isinstance(self.every, int) or self.every < 1:
-            raise ValueError(f"PoseSolverConfig.every must be an int >= 1 (schedule steps); got {self.every!r}")
-        if isinstance(self.render_scale, bool) or not isinstance(self.render_scale, (int, float)) \
-                or not 0.0 < self.render_scale <= 1.0:
-            raise ValueError(f"PoseSolverConfig.render_scale must be in (0, 1]; got {self.render_scale!r}")
+        check_int(self.min_steps, "PoseSolverConfig.min_steps", 0, hint="real steps between calls")
+        check_bool(self.track_check, "PoseSolverConfig.track_check")
+        check_number(self.track_tolerance, "PoseSolverConfig.track_tolerance", 0.0, hint="a relative rise")
+        check_bool(self.hold_scale, "PoseSolverConfig.hold_scale")
+        check_choice(self.mode, "PoseSolverConfig.mode", _AUTO)
+        check_choice(self.accept, "PoseSolverConfig.accept", ("converged", "always"))
+        check_int(self.every, "PoseSolverConfig.every", 1, hint="schedule steps")
+        check_number(self.render_scale, "PoseSolverConfig.render_scale", 0.0, 1.0, lo_open=True)
+
+
+@dataclass(frozen=True)
+class DensifyConfig:
+    """Densification: clone / split where the screen-space gradient is large (train/densify.py's
+    module docstring)."""
+
+    # On by default: much sharper renders on the sharp preset for under twice the training time
+    # (docs/results.md §10).
+    enabled: bool = True
+    start_fraction: float = 0.1
+    stop_fraction: float = 0.6
+    every: int = 100
+    grad_threshold_ndc: float = 2e-4  # 3DGS default
+    percent_dense: float = 0.01  # clone below this share of the scene extent, split above
+    split_factor: float = 1.6
+    max_gaussians: int = 40000
+    absgrad: bool = False  # densify on the absolute-sum statistic (module docstring)
+    grad_threshold_abs_ndc: float = 8e-4  # its threshold (gsplat's advice for absgrad)
+
+    def __post_init__(self):
+        for name in ("start_fraction", "stop_fraction"):
+            check_number(getattr(self, name), f"DensifyConfig.{name}", 0.0, 1.0)
+        if not self.start_fraction <= self.stop_fraction:
+            raise ValueError(f"DensifyConfig needs 0 <= start_fraction <= stop_fraction <= 1; got "
+                             f"{self.start_fraction}, {self.stop_fraction}")
+        for name in ("every", "max_gaussians"):
+            check_int(getattr(self, name), f"DensifyConfig.{name}", 1)
+        for name in ("grad_threshold_ndc", "grad_threshold_abs_ndc", "percent_dense"):
+            check_number(getattr(self, name), f"DensifyConfig.{name}", 0.0, lo_open=True)
+        check_number(self.split_factor, "DensifyConfig.split_factor", 1.0, lo_open=True)
+        check_bool(self.enabled, "DensifyConfig.enabled")
+        check_bool(self.absgrad, "DensifyConfig.absgrad")
+
+
+@dataclass(frozen=True)
+class PruneConfig:
+    """Pruning rules (train/prune.py's module docstring). 0 switches a size or share rule off."""
+
+    max_scale_fraction: float = 0.1  # x scene extent; 3DGS's big-points rule
+    max_outside_share: float = 0.5  # of the frames where a dynamic centre is in view
+    mask_dilation_px: int = 3  # masks are grown this much before the escaped test (blur, init slack)
+
+    def __post_init__(self):
+        check_number(self.max_scale_fraction, "PruneConfig.max_scale_fraction", 0.0, hint="0 = off")
+        check_number(self.max_outside_share, "PruneConfig.max_outside_share", 0.0, 1.0, hint="0 = off")
+        check_int(self.mask_dilation_px, "PruneConfig.mask_dilation_px", 0)
 
 
 @dataclass(frozen=True)

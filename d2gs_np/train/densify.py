@@ -24,42 +24,12 @@ reset by the ``Densify`` plugin (``train/plugins.py``).
 """
 from __future__ import annotations
 
-from dataclasses import dataclass
-
 import numpy as np
 
 from d2gs_np.geometry.quaternion import quat_to_rotmat
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
+from d2gs_np.train.config import DensifyConfig
 from d2gs_np.train.rows import SETS, num_rows, resize_rows
-
-
-@dataclass(frozen=True)
-class DensifyConfig:
-    # On by default: much sharper renders on the sharp preset for under twice the training time
-    # (docs/results.md §10).
-    enabled: bool = True
-    start_fraction: float = 0.1
-    stop_fraction: float = 0.6
-    every: int = 100
-    grad_threshold_ndc: float = 2e-4  # 3DGS default
-    percent_dense: float = 0.01  # clone below this share of the scene extent, split above
-    split_factor: float = 1.6
-    max_gaussians: int = 40000
-    absgrad: bool = False  # densify on the absolute-sum statistic (module docstring)
-    grad_threshold_abs_ndc: float = 8e-4  # its threshold (gsplat's advice for absgrad)
-
-    def __post_init__(self):
-        if not 0.0 <= self.start_fraction <= self.stop_fraction <= 1.0:
-            raise ValueError(f"DensifyConfig needs 0 <= start_fraction <= stop_fraction <= 1; got "
-                             f"{self.start_fraction}, {self.stop_fraction}")
-        if self.every < 1 or self.max_gaussians < 1:
-            raise ValueError("DensifyConfig.every and max_gaussians must be >= 1")
-        if self.grad_threshold_ndc <= 0 or self.grad_threshold_abs_ndc <= 0 or self.percent_dense <= 0 \
-                or self.split_factor <= 1:
-            raise ValueError("DensifyConfig: grad_threshold_ndc, grad_threshold_abs_ndc and percent_dense must be > 0, "
-                             "split_factor > 1")
-        if not isinstance(self.absgrad, bool):
-            raise ValueError(f"DensifyConfig.absgrad must be true or false; got {self.absgrad!r}")
 
 
 GRAD_SUM = "densify/sum"  # per-row statistics (train/rows.py), checkpointed as densify/sum/<set>

@@ -14,34 +14,12 @@ Three rules, each a boolean "remove" mask per set:
 """
 from __future__ import annotations
 
-import numbers
-from dataclasses import dataclass
-
 import cv2
 import numpy as np
 
 from d2gs_np.scene.config import DeformConfig
 from d2gs_np.scene.deformation import deform_basis
-
-
-@dataclass(frozen=True)
-class PruneConfig:
-    """Pruning rules (see the module docstring). 0 switches a size or share rule off."""
-
-    max_scale_fraction: float = 0.1  # x scene extent; 3DGS's big-points rule
-    max_outside_share: float = 0.5  # of the frames where a dynamic centre is in view
-    mask_dilation_px: int = 3  # masks are grown this much before the escaped test (blur, init slack)
-
-    def __post_init__(self):
-        for name in ("max_scale_fraction", "max_outside_share"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not (0.0 <= v < float("inf")):
-                raise ValueError(f"PruneConfig.{name} must be a finite number >= 0; got {v!r}")
-        if self.max_outside_share > 1.0:
-            raise ValueError(f"PruneConfig.max_outside_share must be in [0, 1]; got {self.max_outside_share}")
-        d = self.mask_dilation_px
-        if isinstance(d, bool) or not isinstance(d, numbers.Integral) or d < 0:
-            raise ValueError(f"PruneConfig.mask_dilation_px must be an int >= 0; got {d!r}")
+from d2gs_np.train.config import PruneConfig
 
 
 def transparent(opacity_logits, min_opacity):

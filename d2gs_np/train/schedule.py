@@ -30,6 +30,7 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
+from d2gs_np.base.checks import check_choice, check_int, check_number
 from d2gs_np.geometry.camera import check_intrinsics, scale_intrinsics, scaled_size
 
 __all__ = [
@@ -48,13 +49,9 @@ SCHEDULE_KINDS = ("cosine", "linear", "exponential", "inverse_sqrt")
 
 
 def _check_schedule_args(r0, kind, ramp_fraction, where):
-    if isinstance(r0, bool) or not isinstance(r0, numbers.Real) or not (0.0 < r0 <= 1.0):
-        raise ValueError(f"{where}r0 must be a real number in (0, 1]; got {r0!r}")
-    if kind not in SCHEDULE_KINDS:
-        raise ValueError(f"{where}kind must be one of {SCHEDULE_KINDS}; got {kind!r}")
-    if (isinstance(ramp_fraction, bool) or not isinstance(ramp_fraction, numbers.Real)
-            or not (0.0 <= ramp_fraction <= 1.0)):
-        raise ValueError(f"{where}ramp_fraction must be a real number in [0, 1]; got {ramp_fraction!r}")
+    check_number(r0, f"{where}r0", 0.0, 1.0, lo_open=True)
+    check_choice(kind, f"{where}kind", SCHEDULE_KINDS)
+    check_number(ramp_fraction, f"{where}ramp_fraction", 0.0, 1.0)
 
 
 @dataclass(frozen=True)
@@ -78,9 +75,7 @@ class ScheduleConfig:
 
     def __post_init__(self):
         _check_schedule_args(self.r0, self.kind, self.ramp_fraction, "ScheduleConfig.")
-        t = self.mask_threshold
-        if isinstance(t, bool) or not isinstance(t, numbers.Real) or not (0.0 <= t < 1.0):
-            raise ValueError(f"ScheduleConfig.mask_threshold must be a real number in [0, 1); got {t!r}")
+        check_number(self.mask_threshold, "ScheduleConfig.mask_threshold", 0.0, 1.0, hi_open=True)
 
     def scale(self, step, total_steps):
         """render_scale(step, total_steps) with this config's r0, kind and ramp_fraction."""
@@ -267,8 +262,7 @@ class TargetCache:
         if not (0.0 <= mask_threshold < 1.0):
             raise ValueError(f"mask_threshold must be in [0, 1); got {mask_threshold}")
         self._mask_threshold = float(mask_threshold)
-        if isinstance(max_entries, bool) or not isinstance(max_entries, numbers.Integral) or max_entries < 1:
-            raise ValueError(f"max_entries must be an int >= 1; got {max_entries!r}")
+        check_int(max_entries, "max_entries", 1)
         self._max_entries = int(max_entries)
         self._cache = OrderedDict()
 
@@ -304,8 +298,7 @@ class TargetCache:
     def get(self, frame_index, scale):
         """The Target of frame ``frame_index`` at render scale ``scale`` in (0, 1]."""
         k = self._check_index(frame_index)
-        if isinstance(scale, bool) or not isinstance(scale, numbers.Real) or not (0.0 < scale <= 1.0):
-            raise ValueError(f"scale must be a real number in (0, 1]; got {scale!r}")
+        check_number(scale, "scale", 0.0, 1.0, lo_open=True)
         img = self._images[k]
         H, W = img.shape[:2]
         w, h = scaled_size(W, H, scale)

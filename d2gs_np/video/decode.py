@@ -15,6 +15,8 @@ from pathlib import Path
 import cv2
 import numpy as np
 
+from d2gs_np.base.checks import check_number
+
 __all__ = ["IMAGE_EXTENSIONS", "MIN_FRAMES", "DecodedFrames", "read_frames", "check_decode_args"]
 
 IMAGE_EXTENSIONS = (".png", ".jpg", ".jpeg", ".bmp", ".tif", ".tiff", ".webp")
@@ -56,8 +58,8 @@ def check_decode_args(source, stride=1, max_frames=None, size=None, start=None, 
         if min(size) < 16:
             raise ValueError(f"size (W, H) must be at least 16 x 16 pixels; got {size}")
     for name, v in (("start", start), ("end", end)):
-        if v is not None and (isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v) or v < 0):
-            raise ValueError(f"{name} must be a time in seconds >= 0; got {v!r}")
+        if v is not None:
+            check_number(v, name, 0.0, hint="a time in seconds")
     if start is not None and end is not None and end <= start:
         raise ValueError(f"end ({end} s) must be after start ({start} s)")
     if src.is_dir() and (start is not None or end is not None):

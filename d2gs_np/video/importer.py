@@ -21,13 +21,13 @@ from __future__ import annotations
 
 import dataclasses
 import json
-import numbers
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
 
 import numpy as np
 
+from d2gs_np.base.checks import check_int, check_number
 from d2gs_np.data.io import write_scene
 from d2gs_np.data.scene import Frame, Scene
 from d2gs_np.geometry.camera import make_intrinsics
@@ -71,18 +71,11 @@ class ImportConfig:
     mask: MaskConfig = field(default_factory=MaskConfig)
 
     def __post_init__(self):
-        if self.focal is not None and (isinstance(self.focal, bool) or not isinstance(self.focal, numbers.Real)
-                                       or not np.isfinite(self.focal) or self.focal <= 0):
-            raise ValueError(f"focal must be a positive number of pixels; got {self.focal!r}")
-        if isinstance(self.other_motion_share, bool) or not isinstance(self.other_motion_share, numbers.Real) \
-                or not 0 <= self.other_motion_share <= 1:
-            raise ValueError(f"other_motion_share must be a number in [0, 1]; got {self.other_motion_share!r}")
-        if isinstance(self.other_motion_ate, bool) or not isinstance(self.other_motion_ate, numbers.Real) \
-                or not np.isfinite(self.other_motion_ate) or self.other_motion_ate < 0:
-            raise ValueError(f"other_motion_ate must be a finite number >= 0; got {self.other_motion_ate!r}")
-        if isinstance(self.mask_rounds, bool) or not isinstance(self.mask_rounds, numbers.Integral) \
-                or self.mask_rounds < 0:
-            raise ValueError(f"mask_rounds must be an int >= 0; got {self.mask_rounds!r}")
+        if self.focal is not None:
+            check_number(self.focal, "ImportConfig.focal", 0.0, lo_open=True, hint="pixels")
+        check_number(self.other_motion_share, "ImportConfig.other_motion_share", 0.0, 1.0)
+        check_number(self.other_motion_ate, "ImportConfig.other_motion_ate", 0.0)
+        check_int(self.mask_rounds, "ImportConfig.mask_rounds", 0)
         if not isinstance(self.sfm, SfmConfig) or not isinstance(self.mask, MaskConfig):
             raise TypeError("ImportConfig.sfm must be an SfmConfig and ImportConfig.mask a MaskConfig")
 

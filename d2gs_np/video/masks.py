@@ -25,12 +25,12 @@ the masks are left out of the depth and the masks made again (``prune_rounds`` t
 """
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass
 
 import cv2
 import numpy as np
 
+from d2gs_np.base.checks import check_bool, check_choice, check_int, check_number
 from d2gs_np.constants import PIXEL_CENTER_OFFSET
 from d2gs_np.pose.features import to_gray_u8
 from d2gs_np.geometry.camera import project_points
@@ -80,25 +80,17 @@ class MaskConfig:
     fill_holes: bool = True
 
     def __post_init__(self):
-        for name in ("gap", "open_px", "close_px", "grow_px"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < (1 if name == "gap" else 0):
-                raise ValueError(f"MaskConfig.{name} must be an int >= {1 if name == 'gap' else 0}; got {v!r}")
+        check_int(self.gap, "MaskConfig.gap", 1)
+        for name in ("open_px", "close_px", "grow_px"):
+            check_int(getattr(self, name), f"MaskConfig.{name}", 0)
         for name in ("geometric", "fill_holes"):
-            if not isinstance(getattr(self, name), bool):
-                raise TypeError(f"MaskConfig.{name} must be a bool; got {getattr(self, name)!r}")
-        if isinstance(self.prune_share, bool) or not isinstance(self.prune_share, numbers.Real) \
-                or not 0 <= self.prune_share <= 1:
-            raise ValueError(f"MaskConfig.prune_share must be a number in [0, 1]; got {self.prune_share!r}")
-        if self.flow not in ("farneback", "dis"):
-            raise ValueError(f"MaskConfig.flow must be 'farneback' or 'dis'; got {self.flow!r}")
-        if self.combine not in ("all", "any"):
-            raise ValueError(f"MaskConfig.combine must be 'all' or 'any'; got {self.combine!r}")
+            check_bool(getattr(self, name), f"MaskConfig.{name}")
+        check_number(self.prune_share, "MaskConfig.prune_share", 0.0, 1.0)
+        check_choice(self.flow, "MaskConfig.flow", ("farneback", "dis"))
+        check_choice(self.combine, "MaskConfig.combine", ("all", "any"))
         for name in ("threshold_px", "relative", "min_area_fraction", "support_fraction", "photo_threshold",
                      "photo_sigma_px"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v) or v < 0:
-                raise ValueError(f"MaskConfig.{name} must be a finite number >= 0; got {v!r}")
+            check_number(getattr(self, name), f"MaskConfig.{name}", 0.0)
 
 
 def observed_flow(img0, img1, method="farneback"):

@@ -36,7 +36,6 @@ the median depth of the sparse points in their observing frames is 1.
 """
 from __future__ import annotations
 
-import numbers
 from dataclasses import dataclass, field
 
 import cv2
@@ -44,6 +43,7 @@ import numpy as np
 from scipy.sparse import coo_matrix
 from scipy.sparse.csgraph import connected_components
 
+from d2gs_np.base.checks import check_choice, check_int, check_number
 from d2gs_np.pose.config import FeatureConfig, TrackConfig
 from d2gs_np.pose.features import detect_features, match_keypoints
 from d2gs_np.geometry.camera import project_points
@@ -92,20 +92,14 @@ class SfmConfig:
             raise TypeError(f"SfmConfig.features must be a FeatureConfig; got {type(self.features).__name__}")
         if not isinstance(self.tracks, TrackConfig):
             raise TypeError(f"SfmConfig.tracks must be a TrackConfig; got {type(self.tracks).__name__}")
-        if self.tracker not in ("klt", "sift"):
-            raise ValueError(f"SfmConfig.tracker must be 'klt' or 'sift'; got {self.tracker!r}")
-        for name in ("match_window", "min_keypoints", "init_max_gap", "init_min_points", "min_pnp_inliers",
-                     "weak_observations", "ba_max_nfev", "max_starts"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Integral) or v < 1:
-                raise ValueError(f"SfmConfig.{name} must be an int >= 1; got {v!r}")
-        for name in ("init_min_parallax_deg", "pnp_threshold_px", "min_pnp_inlier_ratio", "essential_threshold_px", "max_reprojection_px",
-                     "min_parallax_deg", "outlier_px", "robust_scale_px"):
-            v = getattr(self, name)
-            if isinstance(v, bool) or not isinstance(v, numbers.Real) or not np.isfinite(v) or v <= 0:
-                raise ValueError(f"SfmConfig.{name} must be a finite number > 0; got {v!r}")
-        if self.min_pnp_inliers < 6:
-            raise ValueError(f"SfmConfig.min_pnp_inliers must be >= 6 (PnP needs 6 points); got {self.min_pnp_inliers}")
+        check_choice(self.tracker, "SfmConfig.tracker", ("klt", "sift"))
+        for name in ("match_window", "min_keypoints", "init_max_gap", "init_min_points", "weak_observations",
+                     "ba_max_nfev", "max_starts"):
+            check_int(getattr(self, name), f"SfmConfig.{name}", 1)
+        check_int(self.min_pnp_inliers, "SfmConfig.min_pnp_inliers", 6, hint="PnP needs 6 points")
+        for name in ("init_min_parallax_deg", "pnp_threshold_px", "min_pnp_inlier_ratio", "essential_threshold_px",
+                     "max_reprojection_px", "min_parallax_deg", "outlier_px", "robust_scale_px"):
+            check_number(getattr(self, name), f"SfmConfig.{name}", 0.0, lo_open=True)
 
 
 @dataclass

@@ -258,7 +258,7 @@ def test_velocity_window_averages_independent_pose_noise():
 def test_velocity_window_validation_and_default_is_the_central_difference():
     from d2gs_np.blur.endpoints import velocity_endpoints as _ve
     for bad in (0, -1, 1.5, True):
-        with pytest.raises(ValueError, match="window must be an int"):
+        with pytest.raises(ValueError, match="window must be an integer"):
             _ve(np.tile(np.eye(4), (3, 1, 1)), np.linspace(0, 1, 3), 0.5, window=bad)
     rng = np.random.default_rng(1)
     from d2gs_np.geometry import se3_exp

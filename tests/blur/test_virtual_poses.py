@@ -113,7 +113,7 @@ def test_virtual_poses_input_validation():
     z = np.zeros(6)
     with pytest.raises(ValueError, match="xi_start must have shape"):
         virtual_poses(T, np.zeros(5), z, 4)
-    with pytest.raises(ValueError, match="n .* must be an int >= 1"):
+    with pytest.raises(ValueError, match="n .* must be an integer >= 1"):
         virtual_poses(T, z, z, 0)
     with pytest.raises(TypeError, match="xi_end must have dtype"):
         virtual_poses(T, z, z.astype(np.float32), 4)

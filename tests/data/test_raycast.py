@@ -71,10 +71,10 @@ def test_depth_is_the_camera_z_of_the_hit_through_each_pixel_centre():
     (dict(cam_T_world=np.eye(4)[:3]), ValueError, r"cam_T_world must have shape \(4, 4\)"),
     (dict(cam_T_world=np.diag([2.0, 1.0, 1.0, 1.0])), ValueError, "not rigid"),
     (dict(K=np.eye(3)[:2]), ValueError, r"K must have shape \(3, 3\)"),
-    (dict(width=0), ValueError, "width must be a positive int"),
-    (dict(height=True), ValueError, "height must be a positive int"),
-    (dict(supersample=0), ValueError, "supersample must be a positive int"),
-    (dict(supersample=1.5), ValueError, "supersample must be a positive int"),
+    (dict(width=0), ValueError, "width must be an integer >= 1"),
+    (dict(height=True), ValueError, "height must be an integer >= 1"),
+    (dict(supersample=0), ValueError, "supersample must be an integer >= 1"),
+    (dict(supersample=1.5), ValueError, "supersample must be an integer >= 1"),
 ])
 def test_bad_views_are_rejected_before_any_ray_is_cast(args, exc, match):
     T, K = _camera()

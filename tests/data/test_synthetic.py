@@ -263,8 +263,8 @@ def test_perturb_poses_zero_noise_is_exact_copy():
     (dict(rot_noise_deg=-1.0), ValueError, "noise"),
     (dict(num_test_views=99), ValueError, "num_test_views"),
     (dict(fov_x_deg=170.0), ValueError, "fov_x_deg"),
-    (dict(width=3.5), TypeError, "width"),
-    (dict(moving_objects=1), TypeError, "moving_objects"),
+    (dict(width=3.5), ValueError, "width"),
+    (dict(moving_objects=1), ValueError, "moving_objects"),
     (dict(exposure_fraction=float("nan")), ValueError, "exposure_fraction"),
 ])
 def test_config_validation(kw, exc, word):

@@ -301,7 +301,7 @@ def test_bad_solver_arguments_are_named():
         bundle_adjust(prob, solver="schur", f_scale=0.0)
     with pytest.raises(TypeError, match="f_scale must be a number"):
         bundle_adjust(prob, solver="schur", f_scale="1")
-    with pytest.raises(ValueError, match="max_nfev must be an int >= 1"):
+    with pytest.raises(ValueError, match="max_nfev must be an integer >= 1"):
         bundle_adjust(prob, solver="schur", max_nfev=0)
     with pytest.raises(ValueError, match="prior cams must have the shape"):
         bundle_adjust(prob, solver="schur", prior=(np.zeros((2, 6)), 1.0, 1.0))

@@ -129,7 +129,7 @@ def test_settings_are_validated():
         SfmConfig(tracks=FeatureConfig())
     with pytest.raises(ValueError, match="prune_share"):
         MaskConfig(prune_share=1.5)
-    with pytest.raises(TypeError, match="geometric"):
+    with pytest.raises(ValueError, match="geometric"):
         MaskConfig(geometric="yes")
     frames, _, masks = _shaky_pan()
     with pytest.raises(ValueError, match="same size"):

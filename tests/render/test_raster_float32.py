@@ -168,5 +168,5 @@ def test_empty_scene():
 
 
 def test_config_rejects_non_bool():
-    with pytest.raises(TypeError, match="raster_float32"):
+    with pytest.raises(ValueError, match="raster_float32"):
         RenderConfig(raster_float32="yes")

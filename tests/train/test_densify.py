@@ -5,7 +5,8 @@ import pytest
 
 from d2gs_np.optim import adam
 from d2gs_np.scene.gaussians import init_params
-from d2gs_np.train.densify import GRAD_COUNT, GRAD_SUM, DensifyConfig, add_grad_stats, densify, init_grad_stats
+from d2gs_np.train.config import DensifyConfig
+from d2gs_np.train.densify import GRAD_COUNT, GRAD_SUM, add_grad_stats, densify, init_grad_stats
 
 
 def _params(rng):

@@ -5,6 +5,7 @@ import pytest
 from d2gs_np.scene.config import DeformConfig
 from d2gs_np.scene.deformation import deform_fwd
 from d2gs_np.train import prune
+from d2gs_np.train.config import PruneConfig
 
 K = np.array([[50.0, 0, 32], [0, 50.0, 24], [0, 0, 1]])
 W, H = 64, 48
@@ -80,9 +81,9 @@ def test_escaped_removes_a_dynamic_gaussian_that_lives_on_static_pixels():
     base = np.stack([_point_at_pixel(25.5, 25.5, 3.0), _point_at_pixel(50.5, 40.5, 3.0)])
     coef = np.zeros((2, k, 3))
     poses, Ks = np.tile(np.eye(4), (4, 1, 1)), np.tile(K, (4, 1, 1))
-    out = prune.escaped(base, coef, times, poses, Ks, masks, cfg, prune.PruneConfig())
+    out = prune.escaped(base, coef, times, poses, Ks, masks, cfg, PruneConfig())
     np.testing.assert_array_equal(out, [False, True])
-    off = prune.escaped(base, coef, times, poses, Ks, masks, cfg, prune.PruneConfig(max_outside_share=0.0))
+    off = prune.escaped(base, coef, times, poses, Ks, masks, cfg, PruneConfig(max_outside_share=0.0))
     assert not off.any()
 
 
@@ -90,4 +91,4 @@ def test_escaped_removes_a_dynamic_gaussian_that_lives_on_static_pixels():
                                  dict(mask_dilation_px=-1), dict(max_scale_fraction=float("nan"))])
 def test_bad_prune_config_is_rejected(bad):
     with pytest.raises(ValueError, match="PruneConfig"):
-        prune.PruneConfig(**bad)
+        PruneConfig(**bad)

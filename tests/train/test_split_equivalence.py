@@ -42,7 +42,7 @@ from d2gs_np.render import render_fwd
 from d2gs_np.scene.render_inputs import render_inputs_fwd
 from d2gs_np.train.checkpoint import load_checkpoint
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
-from d2gs_np.train.densify import DensifyConfig
+from d2gs_np.train.config import DensifyConfig
 from d2gs_np.train.trainer import Trainer, backward_views_rng
 from run_fixtures import copy_run_for_resume
 

@@ -102,9 +102,9 @@ def test_final_ratio_decays_the_constant_rate_blocks_only():
     assert block_learning_rate("static.means", lr, 2.0, 100, 5)(100) == pytest.approx(lr.means_final * 2.0)
     # the camera's rates are not Gaussian blocks
     assert block_learning_rate("camera.exposure_logit", lr, 2.0, 100, 5) == lr.exposure
-    with pytest.raises(ValueError, match="final_ratio must be in"):
+    with pytest.raises(ValueError, match=r"final_ratio must be a finite number in \(0, 1\]"):
         LearningRates(final_ratio=0.0)
-    with pytest.raises(ValueError, match="final_ratio must be in"):
+    with pytest.raises(ValueError, match=r"final_ratio must be a finite number in \(0, 1\]"):
         LearningRates(final_ratio=1.5)
 
 

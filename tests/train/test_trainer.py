@@ -273,7 +273,7 @@ def test_float_and_bool_config_types_are_checked():
 
 
 def test_densification_adds_gaussians_and_keeps_state_consistent(dynamic_scene, tmp_path):
-    from d2gs_np.train.densify import DensifyConfig
+    from d2gs_np.train.config import DensifyConfig
 
     cfg = _config(iters=12).replace(densify=DensifyConfig(enabled=True, every=4, start_fraction=0.0,
                                                           stop_fraction=1.0, grad_threshold_ndc=1e-9))
@@ -291,7 +291,7 @@ def test_densification_adds_gaussians_and_keeps_state_consistent(dynamic_scene, 
 
 
 def test_resume_is_exact_with_densification(dynamic_scene, tmp_path):
-    from d2gs_np.train.densify import DensifyConfig
+    from d2gs_np.train.config import DensifyConfig
 
     dens = DensifyConfig(enabled=True, every=3, start_fraction=0.0, stop_fraction=1.0, grad_threshold_ndc=1e-6)
     cfg = _config(iters=10, checkpoint_every=5).replace(densify=dens)
@@ -313,7 +313,7 @@ def test_heldout_is_evaluated_before_pruning_and_densification(dynamic_scene, tm
     # The logged held-out PSNR must describe the model the Adam step produced: a split moves its
     # children apart and costs dB for a while, and eval_every shares multiples with the densify
     # period, so evaluating after densification would log only those transients.
-    from d2gs_np.train.densify import DensifyConfig
+    from d2gs_np.train.config import DensifyConfig
     from d2gs_np.train.plugins import Plugin
 
     dens = DensifyConfig(enabled=True, every=4, start_fraction=0.0, stop_fraction=1.0, grad_threshold_ndc=1e-9)
@@ -494,7 +494,7 @@ def test_position_rates_take_the_scene_size_as_their_unit(dynamic_scene, tmp_pat
     # other blocks do not depend on the unit
     assert scene.adam_config.lr("static.colors", 0) == camera.adam_config.lr("static.colors", 0)
     assert any("units of the scene's size" in n for n in scene.log.notes)
-    with pytest.raises(ValueError, match="means_unit must be 'camera' or 'scene'"):
+    with pytest.raises(ValueError, match=r"means_unit must be one of \('camera', 'scene'\)"):
         LearningRates(means_unit="extent")
 
 

@@ -107,7 +107,7 @@ def test_settings_are_validated():
         ImportConfig(other_motion_share=1.5)
     with pytest.raises(ValueError, match="other_motion_ate"):
         ImportConfig(other_motion_ate=float("nan"))
-    with pytest.raises(TypeError, match="fill_holes"):
+    with pytest.raises(ValueError, match="fill_holes"):
         MaskConfig(fill_holes=1)
 
 
