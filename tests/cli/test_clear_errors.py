@@ -294,7 +294,7 @@ def test_case12_time_budget_nan_in_a_config_file_is_refused_up_front(tmp_path, c
     cfg.write_text('{"train": {"time_budget": NaN}}')
     out = tmp_path / "out"
     status, _, err = run_cli(["train", tmp_path / "no_scene", "--out", out, "--config", cfg], capsys)
-    assert_one_line_error(status, err, "train", "time_budget must be a finite number of seconds > 0; got nan")
+    assert_one_line_error(status, err, "train", "TrainConfig.time_budget must be a finite number > 0 (seconds); got nan")
     assert not out.exists()
 
 
