@@ -132,6 +132,10 @@ class TrainConfig:
     # Stage split (docs/method.md §8): camera/static warm-up, deformation, joint; fractions of iters.
     warmup_fraction: float = 0.1
     deform_fraction: float = 0.1
+    # The camera model (exposure endpoints, PoseNet) is not trained before this fraction of iters:
+    # 0 trains it from the first step; > 0 fits the Gaussians at the start poses first, as the public
+    # deblurring codebases do (docs/method.md §8).
+    camera_from_fraction: float = 0.0
     seed: int = 0
     background: tuple = (0.0, 0.0, 0.0)
     lr: LearningRates = field(default_factory=LearningRates)
@@ -159,6 +163,8 @@ class TrainConfig:
             raise ValueError(
                 f"TrainConfig stage fractions must be >= 0 and sum to <= 1; got warmup_fraction="
                 f"{self.warmup_fraction}, deform_fraction={self.deform_fraction}")
+        check_number(self.camera_from_fraction, "TrainConfig.camera_from_fraction", 0.0, 1.0,
+                     hint="a fraction of iters; 0 trains the camera from the start")
         for name in ("dynamic", "blur", "learn_exposure"):
             check_choice(getattr(self, name), f"TrainConfig.{name}", _AUTO)
         if isinstance(self.background, (str, bytes)) or not hasattr(self.background, "__len__") \

@@ -49,7 +49,26 @@ def make_stages(train: TrainConfig, dynamic: bool) -> list:
     if d > 0:
         stages.append(Stage("deform", w, w + d, (f"{DYNAMIC}.",), False))
     stages.append(Stage("joint", w + d, n, (f"{STATIC}.", f"{DYNAMIC}.", f"{CAMERA}.", f"{POSENET}."), False))
+    c = int(round(train.camera_from_fraction * n))
+    if c > 0:
+        stages = _camera_from(stages, c)
     return [s for s in stages if s.stop > s.start]
+
+
+def _camera_from(stages, c):
+    """The stages with the camera blocks left out of the steps before ``c``: a stage that spans
+    ``c`` is cut in two, its first part named ``<name>-gaussians``."""
+    out = []
+    for s in stages:
+        without = tuple(p for p in s.trainable if not p.startswith((f"{CAMERA}.", f"{POSENET}.")))
+        if s.stop <= c:
+            out.append(Stage(s.name, s.start, s.stop, without, s.static_only))
+        elif s.start < c:
+            out.append(Stage(f"{s.name}-gaussians", s.start, c, without, s.static_only))
+            out.append(Stage(s.name, c, s.stop, s.trainable, s.static_only))
+        else:
+            out.append(s)
+    return out
 
 
 class StepPlan(NamedTuple):
