@@ -16,7 +16,8 @@ import warnings
 
 import numpy as np
 
-__all__ = ["InputWarning", "SceneWarning", "ConfigWarning", "warn", "check_number", "check_int", "check_bool",
+__all__ = ["InputWarning", "SceneWarning", "ConfigWarning", "warn", "check_number", "check_scalar", "check_int",
+           "check_bool",
            "check_choice", "name_items"]
 
 
@@ -71,6 +72,16 @@ def check_number(value, name, lo=-math.inf, hi=math.inf, lo_open=False, hi_open=
     if not (math.isfinite(v) and _inside(v, lo, hi, lo_open, hi_open)):
         _refuse(name, "a finite number", _bounds(lo, hi, lo_open, hi_open, lambda b: f"{b:g}"), hint, value)
     return v
+
+
+def check_scalar(value, name, lo=-math.inf, hi=math.inf, lo_open=False, hi_open=False, hint=""):
+    """``check_number`` of a function argument that may also come as a 0-d NumPy array; an array of
+    any other shape is refused as not a scalar."""
+    if isinstance(value, np.ndarray):
+        if value.shape != ():
+            raise ValueError(f"{name} must be a scalar; got an array of shape {value.shape}")
+        value = value[()]
+    return check_number(value, name, lo, hi, lo_open, hi_open, hint)
 
 
 def check_int(value, name, lo=None, hi=None, hint=""):

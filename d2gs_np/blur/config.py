@@ -7,11 +7,7 @@ reading an experiment config (``train/config.py``) stays light.
 """
 from __future__ import annotations
 
-import math
-import numbers
 from dataclasses import dataclass
-
-import numpy as np
 
 from d2gs_np.base.checks import check_choice, check_int, check_number
 
@@ -135,17 +131,3 @@ def _check_n(n, what="n (number of virtual poses)"):
 
 def _check_backward_views(m, what):
     check_int(m, what, 0, hint="0: every view")
-
-
-def _check_real(x, name, low=None):
-    if isinstance(x, np.ndarray) and x.shape == ():
-        x = x[()]
-    if isinstance(x, (bool, np.bool_)) or not isinstance(x, numbers.Real):
-        raise TypeError(f"{name} must be a real scalar; got {type(x).__name__}")
-    x = float(x)
-    if not math.isfinite(x):
-        raise ValueError(f"{name} must be finite; got {x}")
-    if low is not None and x < low:
-        raise ValueError(f"{name} must be >= {low}; got {x}")
-    return x
-

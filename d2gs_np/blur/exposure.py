@@ -17,8 +17,7 @@ import math
 
 import numpy as np
 
-from d2gs_np.base.checks import check_int
-from d2gs_np.blur.config import _check_real
+from d2gs_np.base.checks import check_scalar, check_int
 
 __all__ = [
     "EXPOSURE_BLOCK",
@@ -40,7 +39,7 @@ def exposure_from_scene(exposure_fraction, num_frames):
 
     exposure_fraction: exposure time as a fraction of the frame interval, in [0, 1].
     """
-    f = _check_real(exposure_fraction, "exposure_fraction", low=0.0)
+    f = check_scalar(exposure_fraction, "exposure_fraction", 0.0)
     if f > 1.0:
         raise ValueError(f"exposure_fraction must be in [0, 1] (a fraction of the frame interval); got {f}")
     N = _check_num_frames(num_frames)
@@ -49,7 +48,7 @@ def exposure_from_scene(exposure_fraction, num_frames):
 
 def init_exposure(fraction=0.5, dtype=np.float64):
     """{"camera.exposure_logit": (1,)} with sigmoid(logit) = fraction in (0, 1) (default 1/2)."""
-    f = _check_real(fraction, "fraction")
+    f = check_scalar(fraction, "fraction")
     if not 0.0 < f < 1.0:
         raise ValueError(f"fraction must be in (0, 1) (the sigmoid cannot reach 0 or 1); got {f}")
     return {EXPOSURE_BLOCK: np.array([math.log(f) - math.log1p(-f)], dtype=dtype)}
@@ -62,7 +61,7 @@ def exposure_fwd(params, num_frames):
     logit = params[EXPOSURE_BLOCK]
     if not isinstance(logit, np.ndarray) or logit.shape != (1,):
         raise ValueError(f"{EXPOSURE_BLOCK} must be an array of shape (1,); got {getattr(logit, 'shape', logit)}")
-    x = _check_real(logit[0], EXPOSURE_BLOCK)
+    x = check_scalar(logit[0], EXPOSURE_BLOCK)
     N = _check_num_frames(num_frames)
     sig = 0.5 * (1.0 + math.tanh(0.5 * x))  # sigmoid without overflow
     scale = 0.0 if N == 1 else 1.0 / (N - 1)
@@ -71,7 +70,7 @@ def exposure_fwd(params, num_frames):
 
 def exposure_bwd(saved, v_tau):
     """{"camera.exposure_logit": (1,)} gradient from the scalar v_tau."""
-    v_tau = _check_real(v_tau, "v_tau")
+    v_tau = check_scalar(v_tau, "v_tau")
     sig = saved["sig"]
     return {EXPOSURE_BLOCK: np.array([v_tau * saved["scale"] * sig * (1.0 - sig)], dtype=saved["dtype"])}
 

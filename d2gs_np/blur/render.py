@@ -28,7 +28,8 @@ from __future__ import annotations
 
 import numpy as np
 
-from d2gs_np.blur.config import BlurConfig, _check_real
+from d2gs_np.base.checks import check_scalar
+from d2gs_np.blur.config import BlurConfig
 from d2gs_np.blur.virtual_poses import _check_pose_args, _virtual_poses_fwd, exposure_offsets, virtual_poses_bwd
 from d2gs_np.geometry.se3 import matrix_grad_to_left_tangent
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
@@ -90,8 +91,8 @@ def blur_render_fwd(params, frame_time, tau, pose_est, xi_start, xi_end, K, widt
         raise TypeError(f"params must be a dict of arrays; got {type(params).__name__}")
     render_fwd, render_bwd = _resolve_renderer(renderer)
     render_inputs_fwd, render_inputs_bwd = _resolve_scene_model(scene_model)
-    frame_time = _check_real(frame_time, "frame_time")
-    tau = _check_real(tau, "tau", low=0.0)
+    frame_time = check_scalar(frame_time, "frame_time")
+    tau = check_scalar(tau, "tau", 0.0)
     scene_params = {k: v for k, v in params.items() if k.startswith(_SCENE_PREFIXES)}
     if f"{STATIC}.means" not in scene_params:
         raise ValueError(f"params has no scene blocks ('{STATIC}.means', ...); build them with "

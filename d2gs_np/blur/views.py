@@ -23,8 +23,8 @@ import math
 
 import numpy as np
 
-from d2gs_np.base.checks import check_choice, check_number
-from d2gs_np.blur.config import N_SCHEDULES, _check_backward_views, _check_n, _check_real
+from d2gs_np.base.checks import check_scalar, check_choice, check_number
+from d2gs_np.blur.config import N_SCHEDULES, _check_backward_views, _check_n
 from d2gs_np.geometry.camera import project_points
 from d2gs_np.geometry.se3 import se3_exp
 from d2gs_np.scene.deformation import _deform_fwd
@@ -66,8 +66,8 @@ def views_for_length(n, length_px, spacing_px=1.0):
     smallest n > 1; with identical endpoints both are the same render).
     Example, d = 1: L = 0 -> 2, L = 2.5 -> 4, L = 20 -> n."""
     n = _check_n(n)
-    L = _check_real(length_px, "length_px", low=0.0)
-    d = _check_real(spacing_px, "spacing_px")
+    L = check_scalar(length_px, "length_px", 0.0)
+    d = check_scalar(spacing_px, "spacing_px")
     if d <= 0.0:
         raise ValueError(f"spacing_px must be > 0; got {d}")
     if n <= 2:

@@ -8,7 +8,10 @@ from __future__ import annotations
 
 import numpy as np
 
-__all__ = ["random_sines", "eval_sines", "as_times"]
+from d2gs_np.geometry.camera import look_at, make_intrinsics
+from d2gs_np.geometry.so3 import so3_exp
+
+__all__ = ["random_sines", "eval_sines", "as_times", "shaken_look_at", "fov_intrinsics"]
 
 
 def random_sines(rng, amps, freqs, freq_jitter=0.15):
@@ -33,3 +36,22 @@ def as_times(t, name="t"):
     if not np.all(np.isfinite(arr)):
         raise ValueError(f"{name} contains NaN or inf")
     return arr
+
+
+def shaken_look_at(eye, target, rot_shake):
+    """(M, 4, 4) cam_T_world looking from eye (M, 3) at target (M, 3), y up, then turned about the
+    camera centre by so3_exp(rot_shake) (M, 3): a hand's rotational shake."""
+    R_shake = so3_exp(rot_shake)
+    poses = np.empty((len(eye), 4, 4))
+    for m in range(len(eye)):
+        T = look_at(eye[m], target[m], up=(0.0, 1.0, 0.0))
+        poses[m] = T
+        poses[m, :3, :3] = R_shake[m] @ T[:3, :3]
+        poses[m, :3, 3] = R_shake[m] @ T[:3, 3]
+    return poses
+
+
+def fov_intrinsics(width, height, fov_x_deg):
+    """(3, 3) K: square pixels, horizontal field of view ``fov_x_deg``, principal point at the image centre."""
+    f = 0.5 * width / np.tan(0.5 * np.deg2rad(fov_x_deg))
+    return make_intrinsics(f, f, 0.5 * width, 0.5 * height)

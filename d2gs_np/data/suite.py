@@ -53,11 +53,11 @@ from pathlib import Path
 import numpy as np
 
 from d2gs_np.base.checks import check_choice, check_int, check_number
-from d2gs_np.data.camera_paths import as_times, eval_sines, random_sines
+from d2gs_np.data.camera_paths import as_times, eval_sines, fov_intrinsics, random_sines, shaken_look_at
 from d2gs_np.data.raycast import cast_depth, cast_view
 from d2gs_np.data.scene import Scene
 from d2gs_np.data.synthetic import preset_overrides, render_clip
-from d2gs_np.geometry.camera import look_at, project_points
+from d2gs_np.geometry.camera import project_points
 from d2gs_np.geometry.se3 import se3_exp
 from d2gs_np.geometry.so3 import so3_exp
 
@@ -345,8 +345,7 @@ SUITE = {
 
 
 def _intrinsics(config: SuiteConfig):
-    fx = 0.5 * config.width / np.tan(np.deg2rad(config.fov_x_deg) / 2)
-    return np.array([[fx, 0.0, config.width / 2], [0.0, fx, config.height / 2], [0.0, 0.0, 1.0]])
+    return fov_intrinsics(config.width, config.height, config.fov_x_deg)
 
 
 def _resample(img, texels_u, texels_v):
@@ -402,13 +401,7 @@ def suite_camera_pose(world: SuiteWorld, t):
     look = world.target - world.eye
     target = eye + np.stack([look[0] * np.cos(a) + look[2] * np.sin(a), np.full_like(a, look[1]),
                              -look[0] * np.sin(a) + look[2] * np.cos(a)], axis=1)
-    R_shake = so3_exp(eval_sines(world.shake_rot, tt))
-    poses = np.empty((len(tt), 4, 4))
-    for m in range(len(tt)):
-        T = look_at(eye[m], target[m], up=(0.0, 1.0, 0.0))
-        poses[m] = T
-        poses[m, :3, :3] = R_shake[m] @ T[:3, :3]
-        poses[m, :3, 3] = R_shake[m] @ T[:3, 3]
+    poses = shaken_look_at(eye, target, eval_sines(world.shake_rot, tt))
     return poses[0] if t.ndim == 0 else poses
 
 

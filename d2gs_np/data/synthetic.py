@@ -54,10 +54,9 @@ from pathlib import Path
 import numpy as np
 
 from d2gs_np.base.checks import check_bool, check_int, check_number
-from d2gs_np.data.camera_paths import as_times, eval_sines, random_sines
+from d2gs_np.data.camera_paths import as_times, eval_sines, fov_intrinsics, random_sines, shaken_look_at
 from d2gs_np.data.raycast import cast_depth, cast_view
 from d2gs_np.data.scene import Frame, Scene
-from d2gs_np.geometry.camera import look_at, make_intrinsics
 from d2gs_np.geometry.se3 import se3_exp
 from d2gs_np.geometry.so3 import so3_exp
 
@@ -280,13 +279,7 @@ def camera_pose(world: SyntheticWorld, t):
     ], axis=1)
     eye = eye + eval_sines(world.cam_sway, tt) + eval_sines(world.cam_shake, tt)
     target = _SCENE_CENTER + eval_sines(world.target_sway, tt)
-    R_shake = so3_exp(eval_sines(world.rot_shake, tt))  # rotation about the camera centre
-    poses = np.empty((len(tt), 4, 4))
-    for m in range(len(tt)):
-        T = look_at(eye[m], target[m], up=(0.0, 1.0, 0.0))
-        poses[m] = T
-        poses[m, :3, :3] = R_shake[m] @ T[:3, :3]
-        poses[m, :3, 3] = R_shake[m] @ T[:3, 3]
+    poses = shaken_look_at(eye, target, eval_sines(world.rot_shake, tt))  # shake: about the camera centre
     return poses[0] if t.ndim == 0 else poses
 
 
@@ -511,8 +504,7 @@ def exposure_length(config: SyntheticConfig):
 
 def intrinsics(config: SyntheticConfig):
     """(3, 3) K: square pixels, horizontal fov ``fov_x_deg``, principal point at the image centre."""
-    f = 0.5 * config.width / np.tan(0.5 * np.deg2rad(config.fov_x_deg))
-    return make_intrinsics(f, f, 0.5 * config.width, 0.5 * config.height)
+    return fov_intrinsics(config.width, config.height, config.fov_x_deg)
 
 
 def frame_depth_map(config: SyntheticConfig, k, world=None):

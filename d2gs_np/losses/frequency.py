@@ -46,6 +46,7 @@ import scipy.fft
 from numba import njit
 
 from d2gs_np.base.checks import check_number
+from d2gs_np.losses.photometric import check_float_images
 from d2gs_np.constants import FREQ_AMPLITUDE_ZERO, FREQ_MASK_EDGE, FREQ_PHASE_GATE_AMPLITUDE
 
 __all__ = ["highpass_mask", "target_spectrum", "frequency_fwd", "frequency_bwd", "warm_up"]
@@ -101,12 +102,8 @@ def frequency_fwd(render, target, mask=None, cutoff: float = 0.1, target_fft=Non
         the caller vouches that it belongs to this target and mask).
     Returns (value, a Python float, saved).
     """
+    check_float_images(render=render, target=target)
     for name, x in (("render", render), ("target", target)):
-        if not isinstance(x, np.ndarray) or x.dtype not in (np.float64, np.float32):
-            got = x.dtype if isinstance(x, np.ndarray) else type(x).__name__
-            raise TypeError(f"{name} must be a float64 or float32 array; got {got}")
-        if x.ndim != 3:
-            raise ValueError(f"{name} must have shape (H, W, C); got {x.shape}")
         if not np.all(np.isfinite(x)):
             raise ValueError(f"{name} contains NaN or inf; every pixel must be finite")
     if target.shape != render.shape:

@@ -18,7 +18,18 @@ import numpy as np
 from d2gs_np.base.checks import check_number
 from d2gs_np.losses.ssim import _check_images, _ssim_fwd_weighted, ssim_bwd
 
-__all__ = ["photometric_fwd", "photometric_bwd"]
+__all__ = ["photometric_fwd", "photometric_bwd", "check_float_images"]
+
+
+def check_float_images(**images):
+    """Each keyword's value is a float64 or float32 array of shape (H, W, C); else TypeError or
+    ValueError naming it."""
+    for name, x in images.items():
+        if not isinstance(x, np.ndarray) or x.dtype not in (np.float64, np.float32):
+            got = x.dtype if isinstance(x, np.ndarray) else type(x).__name__
+            raise TypeError(f"{name} must be a float64 or float32 array; got {got}")
+        if x.ndim != 3:
+            raise ValueError(f"{name} must have shape (H, W, C); got {x.shape}")
 
 
 def photometric_fwd(render, target, lambda_ssim=0.2, mask=None):
@@ -34,12 +45,7 @@ def photometric_fwd(render, target, lambda_ssim=0.2, mask=None):
     if lam > 0.0:
         _check_images(render, target)  # also enforces H, W >= 11
     else:
-        for name, x in (("render", render), ("target", target)):
-            if not isinstance(x, np.ndarray) or x.dtype not in (np.float64, np.float32):
-                got = x.dtype if isinstance(x, np.ndarray) else type(x).__name__
-                raise TypeError(f"{name} must be a float64 or float32 array; got {got}")
-            if x.ndim != 3:
-                raise ValueError(f"{name} must have shape (H, W, C); got {x.shape}")
+        check_float_images(render=render, target=target)
         if target.dtype != render.dtype or target.shape != render.shape:
             raise ValueError(f"target must match render {render.shape} {render.dtype}; got {target.shape} {target.dtype}")
         if not (np.all(np.isfinite(render)) and np.all(np.isfinite(target))):

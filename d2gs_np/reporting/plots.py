@@ -44,13 +44,7 @@ def plot_error_vs_time(run_dirs, out_png, labels=None, title="error against wall
     ax.set_xlabel("training time [s] (JIT warm-up and evaluation excluded)")
     ax.set_ylabel("PSNR [dB]")
     ax.set_title(title)
-    ax.grid(alpha=0.3)
-    ax.legend(fontsize=8)
-    fig.tight_layout()
-    Path(out_png).parent.mkdir(parents=True, exist_ok=True)
-    fig.savefig(out_png, dpi=120)
-    plt.close(fig)
-    return Path(out_png)
+    return _save(fig, ax, out_png)
 
 
 def plot_loss_terms(run_dir, out_png, title=None):
@@ -75,6 +69,13 @@ def plot_loss_terms(run_dir, out_png, title=None):
     ax.set_xlabel("training time [s]")
     ax.set_ylabel("term value (unweighted)")
     ax.set_title(title or f"loss terms of {Path(run_dir).name}")
+    return _save(fig, ax, out_png)
+
+
+def _save(fig, ax, out_png):
+    """Grid, legend, tight layout; write out_png (its folder made) at 120 dpi and close the figure."""
+    import matplotlib.pyplot as plt
+
     ax.grid(alpha=0.3)
     ax.legend(fontsize=8)
     fig.tight_layout()

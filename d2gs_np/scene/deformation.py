@@ -27,28 +27,18 @@ Conventions
 """
 from __future__ import annotations
 
-import math
-import numbers
 
 import numpy as np
 
 from d2gs_np.constants import QUAT_NORM_MIN
+from d2gs_np.base.checks import check_scalar
 from d2gs_np.scene.config import DeformConfig
 
 __all__ = ["deform_basis", "deform_fwd", "deform_bwd"]
 
 
 def _check_time(t, name="t"):
-    if isinstance(t, np.ndarray):
-        if t.shape != ():
-            raise ValueError(f"{name} must be a scalar time; got an array of shape {t.shape}")
-        t = t[()]
-    if isinstance(t, (bool, np.bool_)) or not isinstance(t, numbers.Real):
-        raise TypeError(f"{name} must be a real scalar; got {type(t).__name__}")
-    t = float(t)
-    if not math.isfinite(t):
-        raise ValueError(f"{name} must be finite; got {t}")
-    return t
+    return check_scalar(t, name, hint="a scalar time")
 
 
 def deform_basis(t, config: DeformConfig):

@@ -92,3 +92,16 @@ def test_name_items_names_at_most_the_limit():
     assert name_items(["a"]) == "a"
     assert name_items(["a", "b", "c"]) == "a, b and c"
     assert name_items("abcdef", limit=2) == "a, b and 4 more"
+
+
+def test_check_scalar_takes_0d_arrays_and_refuses_other_shapes_and_non_numbers():
+    from d2gs_np.base.checks import check_scalar
+
+    assert check_scalar(np.array(0.25), "t") == 0.25 and type(check_scalar(np.float32(2), "t")) is float
+    with pytest.raises(ValueError, match=r"t must be a scalar; got an array of shape \(2,\)"):
+        check_scalar(np.zeros(2), "t")
+    for bad in (True, "1", None, np.array(np.nan), float("inf")):
+        with pytest.raises(ValueError, match="t must be a finite number >= 0"):
+            check_scalar(bad, "t", 0.0)
+    with pytest.raises(ValueError, match="tau must be a finite number >= 0"):
+        check_scalar(-1e-300, "tau", 0.0)

@@ -247,9 +247,9 @@ def test_validation_errors():
     bad[0, 0, 0] = np.nan
     with pytest.raises(ValueError, match="coef_quats contains NaN"):
         deform_fwd(**dict(inputs, coef_quats=bad), t=0.0, config=config)
-    with pytest.raises(ValueError, match="t must be finite"):
+    with pytest.raises(ValueError, match="t must be a finite number"):
         deform_fwd(**inputs, t=float("inf"), config=config)
-    with pytest.raises(ValueError, match="scalar time"):
+    with pytest.raises(ValueError, match="t must be a scalar"):
         deform_fwd(**inputs, t=np.zeros(2), config=config)
     with pytest.raises(TypeError, match="DeformConfig"):
         deform_fwd(**inputs, t=0.0, config=None)
