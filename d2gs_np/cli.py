@@ -162,11 +162,13 @@ def _resume_command(args) -> str:
 
 
 def _cmd_eval(args):
-    from d2gs_np.evaluation.runs import evaluate_run
+    from d2gs_np.evaluation.runs import evaluate_run, verdict
 
     result = evaluate_run(args.run, args.scene, test_pose_steps=args.test_pose_opt,
                           note=lambda line: print(f"d2gs eval: note: {line}", file=sys.stderr))
     print(json.dumps(result, indent=2))
+    for line in verdict(result):
+        print(f"d2gs eval: {line}")
     print(f"wrote {Path(args.run) / 'metrics.json'}")
 
 
@@ -260,7 +262,7 @@ def _cmd_demo(args):
     """Small built-in scene -> train the full method -> evaluate -> report.html."""
     from d2gs_np.data.suite import SUITE, write_suite_scene
     from d2gs_np.data.synthetic import PRESETS, write_synthetic_scene
-    from d2gs_np.evaluation.runs import evaluate_run
+    from d2gs_np.evaluation.runs import evaluate_run, verdict
     from d2gs_np.reporting.html import write_report
     from d2gs_np.reporting.plots import plot_error_vs_time
 
@@ -290,15 +292,53 @@ def _cmd_demo(args):
     else:
         write_synthetic_scene(scene_dir, args.preset, args.seed, overwrite=True, **size)
     print(f"[demo] made the built-in {args.preset!r} scene ({size}) in {time.perf_counter() - t0:.1f}s")
-    _cmd_train(ns)
+    runs = [out / "run"]
+    baseline = None
+    if not args.no_baseline:
+        # The no-blur baseline (n = 1, no pose refinement) trains beside the method on the same
+        # budget, each on half the cores, so the report compares like with like.
+        runs.append(out / "noblur")
+        baseline = _start_baseline(ns, runs[1])
+        print(f"[demo] the no-blur baseline trains beside it in another process ({runs[1]}; "
+              "--no-baseline leaves it out)")
+    try:
+        _cmd_train(ns)
+    finally:
+        if baseline is not None and baseline.poll() is None and sys.exc_info()[0] is not None:
+            baseline.terminate()
+    if baseline is not None and baseline.wait() != 0:
+        raise RuntimeError(f"the no-blur baseline failed (status {baseline.returncode}); its log: "
+                           f"{out / 'noblur.log'}; or run the demo with --no-baseline")
     result = evaluate_run(out / "run")
-    plot_error_vs_time(out / "run", out / "error_vs_time.png")
-    report = write_report([out / "run"], out / "report.html", title=f"d2gs demo: {args.preset} scene")
+    base_result = evaluate_run(runs[1]) if baseline is not None else None
+    plot_error_vs_time(runs, out / "error_vs_time.png")
+    report = write_report(runs, out / "report.html", title=f"d2gs demo: {args.preset} scene")
     print(json.dumps(result, indent=2))
-    if "dvs" in result:
-        print(f"[demo] deblurred renders: PSNR {result['dvs']['psnr']:.2f} dB against the sharp frames; "
-              f"the blurry inputs score {result['input_blur']['psnr']:.2f} dB")
+    for line in verdict(result, base_result):
+        print(f"[demo] {line}")
     print(f"[demo] report: {report} (open it in a browser); total {time.perf_counter() - t0:.0f}s")
+
+
+def _start_baseline(ns, out):
+    """Start ``d2gs train`` of the no-blur baseline of the demo's run ``ns`` into ``out`` in a child
+    process with half the cores (this process keeps the rest); returns the Popen."""
+    import os
+    import subprocess
+
+    import numba
+
+    cores = os.cpu_count() or 2
+    mine, theirs = max(1, cores - cores // 2), max(1, cores // 2)
+    numba.set_num_threads(min(mine, numba.config.NUMBA_NUM_THREADS))
+    cmd = [sys.executable, "-m", "d2gs_np.cli", "train", ns.scene, "--out", str(out), "--blur", "off",
+           "--pose-solver", "off", "--overwrite", "--quiet", "--seed", str(ns.seed)]
+    for flag, value in (("--config", ns.config), ("--iters", ns.iters), ("--time-budget", ns.time_budget)):
+        if value is not None:
+            cmd += [flag, str(value)]
+    Path(out).mkdir(parents=True, exist_ok=True)
+    env = {**os.environ, "NUMBA_NUM_THREADS": str(theirs), "OMP_NUM_THREADS": str(theirs)}
+    with open(Path(out).parent / "noblur.log", "w") as log:
+        return subprocess.Popen(cmd, stdout=log, stderr=subprocess.STDOUT, env=env)
 
 
 def _cmd_report(args):
@@ -377,6 +417,9 @@ def build_parser() -> argparse.ArgumentParser:
                         "with --quick or --iters)")
     d.add_argument("--config", default=None, help="experiment config JSON")
     d.add_argument("--seed", type=_SEED, default=0)
+    d.add_argument("--no-baseline", action="store_true",
+                   help="leave out the no-blur baseline that otherwise trains beside the method (n = 1, no pose "
+                        "refinement, same budget, half the cores each)")
     d.set_defaults(func=_cmd_demo)
 
     m = sub.add_parser("make-scene", help="generate a synthetic scene folder with ground truth "

@@ -176,9 +176,34 @@ def test_zoom_crop_finds_the_detailed_region():
     assert 24 - side < y0 <= 36 and 40 - side < x0 <= 56  # the crop overlaps the textured block
 
 
-def test_demo_quick_writes_the_report(tmp_path):
+def test_demo_quick_writes_the_report_with_the_no_blur_baseline_beside(tmp_path, capsys):
     out = tmp_path / "demo"
     assert main(["demo", "--quick", "--out", str(out), "--iters", "12"]) == 0
     page = (out / "report.html").read_text()
-    assert "deblurred render" in page and (out / "run" / "metrics.json").exists()
+    assert "deblurred render" in page and "What the numbers say" in page
+    run, base = (json.loads((out / d / "metrics.json").read_text()) for d in ("run", "noblur"))
+    assert "blur_model" in base["left_out"] and "blur_model" not in run["left_out"]
+    assert base["steps"] == run["steps"] == 12  # the same schedule
+    said = [line for line in capsys.readouterr().out.splitlines() if "no-blur baseline" in line and "dB" in line]
+    assert len(said) == 1 and f"{abs(run['dvs']['psnr'] - base['dvs']['psnr']):.2f} dB" in said[0]
     assert main(["demo", "--quick", "--out", str(out), "--preset", "nope"]) == 2
+
+
+def test_demo_without_the_baseline_trains_one_run(tmp_path):
+    out = tmp_path / "demo"
+    assert main(["demo", "--quick", "--out", str(out), "--iters", "4", "--no-baseline"]) == 0
+    assert (out / "run" / "metrics.json").exists() and not (out / "noblur").exists()
+
+
+def test_eval_says_how_the_run_compares_with_its_input(trained, capsys):
+    scene, run = trained
+    assert main(["eval", str(run)]) == 0
+    out = capsys.readouterr().out
+    m = json.loads((run / "metrics.json").read_text())
+    gain = m["dvs"]["psnr"] - m["input_blur"]["psnr"]
+    said = [line for line in out.splitlines() if line.startswith("d2gs eval: ")]
+    assert len(said) == 1 and (("LOST to its input" in said[0]) == (gain < 0)), said
+    assert f"{abs(gain):.2f} dB" in said[0]
+    # what is measured without ground truth, always
+    assert 0 < m["input_fit"]["psnr"] < 100 and m["input_fit"]["num_images"] == 5
+    assert m["sharpness"]["ratio"] == pytest.approx(m["sharpness"]["renders"] / m["sharpness"]["inputs"])

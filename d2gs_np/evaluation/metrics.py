@@ -45,6 +45,7 @@ __all__ = [
     "psnr",
     "ssim",
     "flip",
+    "gradient_energy",
     "lpips",
     "umeyama",
     "align_trajectory",
@@ -168,6 +169,23 @@ def flip(img, ref, ppd=FLIP_PPD):
     _, mean, _ = flip_evaluator.evaluate(b, a, "LDR", inputsRGB=True, applyMagma=False,
                                          computeMeanError=True, parameters={"ppd": ppd})
     return float(mean)
+
+
+def gradient_energy(img):
+    """Mean squared forward difference of the image's grey level (the channel mean), horizontal
+    plus vertical: the energy of its finest detail. Blur lowers it; without ground truth, a render's
+    gradient energy over the blurry input's says whether the render is sharper (> 1) or not.
+
+    img: (H, W) or (H, W, C) float array with H, W >= 2; accumulated in float64.
+    """
+    a = np.asarray(img, dtype=np.float64)
+    if a.ndim == 3:
+        a = a.mean(axis=2)
+    if a.ndim != 2 or min(a.shape) < 2:
+        raise ValueError(f"img must have shape (H, W) or (H, W, C) with H, W >= 2; got {np.shape(img)}")
+    if not np.all(np.isfinite(a)):
+        raise ValueError("img contains NaN or inf; every pixel must be finite")
+    return float(np.mean(np.diff(a, axis=1) ** 2) + np.mean(np.diff(a, axis=0) ** 2))
 
 
 def lpips(img, ref, *args, **kwargs):

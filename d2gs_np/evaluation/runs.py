@@ -29,7 +29,7 @@ from d2gs_np.pose.config import PoseFitConfig
 from d2gs_np.pose.fit import fit_pose
 from d2gs_np.scene.render_inputs import render_inputs_fwd
 from d2gs_np.train.checkpoint import atomic_write_text, check_output_path, load_checkpoint
-from d2gs_np.train.model import SCENE_PREFIXES, Model
+from d2gs_np.train.model import SCENE_PREFIXES, Model, frame_render_fwd
 from d2gs_np.train.run_folder import CHECKPOINT_NAME, FINAL_NAME, METRICS_NAME, check_scene_of_run
 
 
@@ -82,10 +82,19 @@ def evaluate(run: LoadedRun, scene, test_pose_steps: int = 0) -> dict:
         raise ValueError(f"the scene's {len(frames)} frames do not match the {model.num_frames} frames (times) the "
                          "run was trained on; evaluate with the scene it was trained on")
     mids = model.mid_poses()
+    renders = [model.render(mids[k], f.time, f.K, f.width, f.height) for k, f in enumerate(frames)]
     if scene.has_sharp:
-        renders = [model.render(mids[k], f.time, f.K, f.width, f.height) for k, f in enumerate(frames)]
         out["dvs"] = _image_metrics([(r, f.sharp) for r, f in zip(renders, frames)])
         out["input_blur"] = _image_metrics([(f.image, f.sharp) for f in frames])
+    # What can be measured without ground truth: how well the model, blurred as in training,
+    # explains the inputs, and how much finer detail its sharp renders carry than the inputs.
+    refit = [frame_render_fwd(model, k, model.Ks[k], model.widths[k], model.heights[k])[0]["image"]
+             for k in range(len(frames))]
+    out["input_fit"] = _image_metrics([(r, f.image) for r, f in zip(refit, frames)])
+    g_renders = float(np.mean([metrics.gradient_energy(r) for r in renders]))
+    g_inputs = float(np.mean([metrics.gradient_energy(f.image) for f in frames]))
+    out["sharpness"] = {"renders": g_renders, "inputs": g_inputs,
+                        "ratio": g_renders / g_inputs if g_inputs > 0 else None}
     if scene.has_gt_poses and len(frames) >= 3:
         try:
             out.update(_trajectory_and_nvs(run, scene, mids, test_pose_steps))
@@ -166,6 +175,42 @@ def _trajectory_and_nvs(run: LoadedRun, scene, mids, test_pose_steps=0) -> dict:
                                    "mean_rotation_deg": float(np.degrees(np.mean([m[0] for m in moves]))),
                                    "mean_translation": float(np.mean([m[1] for m in moves]))}
     return out
+
+
+def verdict(result: dict, baseline: dict = None) -> list:
+    """What a run's metrics say about deblurring, in plain lines (``d2gs eval``, ``d2gs demo``, the
+    report). With sharp ground truth: the deblurred renders against the blurry inputs, and against
+    ``baseline`` (the metrics of a no-blur run of the same scene and budget) when given; a loss is
+    said first, in so many words. Without: the blurred model's fit to the inputs and the renders'
+    sharpness against the inputs'."""
+    lines = []
+    d, i = _psnr_of(result, "dvs"), _psnr_of(result, "input_blur")
+    if d is not None and i is not None:
+        gain = d - i
+        if gain < 0:
+            lines.append(f"the method LOST to its input: deblurred renders {d:.2f} dB against the sharp frames, "
+                         f"{-gain:.2f} dB below the blurry inputs ({i:.2f} dB)")
+        else:
+            lines.append(f"deblurred renders {d:.2f} dB against the sharp frames, {gain:+.2f} dB over the blurry "
+                         f"inputs ({i:.2f} dB)")
+        b = _psnr_of(baseline or {}, "dvs")
+        if b is not None:
+            lines.append(f"{'the blur model LOST to the no-blur baseline' if d < b else 'the blur model beat the no-blur baseline'}"
+                         f": {d - b:+.2f} dB against its {b:.2f} dB (n = 1, same scene and budget)")
+    else:
+        fit, ratio = _psnr_of(result, "input_fit"), (result.get("sharpness") or {}).get("ratio")
+        if fit is not None:
+            line = f"no sharp frames to score against: the model, blurred as in training, fits the inputs at {fit:.2f} dB"
+            if ratio is not None:
+                line += (f"; its sharp renders carry {ratio:.2f}x the inputs' gradient energy "
+                         f"({'sharper than' if ratio > 1 else 'no sharper than'} the inputs)")
+            lines.append(line)
+    return lines
+
+
+def _psnr_of(result, key):
+    part = result.get(key) if isinstance(result, dict) else None
+    return part.get("psnr") if isinstance(part, dict) else None
 
 
 def evaluate_run(run_dir, scene_dir=None, test_pose_steps: int = 0, note=None) -> dict:

@@ -219,6 +219,8 @@ _METRIC_ROWS = (
     ("blurry input vs sharp: PSNR [dB]", ("input_blur", "psnr"), ".2f"),
     ("blurry input vs sharp: SSIM", ("input_blur", "ssim"), ".3f"),
     ("blurry input vs sharp: FLIP (lower is better)", ("input_blur", "flip"), ".4f"),
+    ("model re-blurred vs blurry input: PSNR [dB]", ("input_fit", "psnr"), ".2f"),
+    ("sharpness: renders' gradient energy / inputs'", ("sharpness", "ratio"), ".2f"),
     ("novel views: PSNR [dB]", ("nvs", "psnr"), ".2f"),
     ("novel views: SSIM", ("nvs", "ssim"), ".3f"),
     ("novel views: FLIP (lower is better)", ("nvs", "flip"), ".4f"),
@@ -252,6 +254,22 @@ def _metrics_table(runs):
     return f"<table><tr><th></th>{head}</tr>{''.join(rows)}</table>"
 
 
+def _verdicts(runs):
+    """Each run's ``evaluation.runs.verdict`` lines; a run without the blur model among them is the
+    baseline of the others. A loss to the input or to the baseline is marked."""
+    from d2gs_np.evaluation.runs import verdict
+
+    base = next((r["result"] for r in runs if "blur_model" in r["result"].get("left_out", [])), None)
+    parts = []
+    for r in runs:
+        lines = verdict(r["result"], None if r["result"] is base else base)
+        for line in lines:
+            lost = "LOST" in line
+            attr, mark = (' class="lost"', "&#9888; ") if lost else ("", "")
+            parts.append(f"<p{attr}><b>{html.escape(r['name'])}</b>: {mark}{html.escape(line)}</p>")
+    return "".join(parts)
+
+
 def _img(uri, title=""):
     return f'<figure><img src="{uri}"><figcaption>{html.escape(title)}</figcaption></figure>'
 
@@ -280,7 +298,7 @@ def _pictures(r):
 _CSS = """body{font-family:sans-serif;margin:1.5em;max-width:1400px}table{border-collapse:collapse;margin:1em 0}
 td,th{border:1px solid #bbb;padding:3px 8px;text-align:right}td:first-child{text-align:left}
 .row{display:flex;flex-wrap:wrap;gap:6px;margin-bottom:10px}figure{margin:0}figcaption{font-size:11px;color:#333}
-img{image-rendering:pixelated;max-width:100%}ul{font-size:13px}"""
+img{image-rendering:pixelated;max-width:100%}ul{font-size:13px}.lost{color:#b00000}"""
 
 
 def write_report(run_dirs, out_html, num_frames: int = 3, title: str = "d2gs_np report") -> Path:
@@ -300,6 +318,9 @@ def write_report(run_dirs, out_html, num_frames: int = 3, title: str = "d2gs_np 
         left = r["result"].get("left_out", [])
         body.append(f"<h3>{html.escape(r['name'])}</h3><p>left out: {html.escape(', '.join(left) or 'nothing')}</p>")
         body.append("<ul>" + "".join(f"<li>{html.escape(str(n))}</li>" for n in r["notes"]) + "</ul>")
+    said = _verdicts(runs)
+    if said:
+        body.append("<h2>What the numbers say</h2>" + said)
     body.append("<h2>Metrics</h2>" + _metrics_table(runs))
     curve = _error_vs_time_uri(runs)
     if curve:

@@ -387,3 +387,25 @@ def test_trajectory_degenerate_inputs():
         rpe(gt, bad)
     with pytest.raises(ValueError, match=r"shape \(N, 4, 4\)"):
         ate(gt[:, :3], gt[:, :3])
+
+
+def test_gradient_energy_matches_the_loop_and_falls_with_blur():
+    from scipy.ndimage import uniform_filter
+
+    from d2gs_np.evaluation.metrics import gradient_energy
+
+    rng = np.random.default_rng(0)
+    img = rng.uniform(size=(9, 13, 3))
+    g = img.mean(axis=2)
+    dx = [(g[y, x + 1] - g[y, x]) ** 2 for y in range(9) for x in range(12)]
+    dy = [(g[y + 1, x] - g[y, x]) ** 2 for y in range(8) for x in range(13)]
+    assert gradient_energy(img) == pytest.approx(np.mean(dx) + np.mean(dy), rel=1e-14)
+    assert gradient_energy(g) == pytest.approx(gradient_energy(img), rel=1e-14)  # grey input: the same
+    assert gradient_energy(uniform_filter(img, size=(1, 5, 1))) < 0.5 * gradient_energy(img)
+    assert gradient_energy(np.full((4, 4, 3), 0.7)) == 0.0
+    for bad in (np.zeros((1, 5, 3)), np.zeros(5)):
+        with pytest.raises(ValueError, match="H, W >= 2"):
+            gradient_energy(bad)
+    img[2, 2, 0] = np.nan
+    with pytest.raises(ValueError, match="NaN"):
+        gradient_energy(img)

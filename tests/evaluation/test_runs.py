@@ -50,3 +50,22 @@ def test_orientation_alignment_at_scene_depth_trusts_orientations_over_a_short_p
     _, R_spread, _ = align_with_orientations(est, gt)
     assert angle(R_depth) < 0.05
     assert angle(R_spread) > 0.5
+
+
+def test_the_verdict_says_a_loss_first_and_compares_with_the_baseline():
+    from d2gs_np.evaluation.runs import verdict
+
+    lost = {"dvs": {"psnr": 24.58}, "input_blur": {"psnr": 26.52}}
+    (line,) = verdict(lost)
+    assert line.startswith("the method LOST to its input") and "1.94 dB below" in line and "26.52 dB" in line
+    won = {"dvs": {"psnr": 28.0}, "input_blur": {"psnr": 26.5}}
+    (line,) = verdict(won)
+    assert "LOST" not in line and "+1.50 dB over the blurry inputs" in line
+    first, second = verdict(won, {"dvs": {"psnr": 28.25}})
+    assert "LOST to the no-blur baseline" in second and "-0.25 dB" in second
+    assert "beat the no-blur baseline: +0.50 dB" in verdict(won, {"dvs": {"psnr": 27.5}})[1]
+    # no ground truth: the fit and the sharpness, never a claim about deblurring
+    (line,) = verdict({"input_fit": {"psnr": 31.2}, "sharpness": {"ratio": 1.8}})
+    assert "no sharp frames" in line and "31.20 dB" in line and "1.80x" in line and "sharper than" in line
+    assert "no sharper" in verdict({"input_fit": {"psnr": 31.2}, "sharpness": {"ratio": 0.9}})[0]
+    assert verdict({}) == []
