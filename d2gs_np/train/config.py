@@ -154,6 +154,10 @@ class TrainConfig:
     prune_every: int = 250
     prune_opacity: float = 0.005
     time_budget: Optional[float] = None  # seconds of training; stops cleanly when exceeded
+    # With a time budget: True ends the run when the budget ends, its schedule of iters steps stretched
+    # over however many steps the budget buys (read by the clock); False also ends it at iters steps
+    # (the budget then only cuts a slow run short). docs/method.md §8.
+    stretch_to_budget: bool = True
     eval_frames: int = 4  # held-out PSNR on this many frames (sharp GT if present, else blurry)
     quiet: bool = False
 
@@ -177,7 +181,7 @@ class TrainConfig:
         for name in ("eval_every", "checkpoint_every", "prune_every"):
             check_int(getattr(self, name), f"TrainConfig.{name}", 0, hint="0 = never")
         check_int(self.seed, "TrainConfig.seed", 0, hint="a NumPy seed")
-        for name in ("progressive", "quiet"):
+        for name in ("progressive", "quiet", "stretch_to_budget"):
             check_bool(getattr(self, name), f"TrainConfig.{name}")
         check_number(self.prune_opacity, "TrainConfig.prune_opacity", 0.0, 1.0, hi_open=True)
         if self.time_budget is not None:

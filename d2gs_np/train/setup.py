@@ -193,7 +193,7 @@ def check_resume(meta: dict, config: ExperimentConfig, scene: Scene, path, scene
     ``fingerprint.scene_record`` if already computed."""
     saved_cfg = ExperimentConfig.from_dict(meta["config"])
     # A resumed run continues the saved experiment: only the run length, housekeeping and output may change.
-    free = {"iters", "time_budget", "quiet", "checkpoint_every", "checkpoint_seconds"}
+    free = {"iters", "time_budget", "stretch_to_budget", "quiet", "checkpoint_every", "checkpoint_seconds"}
     changed = [f"train.{k}" for k, v in config.train.__dict__.items()
                if k not in free and getattr(saved_cfg.train, k) != v]
     changed += [k for k in saved_cfg.__dict__ if k != "train" and getattr(saved_cfg, k) != getattr(config, k)]

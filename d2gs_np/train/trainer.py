@@ -218,7 +218,8 @@ class Trainer:
         ``TrainingInterrupted`` after a checkpoint (module docstring)."""
         tc = self.config.train
         total = tc.iters
-        if self.step_index >= total:  # a resumed run that has nothing left to do: its folder stays as it is
+        if self._schedule_done(self.step_index, self.stopwatch.seconds()):
+            # a resumed run that has nothing left to do: its folder stays as it is
             self.log.note(f"nothing to train: the run in {self.run_dir} is at step {self.step_index} of {total}")
             return RunResult(self.step_index, self.stopwatch.seconds())
         t_start = time.perf_counter()
@@ -255,13 +256,14 @@ class Trainer:
         """The steps from ``step_index`` to the end, then the final checkpoint (``run``); returns
         the last step's record. ``interrupted``: non-empty once Ctrl-C was pressed."""
         tc = self.config.train
-        total, budget = tc.iters, tc.time_budget
+        total, budget, stretch = tc.iters, tc.time_budget, tc.stretch_to_budget
         last_stage = None
-        while self.step_index < total:
+        while not self._schedule_done(self.step_index, self.stopwatch.seconds()):
             step = self.step_index
-            # The step the schedules are read at: the step itself, or further along when a time
-            # budget binds, so a budgeted run finishes its schedule (schedule.training_progress).
-            sched = schedule_step(step, self.stopwatch.seconds(), total, budget)
+            # The step the schedules are read at: the step itself, or where the clock says when
+            # a time budget is given, so a budgeted run finishes its schedule and, stretched, uses
+            # all of its budget (schedule.training_progress).
+            sched = schedule_step(step, self.stopwatch.seconds(), total, budget, stretch)
             stage = self.planner.stage_at(sched)
             if stage.name != last_stage:
                 self.log.note(f"stage {stage.name} from step {step}" + (f" (schedule step {sched})"
@@ -273,8 +275,9 @@ class Trainer:
             # Periodic plugins fire when the schedule step enters a new period (without a budget:
             # exactly at multiples of the period, as 3DGS).
             prev = self.state.last_sched if budget is not None else step - 1
+            last = out_of_time or (step + 1 >= total and not (budget is not None and stretch))
             state = self.state.replace(step=step, sched=sched, prev_sched=prev, last_sched=sched, stage=stage,
-                                       record=record, last=step + 1 >= total or out_of_time)
+                                       record=record, last=last)
             for plugin in self.plugins:
                 state = self._on_step(plugin, state)
             self.stopwatch.pause()
@@ -287,12 +290,20 @@ class Trainer:
             if interrupted and not state.last:
                 raise TrainingInterrupted(f"checkpoint of step {self.step_index} written to {self._saved_path}",
                                           self.step_index, self._saved_path)
-            if out_of_time and step + 1 < total:
+            if out_of_time:
                 self.log.note(f"time budget of {budget:.0f}s reached at step {self.step_index} (schedule step "
                               f"{sched} of {total}: schedule complete); stopping")
                 break
         self.checkpoint(final=True)
         return self.state.record
+
+    def _schedule_done(self, step, seconds) -> bool:
+        """Whether the run has ended: its budget spent, or (unless stretched over a budget) its
+        schedule's steps done."""
+        tc = self.config.train
+        if tc.time_budget is not None and seconds >= tc.time_budget:
+            return True
+        return step >= tc.iters and not (tc.time_budget is not None and tc.stretch_to_budget)
 
     def _on_step(self, plugin, state):
         if plugin.timed:
@@ -308,7 +319,8 @@ class Trainer:
         if state.step % tc.log_every == 0 or state.last or record.heldout_psnr is not None:
             seconds = self.stopwatch.seconds()
             # how far the run is after this step: what a time budget has bought (1 when it is spent)
-            progress = min(1.0, training_progress(state.step + 1, seconds, tc.iters, tc.time_budget))
+            progress = min(1.0, training_progress(state.step + 1, seconds, tc.iters, tc.time_budget,
+                                                  tc.stretch_to_budget))
             self.log.row(step=state.step, seconds=round(seconds, 4), stage=state.stage.name, loss=record.loss,
                          train_psnr=record.train_psnr, heldout_psnr=record.heldout_psnr,
                          scale=round(record.scale, 4), num_gaussians=self.num_gaussians(),
