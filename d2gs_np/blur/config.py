@@ -15,6 +15,7 @@ __all__ = [
     "N_SCHEDULES",
     "BlurConfig",
     "TRAJECTORY_KINDS",
+    "EXPOSURE_PATHS",
     "ACTIVATIONS",
     "TrajectoryConfig",
 ]
@@ -65,6 +66,7 @@ class BlurConfig:
 
 
 TRAJECTORY_KINDS = ("direct", "posenet")
+EXPOSURE_PATHS = ("geodesic", "three_knot")  # TrajectoryConfig.path (d2gs_np.blur.virtual_poses)
 ACTIVATIONS = ("tanh", "softplus")  # PoseNet hidden layers
 
 
@@ -92,6 +94,13 @@ class TrajectoryConfig:
         learned (at ``LearningRates.camera_spread``): trusted poses get no pose refinement, from
         the solver or from Adam; otherwise both endpoints are free. "on" / "off" force it
         ("on" needs kind "direct"). Why: docs/method.md §4; the suite's figures: docs/results.md §4.
+    path: the camera's path through one exposure (d2gs_np.blur.virtual_poses): "geodesic" (default,
+        Eq. 9) from the start to the end pose; "three_knot": exp(c(u)) T̂, c the quadratic through
+        the tangents xi_start, xi_mid, xi_end at u = 0, 1/2, 1 (a third per-frame block
+        ``camera.xi_mid``, starting at 0), for a shake that bends within an exposure, where the
+        geodesic's midpoint, the deblurred view, is off the true mid-exposure pose
+        (``examples/blur_ceiling.py``); the deblurred view is then exp(xi_mid) T̂. Needs kind
+        "direct"; a centred exposure keeps xi_mid at 0.
     """
 
     kind: str = "direct"
@@ -103,12 +112,17 @@ class TrajectoryConfig:
     init: str = "velocity"
     velocity_window: int = 1
     centre: str = "auto"
+    path: str = "geodesic"
 
     def __post_init__(self):
         check_choice(self.centre, "TrajectoryConfig.centre", ("auto", "on", "off"))
         if self.centre == "on" and self.kind != "direct":
             raise ValueError("TrajectoryConfig.centre = 'on' needs kind 'direct' (a PoseNet's endpoints cannot be "
                              "tied row by row); use centre 'auto' or 'off'")
+        check_choice(self.path, "TrajectoryConfig.path", EXPOSURE_PATHS)
+        if self.path == "three_knot" and self.kind != "direct":
+            raise ValueError("TrajectoryConfig.path = 'three_knot' needs kind 'direct' (per-frame knot blocks); "
+                             "use kind 'direct' or path 'geodesic'")
         check_int(self.velocity_window, "TrajectoryConfig.velocity_window", 1, hint="frames on each side")
         check_choice(self.init, "TrajectoryConfig.init", ("velocity", "random"))
         check_choice(self.kind, "TrajectoryConfig.kind", TRAJECTORY_KINDS)

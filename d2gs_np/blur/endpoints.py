@@ -54,7 +54,9 @@ __all__ = [
     "POSENET",
     "XI_START",
     "XI_END",
+    "XI_MID",
     "trajectory_block_names",
+    "mid_knots",
     "check_trajectory",
     "init_trajectory",
     "endpoints_fwd",
@@ -66,6 +68,7 @@ CAMERA = "camera"  # block-name prefix of the per-frame camera blocks (and blur.
 POSENET = "posenet"  # block-name prefix of the PoseNet weights
 XI_START = f"{CAMERA}.xi_start"  # (N, 6) direct model: one row per frame
 XI_END = f"{CAMERA}.xi_end"
+XI_MID = f"{CAMERA}.xi_mid"  # (N, 6) the middle knot of the three-knot path (TrajectoryConfig.path)
 _NUM_INPUTS = 7  # log T̂ (6) and t (1)
 _NUM_OUTPUTS = 12  # xi_s (6) and xi_e (6)
 
@@ -74,7 +77,7 @@ def trajectory_block_names(config):
     """Names of the parameter blocks of this trajectory model, in a fixed order."""
     _check_config(config)
     if config.kind == "direct":
-        return [XI_START, XI_END]
+        return [XI_START, XI_END] + ([XI_MID] if config.path == "three_knot" else [])
     names = []
     for layer in range(config.hidden_layers + 1):
         names += [f"{POSENET}.W{layer}", f"{POSENET}.b{layer}"]
@@ -173,8 +176,10 @@ def init_trajectory(config, poses_est, times, rng, exposure_fraction=None):
             # Keep the tiny random spread where the camera did not move (a saddle otherwise).
             moving = np.linalg.norm(ve - vs, axis=1) > 2 * s
             xs[moving], xe[moving] = vs[moving], ve[moving]
-        return {XI_START: np.ascontiguousarray(xs, dtype=dtype),
-                XI_END: np.ascontiguousarray(xe, dtype=dtype)}
+        blocks = {XI_START: np.ascontiguousarray(xs, dtype=dtype), XI_END: np.ascontiguousarray(xe, dtype=dtype)}
+        if config.path == "three_knot":
+            blocks[XI_MID] = np.zeros((N, 6), dtype=dtype)  # the path starts as the line through T̂
+        return blocks
     H, L = config.hidden_width, config.hidden_layers
     params = {}
     fan_in = _NUM_INPUTS
@@ -306,8 +311,15 @@ def _endpoints_fwd(params, config, idx, poses_est, times):
     return (np.ascontiguousarray(y[:, :6]), np.ascontiguousarray(y[:, 6:])), saved
 
 
-def endpoints_bwd(saved, v_xi_start, v_xi_end):
-    """Gradient of a loss w.r.t. the trajectory blocks, from v_xi_start, v_xi_end (B, 6).
+def mid_knots(params, config, idx):
+    """The middle knots xi_mid (B, 6) of frames ``idx`` (a 1-D int64 array) on the three-knot path,
+    else None (the geodesic path has none). Unvalidated, like ``_endpoints_fwd``."""
+    return params[XI_MID][idx] if config.kind == "direct" and config.path == "three_knot" else None
+
+
+def endpoints_bwd(saved, v_xi_start, v_xi_end, v_xi_mid=None):
+    """Gradient of a loss w.r.t. the trajectory blocks, from v_xi_start, v_xi_end (B, 6) (and
+    v_xi_mid (B, 6) on the three-knot path; None: zero).
 
     Returns a dict keyed like trajectory_block_names(config); direct rows of frames outside the
     batch are zero (a frame repeated in the batch accumulates).
@@ -325,7 +337,16 @@ def endpoints_bwd(saved, v_xi_start, v_xi_end):
         g_e = np.zeros((N, 6), dtype=dtype)
         np.add.at(g_s, idx, v_xs)
         np.add.at(g_e, idx, v_xe)
-        return {XI_START: g_s, XI_END: g_e}
+        out = {XI_START: g_s, XI_END: g_e}
+        if config.path == "three_knot":
+            g_m = np.zeros((N, 6), dtype=dtype)
+            if v_xi_mid is not None:
+                v_xm = np.asarray(v_xi_mid, dtype=dtype)
+                if v_xm.shape != (B, 6):
+                    raise ValueError(f"v_xi_mid must have shape ({B}, 6) like the forward's output; got {v_xm.shape}")
+                np.add.at(g_m, idx, v_xm)
+            out[XI_MID] = g_m
+        return out
     L = config.hidden_layers
     acts, derivs, weights = saved["acts"], saved["derivs"], saved["weights"]
     grads = {}

@@ -30,7 +30,8 @@ import numpy as np
 
 from d2gs_np.base.checks import check_scalar
 from d2gs_np.blur.config import BlurConfig
-from d2gs_np.blur.virtual_poses import _check_pose_args, _virtual_poses_fwd, exposure_offsets, virtual_poses_bwd
+from d2gs_np.blur.virtual_poses import (_check_pose_args, _check_tangent, _three_knot_poses_fwd, _virtual_poses_fwd,
+                                       exposure_offsets, three_knot_poses_bwd, virtual_poses_bwd)
 from d2gs_np.geometry.se3 import matrix_grad_to_left_tangent
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
 
@@ -67,7 +68,7 @@ def _resolve_scene_model(scene_model):
 
 
 def blur_render_fwd(params, frame_time, tau, pose_est, xi_start, xi_end, K, width, height, background,
-                    blur_config, deform_config, render_config=None, renderer=None, scene_model=None):
+                    blur_config, deform_config, render_config=None, renderer=None, scene_model=None, xi_mid=None):
     """Blurry render of one frame (Eq. 6), averaging n sharp sub-frame renders.
 
     params: dict of blocks; the scene blocks ("static.*", "dynamic.*") are used, other keys
@@ -79,6 +80,8 @@ def blur_render_fwd(params, frame_time, tau, pose_est, xi_start, xi_end, K, widt
     renderer: object with render_fwd/render_bwd (a module such as d2gs_np.reference) or a
         (render_fwd, render_bwd) pair; default d2gs_np.render (the Numba renderer).
     scene_model: object with render_inputs_fwd/render_inputs_bwd; default d2gs_np.scene.render_inputs.
+    xi_mid: None (the geodesic path, Eq. 9) or (6,), the middle knot of the three-knot path
+        (``blur.virtual_poses.three_knot_poses_fwd``; its gradient: ``blur_render_bwd``'s aux).
     Every float array must share the scene's dtype.
 
     Returns (out, saved): out has "image" (H, W, 3), "alpha", "depth", "expected_depth" (H, W)
@@ -99,7 +102,7 @@ def blur_render_fwd(params, frame_time, tau, pose_est, xi_start, xi_end, K, widt
                          "d2gs_np.scene.gaussians.init_params")
     dtype = scene_params[f"{STATIC}.means"].dtype
     for name, arr in (("pose_est", pose_est), ("xi_start", xi_start), ("xi_end", xi_end), ("K", K),
-                      ("background", background)):
+                      ("background", background)) + ((("xi_mid", xi_mid),) if xi_mid is not None else ()):
         if not isinstance(arr, np.ndarray) or arr.dtype != dtype:
             got = arr.dtype if isinstance(arr, np.ndarray) else type(arr).__name__
             raise TypeError(f"{name} must be a numpy array of the scene dtype {dtype}; got {got} "
@@ -107,12 +110,15 @@ def blur_render_fwd(params, frame_time, tau, pose_est, xi_start, xi_end, K, widt
 
     n = blur_config.num_virtual
     _check_pose_args(pose_est, xi_start, xi_end)
+    if xi_mid is not None:
+        _check_tangent(xi_mid, "xi_mid", dtype)
     return _blur_render_fwd(scene_params, frame_time, tau, pose_est, xi_start, xi_end, K, width, height, background,
-                            n, deform_config, render_config, (render_fwd, render_bwd), (render_inputs_fwd, render_inputs_bwd))
+                            n, deform_config, render_config, (render_fwd, render_bwd), (render_inputs_fwd, render_inputs_bwd),
+                            xi_mid)
 
 
 def _blur_render_fwd(scene_params, frame_time, tau, pose_est, xi_start, xi_end, K, width, height, background, n,
-                     deform_config, render_config, renderer, scene_model):
+                     deform_config, render_config, renderer, scene_model, xi_mid=None):
     """``blur_render_fwd`` after validation: ``scene_params`` holds only the scene blocks,
     ``frame_time`` and ``tau`` are floats, ``renderer`` and ``scene_model`` are (fwd, bwd) pairs.
 
@@ -123,7 +129,10 @@ def _blur_render_fwd(scene_params, frame_time, tau, pose_est, xi_start, xi_end, 
     render_fwd, render_bwd = renderer
     render_inputs_fwd, render_inputs_bwd = scene_model
     dtype = scene_params[f"{STATIC}.means"].dtype
-    poses, pose_saved = _virtual_poses_fwd(pose_est, xi_start, xi_end, n)
+    if xi_mid is None:
+        poses, pose_saved = _virtual_poses_fwd(pose_est, xi_start, xi_end, n)
+    else:
+        poses, pose_saved = _three_knot_poses_fwd(pose_est, xi_start, xi_mid, xi_end, n)
     u = exposure_offsets(n)
     times = frame_time + (u - 0.5) * tau
     sums, radii, subs = None, None, []
@@ -158,7 +167,8 @@ def blur_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth
     the renderer's screen-space mean gradients of each sub-frame the backward ran through (for
     densification), v_means2d_abs (k, N, 2), their sums of absolute per-pixel terms (the
     renderer's ``means2d_abs``), and v_pose_tangents (n, 6), the left-perturbation gradients of the virtual
-    poses (zero for the views it skipped)).
+    poses (zero for the views it skipped), and v_xi_mid (6,), the middle knot's gradient on the
+    three-knot path (None on the geodesic)).
     views: None (every view: the exact gradient) or (indices, weights) from
         ``d2gs_np.blur.views.backward_subset``: the backward runs only through those sub-frames,
         view i_j's output cotangent scaled by w_j instead of 1 / n (an unbiased estimate of the
@@ -206,11 +216,16 @@ def blur_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_depth
         if return_aux:
             v_means2d.append(grads["means2d"])
             v_means2d_abs.append(grads["means2d_abs"])
-    v_xi_start, v_xi_end = virtual_poses_bwd(saved["pose_saved"], g_pose)
+    v_xi_mid = None
+    if saved["pose_saved"].get("path") == "three_knot":
+        v_xi_start, v_xi_mid, v_xi_end = three_knot_poses_bwd(saved["pose_saved"], g_pose)
+    else:
+        v_xi_start, v_xi_end = virtual_poses_bwd(saved["pose_saved"], g_pose)
     if n == 1:
         v_tau = 0.0
     if return_aux:
-        aux = {"v_means2d": np.stack(v_means2d), "v_means2d_abs": np.stack(v_means2d_abs), "v_pose_tangents": g_pose}
+        aux = {"v_means2d": np.stack(v_means2d), "v_means2d_abs": np.stack(v_means2d_abs), "v_pose_tangents": g_pose,
+               "v_xi_mid": v_xi_mid}
         return v_params, v_xi_start, v_xi_end, v_tau, aux
     return v_params, v_xi_start, v_xi_end, v_tau
 

@@ -38,6 +38,17 @@ eps_e = J_l(xi_e) d xi_e. For tangent gradients g_i on T(u_i):
 All these Jacobians are smooth for rotation angles below 2 pi: zero-length exposures
 (delta = 0), tiny ones and endpoints almost a half turn apart need no special branch beyond the
 series branches of d2gs_np.geometry.
+
+The three-knot path (``TrajectoryConfig.path = "three_knot"``): a third tangent xi_m, and
+
+    T(u) = exp(c(u)) T̂,   c(u) = l_0(u) xi_s + l_1(u) xi_m + l_2(u) xi_e,
+    l_0 = 2 (u - 1/2)(u - 1),  l_1 = -4 u (u - 1),  l_2 = 2 u (u - 1/2)              (``knot_weights``)
+
+the quadratic in the tangent space of T̂ through the three knots at u = 0, 1/2, 1, so T(1/2) =
+exp(xi_m) T̂ (for n = 1 too: the sharp camera is the middle knot). With xi_m = 0 and small
+endpoints it is the geodesic to second order in |xi|; a free xi_m lets the path bend within the
+exposure. Derivative: exp(c + dc) = exp(J_l(c) dc) exp(c), so the left perturbation of T(u_i) is
+J_l(c_i) dc_i and, for tangent gradients g_i, v_xi_j = sum_i l_j(u_i) J_l(c_i)^T g_i.
 """
 from __future__ import annotations
 
@@ -57,6 +68,10 @@ from d2gs_np.geometry.se3 import (
 
 __all__ = [
     "exposure_offsets",
+    "knot_weights",
+    "three_knot_poses",
+    "three_knot_poses_fwd",
+    "three_knot_poses_bwd",
     "subframe_times",
     "virtual_poses",
     "virtual_poses_fwd",
@@ -159,3 +174,46 @@ def virtual_poses(pose_est, xi_start, xi_end, n):
     """(n, 4, 4) virtual cam_T_world poses T(u_i) (see virtual_poses_fwd)."""
     return virtual_poses_fwd(pose_est, xi_start, xi_end, n)[0]
 
+
+
+def knot_weights(u):
+    """(len(u), 3) Lagrange weights (l_0, l_1, l_2) of the knots at u = 0, 1/2, 1 (module docstring)."""
+    u = np.asarray(u, dtype=np.float64)
+    return np.stack([2.0 * (u - 0.5) * (u - 1.0), -4.0 * u * (u - 1.0), 2.0 * u * (u - 0.5)], axis=-1)
+
+
+def three_knot_poses_fwd(pose_est, xi_start, xi_mid, xi_end, n):
+    """The n virtual cam_T_world poses of one exposure on the three-knot path (module docstring),
+    and what the backward needs. Arguments as ``virtual_poses_fwd``, with xi_mid (6,) the middle
+    knot. Returns (poses (n, 4, 4) of pose_est's dtype, saved); computed in float64."""
+    n = _check_n(n)
+    _check_pose_args(pose_est, xi_start, xi_end)
+    _check_tangent(xi_mid, "xi_mid", pose_est.dtype)
+    return _three_knot_poses_fwd(pose_est, xi_start, xi_mid, xi_end, n)
+
+
+def _three_knot_poses_fwd(pose_est, xi_start, xi_mid, xi_end, n):
+    """``three_knot_poses_fwd`` without validation."""
+    dtype = pose_est.dtype
+    W = knot_weights(exposure_offsets(n))  # (n, 3)
+    knots = np.stack([xi_start, xi_mid, xi_end]).astype(np.float64)
+    c = W @ knots  # (n, 6)
+    poses = se3_exp(c) @ pose_est.astype(np.float64)
+    return poses.astype(dtype), {"n": n, "dtype": dtype, "path": "three_knot", "W": W, "c": c}
+
+
+def three_knot_poses_bwd(saved, v_pose_tangents):
+    """(v_xi_start, v_xi_mid, v_xi_end) (6,) each from left-perturbation gradients (n, 6) on the
+    virtual poses of ``three_knot_poses_fwd``."""
+    n, dtype = saved["n"], saved["dtype"]
+    g = np.asarray(v_pose_tangents, dtype=np.float64)
+    if g.shape != (n, 6):
+        raise ValueError(f"v_pose_tangents must have shape ({n}, 6) like the virtual poses; got {g.shape}")
+    v_c = np.einsum("nji,nj->ni", se3_left_jacobian(saved["c"]), g)  # J_l(c_i)^T g_i
+    v = saved["W"].T @ v_c  # (3, 6)
+    return v[0].astype(dtype), v[1].astype(dtype), v[2].astype(dtype)
+
+
+def three_knot_poses(pose_est, xi_start, xi_mid, xi_end, n):
+    """(n, 4, 4) virtual cam_T_world poses on the three-knot path (see three_knot_poses_fwd)."""
+    return three_knot_poses_fwd(pose_est, xi_start, xi_mid, xi_end, n)[0]

@@ -27,13 +27,13 @@ import numpy as np
 
 from d2gs_np.blur.exposure import EXPOSURE_BLOCK
 from d2gs_np.optim import adam
-from d2gs_np.blur.endpoints import CAMERA, POSENET, XI_END, XI_START
+from d2gs_np.blur.endpoints import CAMERA, POSENET, XI_END, XI_MID, XI_START
 from d2gs_np.train.config import LearningRates
 
 __all__ = ["PER_FRAME_BLOCKS", "scene_extent", "size_extent", "position_extent", "block_learning_rate",
            "learning_rates", "centre_endpoint_grads", "optimiser_step"]
 
-PER_FRAME_BLOCKS = (XI_START, XI_END)  # one row per frame: row-sparse Adam
+PER_FRAME_BLOCKS = (XI_START, XI_END, XI_MID)  # one row per frame: row-sparse Adam
 _RATE_FIELDS = {f.name for f in dataclasses.fields(LearningRates)} - {"final_ratio", "means_unit"}
 
 
@@ -122,7 +122,10 @@ def centre_endpoint_grads(grads):
     if XI_START not in grads or XI_END not in grads:
         return grads
     g = grads[XI_END] - grads[XI_START]
-    return {**grads, XI_END: g, XI_START: -g}
+    out = {**grads, XI_END: g, XI_START: -g}
+    if XI_MID in grads:  # the three-knot path's middle knot stays at the trusted pose
+        out[XI_MID] = np.zeros_like(grads[XI_MID])
+    return out
 
 
 def optimiser_step(grads, adam_state, params, config: adam.AdamConfig, trainable, frame: int, lr_scale=1.0):

@@ -225,12 +225,16 @@ class Model:
 
     def mid_pose(self, k: int) -> np.ndarray:
         """Mid-exposure cam_T_world (4, 4) of training frame k: the geodesic midpoint of its
-        optimised exposure endpoints with the blur model, the reference pose without it."""
+        optimised exposure endpoints with the blur model (on the three-knot path its middle knot,
+        exp(xi_mid) T̂), the reference pose without it."""
         k = self._frame(k)
         if not self.components.blur:
             return np.array(self.poses_ref[k], dtype=np.float64)
-        (xs, xe), _ = traj_model._endpoints_fwd(self.params, self.config.trajectory, np.array([k], dtype=np.int64),
-                                                self.poses_ref, self.times)
+        idx = np.array([k], dtype=np.int64)
+        xm = traj_model.mid_knots(self.params, self.config.trajectory, idx)
+        if xm is not None:
+            return se3_exp(np.asarray(xm[0], np.float64)) @ self.poses_ref[k]
+        (xs, xe), _ = traj_model._endpoints_fwd(self.params, self.config.trajectory, idx, self.poses_ref, self.times)
         return se3_interpolate(se3_exp(xs[0]) @ self.poses_ref[k], se3_exp(xe[0]) @ self.poses_ref[k], 0.5)
 
     def mid_poses(self) -> np.ndarray:
@@ -290,8 +294,10 @@ def frame_render_fwd(model: Model, k: int, K, width: int, height: int, static_on
     t = float(model.times[k])
     saved = {"blur": model.components.blur, "ratio": width / model.widths[k]}  # render px -> full-res px
     if model.components.blur:
-        (xs, xe), saved["trajectory"] = traj_model._endpoints_fwd(
-            params, cfg.trajectory, np.array([k], dtype=np.int64), model.poses_ref, model.times)
+        idx = np.array([k], dtype=np.int64)
+        (xs, xe), saved["trajectory"] = traj_model._endpoints_fwd(params, cfg.trajectory, idx, model.poses_ref,
+                                                                  model.times)
+        xm = traj_model.mid_knots(params, cfg.trajectory, idx)
         saved["exposure"] = None
         if model.components.learn_exposure:
             tau, saved["exposure"] = exposure_fwd(params, model.num_frames)
@@ -302,7 +308,8 @@ def frame_render_fwd(model: Model, k: int, K, width: int, height: int, static_on
                         cfg.deform)
         out, saved["render"] = _blur_render_fwd(
             scene, t, tau, model.poses_ref[k], xs[0], xe[0], K, width, height, model.background, n,
-            cfg.deform, cfg.render, (_render_fwd, _render_bwd), (_render_inputs_fwd, _render_inputs_bwd))
+            cfg.deform, cfg.render, (_render_fwd, _render_bwd), (_render_inputs_fwd, _render_inputs_bwd),
+            None if xm is None else xm[0])
         saved["backward_views"] = cfg.blur.backward_views
     else:
         ri, saved["scene"] = _render_inputs_fwd(scene, t, cfg.deform)
@@ -333,7 +340,9 @@ def frame_render_bwd(saved, v_image, v_alpha=None, v_depth=None, v_expected_dept
         v_means2d = aux["v_means2d"].sum(axis=0) * saved["ratio"]
         v_means2d_abs = aux["v_means2d_abs"].sum(axis=0) * saved["ratio"]
         v_p = dict(v_p)
-        v_p.update(traj_model.endpoints_bwd(saved["trajectory"], v_xs[None], v_xe[None]))
+        v_xm = aux["v_xi_mid"]
+        v_p.update(traj_model.endpoints_bwd(saved["trajectory"], v_xs[None], v_xe[None],
+                                            None if v_xm is None else v_xm[None]))
         if saved["exposure"] is not None:
             v_p.update(exposure_bwd(saved["exposure"], v_tau))
     else:

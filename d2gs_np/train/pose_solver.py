@@ -178,6 +178,8 @@ class PoseSolver(Plugin):
             self.note(f"step {state.step}: pose solver skipped ({e})")
             return state, {"status": "skipped", "reason": str(e)}
         mids = problem.poses(np.zeros(problem.num_params))[2]
+        if model.components.blur and model.config.trajectory.path == "three_knot":
+            mids = model.mid_poses()  # the middle knots, as solve() moved them
         ate_before = self._ate(mids)
         entry = {"status": res.status, "cost_before": float(res.costs[0]), "cost_after": float(res.costs[-1]),
                  "iterations": int(res.iterations), "accepted": int(res.accepted), "matches": int(res.num_matches),
@@ -234,18 +236,27 @@ class PoseSolver(Plugin):
         res = gn.solve(problem, self.pc.gauss_newton)
         if self.pc.hold_scale and res.accepted:
             res.mids = hold_trajectory_scale(mids, res.mids, anchor=0)
+        knots = traj_model.mid_knots(model.params, model.config.trajectory,
+                                     np.arange(model.num_frames, dtype=np.int64)) if model.components.blur else None
+        if knots is not None and res.accepted:
+            # three-knot path: the solver moved each exposure rigidly (its geodesic midpoint by D_k);
+            # move the middle knot, the frame's mid pose, with it
+            res.mids = np.stack([res.mids[k] @ se3_inverse(mids[k]) @ C[k] @ model.poses_ref[k]
+                                 for k in range(model.num_frames)])
         return problem, res, C
 
     def _endpoints(self, model):
-        """(starts, ends, C): the exposure endpoints (N, 4, 4) and the midpoints C_k of exp(xi_s),
-        exp(xi_e) (None without the blur model, where both endpoints are T̂)."""
+        """(starts, ends, C): the exposure endpoints (N, 4, 4) and C_k, the frame's mid pose
+        over T̂: the midpoint of exp(xi_s), exp(xi_e), or exp(xi_mid) on the three-knot path (None
+        without the blur model, where both endpoints are T̂)."""
         if not model.components.blur:
             return model.poses_ref.copy(), model.poses_ref.copy(), None
         idx = np.arange(model.num_frames, dtype=np.int64)
         (xs, xe), _ = traj_model._endpoints_fwd(model.params, model.config.trajectory, idx, model.poses_ref,
                                                 model.times)
         Es, Ee = se3_exp(xs), se3_exp(xe)
-        C = se3_interpolate_batch(Es, Ee)
+        xm = traj_model.mid_knots(model.params, model.config.trajectory, idx)
+        C = se3_interpolate_batch(Es, Ee) if xm is None else se3_exp(np.asarray(xm, np.float64))
         return Es @ model.poses_ref, Ee @ model.poses_ref, C
 
     def _ate(self, mids):
@@ -289,7 +300,7 @@ def _reset_rows(adam_state, params, rows):
     if not rows:
         return adam_state
     new = {slot: dict(blocks) if isinstance(blocks, dict) else blocks for slot, blocks in adam_state.items()}
-    for name in (traj_model.XI_START, traj_model.XI_END):
+    for name in (traj_model.XI_START, traj_model.XI_END, traj_model.XI_MID):
         if name not in params:
             continue
         for slot in ("m", "v"):

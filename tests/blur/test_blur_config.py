@@ -6,6 +6,7 @@ import subprocess
 import sys
 from pathlib import Path
 
+import numpy as np
 import pytest
 
 from d2gs_np.blur.config import BlurConfig, TrajectoryConfig
@@ -42,3 +43,20 @@ def test_loading_the_blur_configs_imports_no_solver():
     out = subprocess.run([sys.executable, "-c", code], capture_output=True, text=True, check=True,
                          cwd=Path(__file__).resolve().parents[2])
     assert out.stdout.strip() == "", f"importing d2gs_np.blur.config imports {out.stdout.strip()}"
+
+
+def test_the_exposure_path_is_checked():
+    from d2gs_np.blur.config import TrajectoryConfig
+    from d2gs_np.blur.endpoints import XI_MID, init_trajectory, trajectory_block_names
+
+    assert TrajectoryConfig().path == "geodesic" and XI_MID not in trajectory_block_names(TrajectoryConfig())
+    cfg = TrajectoryConfig(path="three_knot")
+    assert trajectory_block_names(cfg)[-1] == XI_MID
+    poses = np.stack([np.eye(4)] * 3)
+    poses[:, 0, 3] = [0.0, 0.1, 0.2]
+    blocks = init_trajectory(cfg, poses, np.linspace(0, 1, 3), np.random.default_rng(0))
+    assert blocks[XI_MID].shape == (3, 6) and not blocks[XI_MID].any()  # the line through T̂ to start
+    with pytest.raises(ValueError, match="TrajectoryConfig.path must be one of"):
+        TrajectoryConfig(path="cubic")
+    with pytest.raises(ValueError, match="'three_knot' needs kind 'direct'"):
+        TrajectoryConfig(path="three_knot", kind="posenet")

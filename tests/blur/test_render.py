@@ -21,7 +21,7 @@ from d2gs_np.blur.config import BlurConfig
 from d2gs_np.blur.exposure import EXPOSURE_BLOCK
 from d2gs_np.blur.render import blur_render_bwd, blur_render_fwd
 from d2gs_np.blur.views import backward_subset
-from d2gs_np.blur.virtual_poses import subframe_times, virtual_poses
+from d2gs_np.blur.virtual_poses import subframe_times, three_knot_poses, virtual_poses
 from d2gs_np.scene.config import DeformConfig
 from d2gs_np.scene.gaussians import logit
 from d2gs_np.scene.render_inputs import render_inputs_fwd
@@ -371,3 +371,56 @@ def test_subset_backward_refuses_bad_views():
                 (np.array([0, 2]), np.array([np.nan, 0.5])), "views"):
         with pytest.raises(ValueError, match="views must be"):
             blur_render_bwd(saved, v, views=bad)
+
+
+# ---------------------------------------------------------------------------------------------
+# The three-knot path (TrajectoryConfig.path = "three_knot")
+# ---------------------------------------------------------------------------------------------
+
+
+def _three_knot_case(seed, n=8, margin=MARGIN_MIN, max_tries=50):
+    """A blur FD case with a middle knot whose every three-knot sub-frame render has the margin."""
+    rng = np.random.default_rng(seed + 1000)
+    for _ in range(max_tries):
+        case = make_case(seed, n=n)
+        case["xi_mid"] = rng.normal(size=6) * 0.01
+        poses = three_knot_poses(case["pose_est"], case["xi_start"], case["xi_mid"], case["xi_end"], n)
+        m = np.inf
+        for T, t in zip(poses, subframe_times(case["frame_time"], case["tau"], n)):
+            inputs, _ = render_inputs_fwd(case["params"], float(t), DEFORM)
+            m = min(m, rf.threshold_margin(dict(inputs, cam_T_world=T, K=case["K"], width=W, height=H,
+                                                background=case["background"])))
+        if m >= margin:
+            return case
+        seed += 100
+    raise RuntimeError("no three-knot case with the sub-frame margin")
+
+
+@pytest.mark.parametrize("n", [1, 8])
+def test_three_knot_blur_gradients_match_fd(n):
+    case = _three_knot_case(40, n=n)
+    cot = rf.random_cotangents(np.random.default_rng(102), W, H)
+    _, saved = _render(case)
+    v_params, v_xs, v_xe, v_tau, aux = blur_render_bwd(saved, **cot, return_aux=True)
+    for key, grad in (("xi_start", v_xs), ("xi_end", v_xe), ("xi_mid", aux["v_xi_mid"])):
+        fd = rf.central_fd(lambda x, key=key: _loss(case, cot, **{key: x}), case[key], FD_STEP)
+        _check_block(key, grad, fd, np.abs(fd).max())
+    assert np.abs(aux["v_xi_mid"]).max() > 1e-3  # a real number was compared
+    fd_tau = rf.central_fd_scalar(lambda h: _loss(case, cot, tau=case["tau"] + h), FD_STEP)
+    _check_block("tau", v_tau, fd_tau, abs(fd_tau) + 1.0)
+    # the middle knot moves the render: it is not the geodesic's
+    geodesic, _ = _render(dict(case, xi_mid=None))
+    assert np.abs(_render(case)[0]["image"] - geodesic["image"]).max() > 1e-3
+
+
+def test_three_knot_numba_renderer_matches_reference():
+    case = _three_knot_case(41, n=3)
+    cot = rf.random_cotangents(np.random.default_rng(103), W, H)
+    out_ref, saved_ref = _render(case)
+    out_fast, saved_fast = blur_render_fwd(**case)
+    for key in rf.OUTPUT_KEYS:
+        np.testing.assert_allclose(out_fast[key], out_ref[key], rtol=FAST_RTOL, atol=FAST_RTOL)
+    g_ref = blur_render_bwd(saved_ref, **cot, return_aux=True)
+    g_fast = blur_render_bwd(saved_fast, **cot, return_aux=True)
+    for a, b in ((g_fast[1], g_ref[1]), (g_fast[2], g_ref[2]), (g_fast[4]["v_xi_mid"], g_ref[4]["v_xi_mid"])):
+        np.testing.assert_allclose(a, b, rtol=0, atol=FAST_RTOL * max(np.abs(b).max(), 1.0))

@@ -9,7 +9,11 @@ import pytest
 import render_fixtures as rf
 from d2gs_np.blur.virtual_poses import (
     exposure_offsets,
+    knot_weights,
     subframe_times,
+    three_knot_poses,
+    three_knot_poses_bwd,
+    three_knot_poses_fwd,
     virtual_poses,
     virtual_poses_bwd,
     virtual_poses_fwd,
@@ -120,3 +124,88 @@ def test_virtual_poses_input_validation():
     with pytest.raises(ValueError, match="not rigid"):
         virtual_poses(2.0 * T, z, z, 4)
 
+
+
+# ------------------------------------------------------------- the three-knot path
+def _three_knot_cases():
+    rng = np.random.default_rng(5)
+    a = _axis(rng)
+    half = 0.5 * (np.pi - 1e-3)
+    x = 0.3 * rng.normal(size=6)
+    return {
+        "generic": tuple(0.3 * rng.normal(size=(3, 6))),
+        "zero": (np.zeros(6),) * 3,
+        "zero_length": (x, x.copy(), x.copy()),
+        "tiny": (x, x + 1e-9 * rng.normal(size=6), x + 1e-9 * rng.normal(size=6)),
+        # the tangents reach nearly a half turn: exp's Jacobian near its series branch and near pi
+        "near_pi": (np.r_[0.2 * rng.normal(size=3), -half * a], np.r_[0.1 * rng.normal(size=3), 0.0, 0.0, 0.0],
+                    np.r_[0.2 * rng.normal(size=3), half * a]),
+    }
+
+
+def test_knot_weights_interpolate_the_knots_and_reproduce_quadratics():
+    u = np.linspace(0.0, 1.0, 11)
+    W = knot_weights(u)
+    np.testing.assert_allclose(knot_weights([0.0, 0.5, 1.0]), np.eye(3), atol=0)
+    np.testing.assert_allclose(W.sum(axis=1), 1.0, rtol=0, atol=1e-15)  # constants
+    for f in (lambda t: t, lambda t: 3 * t * t - t + 0.25):  # any quadratic through its values at the knots
+        np.testing.assert_allclose(W @ f(np.array([0.0, 0.5, 1.0])), f(u), rtol=0, atol=1e-14)
+
+
+def test_three_knot_path_through_its_knots_and_the_geodesic_when_straight():
+    rng = np.random.default_rng(6)
+    T_hat = _random_pose(rng)
+    xs, xm, xe = 0.2 * rng.normal(size=(3, 6))
+    poses = three_knot_poses(T_hat, xs, xm, xe, 9)
+    for i, x in ((0, xs), (4, xm), (8, xe)):
+        np.testing.assert_allclose(poses[i], se3_exp(x) @ T_hat, rtol=0, atol=POSE_ATOL)
+    np.testing.assert_allclose(three_knot_poses(T_hat, xs, xm, xe, 1)[0], se3_exp(xm) @ T_hat, rtol=0, atol=POSE_ATOL)
+    # symmetric endpoints about T̂ and the middle knot at T̂: the line through T̂, which is the geodesic
+    h = 0.05 * rng.normal(size=6)
+    np.testing.assert_allclose(three_knot_poses(T_hat, -h, np.zeros(6), h, 8), virtual_poses(T_hat, -h, h, 8),
+                               rtol=0, atol=POSE_ATOL)
+    zero = np.zeros(6)
+    np.testing.assert_array_equal(three_knot_poses(T_hat, zero, zero, zero, 8), np.broadcast_to(T_hat, (8, 4, 4)))
+
+
+@pytest.mark.parametrize("name", list(_three_knot_cases()))
+@pytest.mark.parametrize("n", [1, 2, 5, 8])
+def test_three_knot_gradient_matches_fd(name, n):
+    knots = _three_knot_cases()[name]
+    rng = np.random.default_rng(7)
+    T_hat = _random_pose(rng)
+    Wt = rng.normal(size=(n, 4, 4))
+    Wt[:, 3, :] = 0.0
+
+    def loss(*k):
+        return float(np.sum(Wt * three_knot_poses(T_hat, *k, n)))
+
+    poses, saved = three_knot_poses_fwd(T_hat, *knots, n)
+    g = np.stack([matrix_grad_to_left_tangent(poses[i], Wt[i]) for i in range(n)])
+    grads = three_knot_poses_bwd(saved, g)
+    for j in range(3):
+        def along(x, j=j):
+            k = list(knots)
+            k[j] = x
+            return loss(*k)
+        fd = rf.central_fd(along, knots[j], POSE_FD_STEP)
+        np.testing.assert_allclose(grads[j], fd, rtol=0, atol=POSE_FD_ATOL * max(1.0, np.abs(fd).max()),
+                                   err_msg=f"knot {j}")
+        assert np.all(np.isfinite(grads[j]))
+    if n == 1:  # the sharp camera is the middle knot: the endpoints get nothing
+        np.testing.assert_array_equal(grads[0], 0.0)
+        np.testing.assert_array_equal(grads[2], 0.0)
+
+
+def test_three_knot_input_validation_and_float32():
+    T = np.eye(4)
+    z = np.zeros(6)
+    with pytest.raises(ValueError, match="xi_mid must have shape"):
+        three_knot_poses_fwd(T, z, np.zeros(5), z, 4)
+    with pytest.raises(ValueError, match="xi_mid contains NaN"):
+        three_knot_poses_fwd(T, z, np.full(6, np.nan), z, 4)
+    with pytest.raises(TypeError, match="xi_mid must have dtype"):
+        three_knot_poses_fwd(T, z, np.zeros(6, np.float32), z, 4)
+    T32, x32 = np.eye(4, dtype=np.float32), np.full(6, 0.01, np.float32)
+    poses, saved = three_knot_poses_fwd(T32, x32, -x32, x32, 4)
+    assert poses.dtype == np.float32 and all(g.dtype == np.float32 for g in three_knot_poses_bwd(saved, np.ones((4, 6))))

@@ -252,3 +252,34 @@ def test_only_converged_full_rank_solves_move_the_poses(noisy_scene, tmp_path):
     assert not np.array_equal(tr.model.poses_ref, tr.model.poses_est)
     with pytest.raises(ValueError, match="accept"):
         PoseSolverConfig(accept="sometimes")
+
+
+def test_three_knot_mid_poses_are_written_exactly_and_a_solve_moves_the_middle_knot(noisy_scene, tmp_path):
+    from d2gs_np.blur.config import TrajectoryConfig
+
+    cfg = _config(iters=4, every=3).replace(trajectory=TrajectoryConfig(path="three_knot"))
+    model = Model.from_scene(noisy_scene, cfg, decide_components(noisy_scene, cfg))
+    rng = np.random.default_rng(1)
+    params = dict(model.params, **{"camera.xi_mid": rng.normal(0, 0.01, model.params["camera.xi_mid"].shape)})
+    model = model.replace(params=params).validate()
+    for k in range(model.num_frames):  # the mid pose is the middle knot
+        np.testing.assert_allclose(model.mid_pose(k), se3_exp(params["camera.xi_mid"][k]) @ model.poses_ref[k],
+                                   atol=1e-15)
+    st = adam.adam_init(model.params)
+    st = {slot: {n: np.ones_like(v) for n, v in blocks.items()} if slot in ("m", "v") else blocks
+          for slot, blocks in st.items()}
+    target = np.stack([se3_exp(rng.normal(0, 0.02, 6)) @ model.mid_pose(k) for k in range(model.num_frames)])
+    C = PoseSolver(noisy_scene, cfg)._endpoints(model)[2]
+    new = write_mid_poses(TrainState(model, st), target, [1, 3], C)
+    for k in range(model.num_frames):
+        np.testing.assert_allclose(new.model.mid_pose(k), target[k] if k in (1, 3) else model.mid_pose(k),
+                                   atol=1e-12)
+    for slot in ("m", "v"):
+        assert np.all(new.adam[slot]["camera.xi_mid"][[1, 3]] == 0)
+        assert np.all(new.adam[slot]["camera.xi_mid"][[0, 2, 4]] == 1)
+    # in training: a solve moves each frame's mid pose by the rigid correction it found
+    tr = Trainer(noisy_scene, cfg, tmp_path / "run")
+    tr.run()
+    hist = json.loads((tmp_path / "run" / "pose_solver.json").read_text())
+    assert hist[0]["written"] and hist[0]["ate_after"] != hist[0]["ate_before"]
+    assert np.abs(tr.model.params["camera.xi_mid"]).max() > 0  # Adam trained the middle knots too

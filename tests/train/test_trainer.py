@@ -99,9 +99,12 @@ def test_dynamic_blurry_scene_uses_everything(dynamic_scene, tmp_path):
 def test_resume_reproduces_an_uninterrupted_run(dynamic_scene, tmp_path, means_unit, backward_views):
     # "scene": the position rates' length comes from the initial points, which a resume no longer
     # has; it is read back from the checkpoint. backward_views = 2: the views each step's backward
-    # runs through are drawn from (seed, step), so a resumed run draws the same ones.
+    # runs through are drawn from (seed, step), so a resumed run draws the same ones. The camera
+    # case runs the three-knot path: its middle knots and their moments resume too.
     cfg = _config(iters=10, lr=LearningRates(means_unit=means_unit))
     cfg = cfg.replace(blur=dataclasses.replace(cfg.blur, backward_views=backward_views))
+    if means_unit == "camera":
+        cfg = cfg.replace(trajectory=dataclasses.replace(cfg.trajectory, path="three_knot"))
     full = Trainer(dynamic_scene, cfg, tmp_path / "full")
     full.run()
     # Interrupted: stop after 6 steps (checkpoint), then resume in a new trainer.
