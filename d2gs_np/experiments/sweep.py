@@ -127,6 +127,16 @@ EXPERIMENTS = {
         Variant("given_gfirst", config={"trajectory": {"init": "random"}, "train": {"camera_from_fraction": 0.2}}),
         Variant("noblur", config={"train": {"blur": "off"}, "pose_solver": {"mode": "off"}}),
     ),
+    # The exposure's path (issue #39, docs/method.md §4): the three-knot path from the velocity start
+    # and from the given pose, on the given (noisy) and on true poses, the geodesic on true poses,
+    # and the no-blur baseline of the same budget.
+    "exposure-path": (
+        Variant("knot_velocity", config={"trajectory": {"path": "three_knot"}}),
+        Variant("knot_given", config={"trajectory": {"path": "three_knot", "init": "random"}}),
+        Variant("noblur", config={"train": {"blur": "off"}, "pose_solver": {"mode": "off"}}),
+        Variant("knot_true", scene=_TRUE_POSES, config={"trajectory": {"path": "three_knot"}}),
+        Variant("geodesic_true", scene=_TRUE_POSES),
+    ),
     "suite": (
         Variant("sharp", scene=_SHARP),
         Variant("blur", scene=_TRUE_POSES),

@@ -118,14 +118,17 @@ def centre_endpoint_grads(grads):
     given to xi_end, and its negation to xi_start. From antisymmetric endpoints and moments
     (``init_trajectory``'s starts are), Adam's updates then stay exact negations of each other
     (its moment updates are odd in the gradient, v even), so xi_start = -xi_end holds to the last
-    bit and the exposure's geodesic midpoint stays the reference pose. Other blocks unchanged."""
+    bit and the exposure's geodesic midpoint stays the reference pose. On the three-knot path the
+    middle knot's gradient is zeroed instead (its T(1/2) is the reference pose) and the endpoints
+    keep theirs. Other blocks unchanged."""
+    if XI_MID in grads:
+        # the three-knot path: its middle knot, the deblurred view, stays at the trusted pose, and
+        # the endpoints are free, so the path may bend through it
+        return {**grads, XI_MID: np.zeros_like(grads[XI_MID])}
     if XI_START not in grads or XI_END not in grads:
         return grads
     g = grads[XI_END] - grads[XI_START]
-    out = {**grads, XI_END: g, XI_START: -g}
-    if XI_MID in grads:  # the three-knot path's middle knot stays at the trusted pose
-        out[XI_MID] = np.zeros_like(grads[XI_MID])
-    return out
+    return {**grads, XI_END: g, XI_START: -g}
 
 
 def optimiser_step(grads, adam_state, params, config: adam.AdamConfig, trainable, frame: int, lr_scale=1.0):

@@ -103,3 +103,20 @@ def test_centred_endpoints_learn_at_the_spread_rate():
     tied = block_learning_rate(XI_END, lr, 1.0, 100, 5, centred=True)
     assert free.lr_init == 1e-3 and free.lr_final == 1e-5
     assert tied.lr_init == 2e-4 and tied.lr_final == 2e-6
+
+
+def test_a_centred_three_knot_path_bends_through_the_trusted_pose(trusted_scene, tmp_path):
+    from d2gs_np.blur.endpoints import XI_MID
+
+    cfg = _config()
+    cfg = cfg.replace(trajectory=TrajectoryConfig(path="three_knot"))
+    tr = Trainer(trusted_scene, cfg, tmp_path / "run")
+    assert tr.components.centred
+    tr.run()
+    xs, xe = tr.params[XI_START], tr.params[XI_END]
+    np.testing.assert_array_equal(tr.params[XI_MID], 0.0)  # the deblurred view stays the trusted pose
+    assert not np.array_equal(xs, -xe)  # the endpoints trained freely: the path bends
+    m = tr.model
+    np.testing.assert_array_equal(m.poses_ref, np.stack([f.cam_T_world for f in trusted_scene.frames]))
+    for k in range(m.num_frames):
+        np.testing.assert_allclose(m.mid_pose(k), m.poses_ref[k], atol=1e-15)
