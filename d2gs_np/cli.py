@@ -1,4 +1,5 @@
-"""Command line: ``d2gs {demo, make-scene, import-video, train, eval, report, experiment, render, export-ply, refcheck}``.
+"""Command line: ``d2gs {demo, make-scene, import-video, import-colmap, import-dyblurf, train, eval, report, experiment,
+render, export-ply, export-trajectory, refcheck}``.
 
 Every command validates its inputs before starting work and exits with a
 one-line error (status 2) naming the problem. Input accepted but implausible
@@ -258,6 +259,13 @@ def _cmd_import_video(args):
     import_video(args.video, args.out, cfg, overwrite=args.overwrite)
 
 
+def _cmd_import_colmap(args):
+    from d2gs_np.importers.colmap import import_colmap
+
+    check_output_path(args.out, "output scene folder")
+    import_colmap(args.sparse, args.images, args.out, overwrite=args.overwrite)
+
+
 def _cmd_demo(args):
     """Small built-in scene -> train the full method -> evaluate -> report.html."""
     from d2gs_np.data.suite import SUITE, write_suite_scene
@@ -464,6 +472,19 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--no-masks", action="store_true", help="write empty motion masks (a static scene)")
     v.add_argument("--overwrite", action="store_true", help="write into an existing, non-empty folder")
     v.set_defaults(func=_cmd_import_video)
+
+    c = sub.add_parser("import-colmap", help="COLMAP sparse model and its images -> scene folder "
+                       "(docs/dataset_format.md §9)",
+                       description="Import a COLMAP sparse model (cameras, images, points3D; .bin or .txt) and its "
+                                   "images into a scene folder: frames in image-name order at evenly spaced times, "
+                                   "COLMAP's poses as they are (world-to-camera, OpenCV axes), its points as the "
+                                   "static initial points; SIMPLE_RADIAL, RADIAL and OPENCV images undistorted "
+                                   "(docs/dataset_format.md §9).")
+    c.add_argument("sparse", help="sparse model folder (e.g. sparse/0)")
+    c.add_argument("images", help="the images folder the model's image names are relative to")
+    c.add_argument("out", help="output scene folder")
+    c.add_argument("--overwrite", action="store_true", help="write into an existing, non-empty folder")
+    c.set_defaults(func=_cmd_import_colmap)
 
     t = sub.add_parser("train", help="train on a scene folder (docs/method.md §7-8)",
                        description="Train on a scene folder (docs/dataset_format.md). Stages, progressive "

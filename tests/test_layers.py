@@ -23,6 +23,7 @@ LAYERS = (
     ("optim",),
     ("reference",),
     ("video",),
+    ("importers",),
     ("train",),
     ("evaluation",),
     ("reporting",),
