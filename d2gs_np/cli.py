@@ -241,6 +241,18 @@ def _cmd_export_ply(args):
     print(f"wrote {ri['means'].shape[0]} Gaussians at t = {args.time} to {args.out}")
 
 
+def _cmd_export_trajectory(args):
+    from d2gs_np.evaluation.runs import load_run
+    from d2gs_np.importers.tum import write_tum
+
+    check_output_path(args.out, "output file", is_file=True)
+    model = load_run(args.run).model
+    # normalised times, or seconds when the frame rate is known (frame k at k / fps for even times)
+    stamps = model.times if args.fps is None else model.times * (max(model.num_frames - 1, 1) / args.fps)
+    write_tum(args.out, stamps, model.mid_poses())
+    print(f"wrote the {model.num_frames} optimised mid-exposure poses of {args.run} to {args.out} (TUM format)")
+
+
 def _parse_size(text):
     try:
         w, h = (int(v) for v in text.lower().split("x"))
@@ -589,6 +601,18 @@ def build_parser() -> argparse.ArgumentParser:
     x.add_argument("--time", type=_finite_float(), required=True)
     x.add_argument("out", help="output .ply")
     x.set_defaults(func=_cmd_export_ply)
+
+    tr = sub.add_parser("export-trajectory", help="write a run's optimised camera trajectory in the TUM format "
+                        "(docs/dataset_format.md §10)",
+                        description="Write the optimised mid-exposure camera poses of a run as a TUM trajectory, one "
+                                    "line 'timestamp tx ty tz qx qy qz qw' per training frame: camera-to-world, OpenCV "
+                                    "camera axes (docs/dataset_format.md §10), for evo or the TUM tools.")
+    tr.add_argument("run")
+    tr.add_argument("out", help="output .txt")
+    tr.add_argument("--fps", type=_finite_float(positive=True), default=None,
+                    help="frames per second of the video: timestamps in seconds, t (N - 1) / fps (default: the "
+                         "frames' normalised times in [0, 1])")
+    tr.set_defaults(func=_cmd_export_trajectory)
     from d2gs_np.refcheck.cli import add_refcheck_parser  # the reference-check kit (docs/refcheck.md)
     add_refcheck_parser(sub)
     return p
