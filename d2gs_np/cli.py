@@ -278,6 +278,13 @@ def _cmd_import_colmap(args):
     import_colmap(args.sparse, args.images, args.out, overwrite=args.overwrite)
 
 
+def _cmd_import_dyblurf(args):
+    from d2gs_np.importers.dyblurf import import_dyblurf
+
+    check_output_path(args.out, "output scene folder")
+    import_dyblurf(args.folder, args.out, size=args.size, overwrite=args.overwrite)
+
+
 def _cmd_demo(args):
     """Small built-in scene -> train the full method -> evaluate -> report.html."""
     from d2gs_np.data.suite import SUITE, write_suite_scene
@@ -497,6 +504,20 @@ def build_parser() -> argparse.ArgumentParser:
     c.add_argument("out", help="output scene folder")
     c.add_argument("--overwrite", action="store_true", help="write into an existing, non-empty folder")
     c.set_defaults(func=_cmd_import_colmap)
+
+    db = sub.add_parser("import-dyblurf", help="DyBluRF / Stereo Blur scene folder -> scene folder "
+                        "(docs/dataset_format.md §11)",
+                        description="Import a scene of DyBluRF's Stereo Blur data (images/ or images_<size>/, "
+                                    "sharp_images/, inference_images/, motion_masks/, poses_bounds.npy): training "
+                                    "frames from the left camera with their sharp frames and masks, test views from "
+                                    "the right camera; LLFF poses converted to ours (docs/dataset_format.md §11).")
+    db.add_argument("folder", help="the scene folder (DyBluRF's configs use <scene>/dense)")
+    db.add_argument("out", help="output scene folder")
+    db.add_argument("--size", default=None,
+                    help="read images_<SIZE>/ instead of images/, e.g. 512x288 (DyBluRF trains at a height of 288) "
+                         "or 4")
+    db.add_argument("--overwrite", action="store_true", help="write into an existing, non-empty folder")
+    db.set_defaults(func=_cmd_import_dyblurf)
 
     t = sub.add_parser("train", help="train on a scene folder (docs/method.md §7-8)",
                        description="Train on a scene folder (docs/dataset_format.md). Stages, progressive "

@@ -1,1 +1,1 @@
-"""Other tools' formats in and out: COLMAP sparse models, DyBluRF / Stereo Blur folders, TUM trajectories (docs/dataset_format.md §9-10)."""
+"""Other tools' formats in and out: COLMAP sparse models, DyBluRF / Stereo Blur folders, TUM trajectories (docs/dataset_format.md §9-11)."""
