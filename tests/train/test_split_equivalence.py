@@ -82,6 +82,22 @@ def pinned_config(checkpoint_every=0):
     return cfg.replace(train=dataclasses.replace(cfg.train, checkpoint_every=checkpoint_every))
 
 
+def test_the_pinned_config_names_every_setting_that_moves_the_run():
+    # a setting missing from the file would take today's default, and a default change would move the pin
+    housekeeping = {"checkpoint_every", "checkpoint_seconds", "log_every", "eval_every", "quiet"}
+
+    def missing(saved, full, prefix=""):
+        for key, value in full.items():
+            if key not in saved:
+                if key not in housekeeping:
+                    yield prefix + key
+            elif isinstance(value, dict):
+                yield from missing(saved[key], value, f"{prefix}{key}.")
+    saved = json.loads(PINNED_CONFIG.read_text())
+    assert not list(missing(saved, ExperimentConfig().to_dict())), "add them to tests/train/pinned_config.json " \
+        "with the values the pin was recorded with (the old behaviour)"
+
+
 def params_digest(params) -> str:
     h = hashlib.sha256()
     for name in sorted(params):
