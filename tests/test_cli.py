@@ -202,8 +202,14 @@ def test_eval_says_how_the_run_compares_with_its_input(trained, capsys):
     m = json.loads((run / "metrics.json").read_text())
     gain = m["dvs"]["psnr"] - m["input_blur"]["psnr"]
     said = [line for line in out.splitlines() if line.startswith("d2gs eval: ")]
-    assert len(said) == 1 and (("LOST to its input" in said[0]) == (gain < 0)), said
+    assert len(said) == 2 and (("LOST to its input" in said[0]) == (gain < 0)), said
     assert f"{abs(gain):.2f} dB" in said[0]
     # what is measured without ground truth, always
     assert 0 < m["input_fit"]["psnr"] < 100 and m["input_fit"]["num_images"] == 5
     assert m["sharpness"]["ratio"] == pytest.approx(m["sharpness"]["renders"] / m["sharpness"]["inputs"])
+    # the moving and the static pixels apart (the preset's movers: frame masks, and the test views' true masks)
+    for key in ("dvs", "input_blur", "nvs"):
+        assert 0.0 < m[key]["moving_share"] < 0.5 and np.isfinite(m[key]["moving_psnr"]), key
+        assert np.isfinite(m[key]["static_psnr"]), key
+    assert (m["dvs"]["moving_psnr"] < m["input_blur"]["moving_psnr"]) == any("moving pixels the method LOST" in s
+                                                                            for s in said)

@@ -612,10 +612,12 @@ def render_clip(camera_pose_fn, render_fn, *, times, tau, subframes, est_poses, 
         for j, k in enumerate(idx):
             sign = 1.0 if j % 2 == 0 else -1.0
             T = _test_pose(gt[k], sign * test_offset)
-            img, _ = render_fn(T, times[k], K, W, H, ss)
+            img, moving = render_fn(T, times[k], K, W, H, ss)
             test_frames.append(Frame(
                 file_path=f"test/{j:04d}.png", time=float(times[k]), cam_T_world=T, K=K.copy(), width=W,
                 height=H, image=img, gt_cam_T_world=T.copy(),
+                # the view's moving pixels: novel views are scored on them apart (evaluation.runs)
+                mask=np.asarray(moving, dtype=bool), mask_path=f"test/masks/{j:04d}.png",
             ))
     return Scene(
         frames=frames, test_frames=test_frames, exposure_fraction=float(exposure_fraction),

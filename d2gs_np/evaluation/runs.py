@@ -73,6 +73,26 @@ def _image_metrics(pairs):
     return out
 
 
+def _split_psnr(pairs, masks) -> dict:
+    """PSNR over the moving and over the static pixels of image pairs, pooled over the pairs (the
+    squared error summed over every masked pixel and channel), and the moving share; {} when no
+    pair has a mask. A pair without a mask counts as all static; a side with no pixel is None."""
+    if all(m is None for m in masks):
+        return {}
+    sums, counts = np.zeros(2), np.zeros(2)
+    for (a, b), m in zip(pairs, masks):
+        moving = np.zeros(a.shape[:2], bool) if m is None else np.asarray(m, bool)
+        e = ((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2).sum(-1)
+        sums += [e[moving].sum(), e[~moving].sum()]
+        counts += [a.shape[2] * moving.sum(), a.shape[2] * (~moving).sum()]
+
+    def db(k):
+        if counts[k] == 0:
+            return None
+        return float(10.0 * np.log10(counts[k] / sums[k])) if sums[k] > 0 else None
+    return {"moving_psnr": db(0), "static_psnr": db(1), "moving_share": float(counts[0] / counts.sum())}
+
+
 def evaluate(run: LoadedRun, scene, test_pose_steps: int = 0) -> dict:
     """Metrics dictionary of docs/method.md §10 for a loaded run and its scene (images loaded).
     ``test_pose_steps`` > 0 adds ``nvs_pose_opt`` (module docstring)."""
@@ -84,8 +104,11 @@ def evaluate(run: LoadedRun, scene, test_pose_steps: int = 0) -> dict:
     mids = model.mid_poses()
     renders = [model.render(mids[k], f.time, f.K, f.width, f.height) for k, f in enumerate(frames)]
     if scene.has_sharp:
-        out["dvs"] = _image_metrics([(r, f.sharp) for r, f in zip(renders, frames)])
-        out["input_blur"] = _image_metrics([(f.image, f.sharp) for f in frames])
+        masks = [f.mask for f in frames]
+        pairs = [(r, f.sharp) for r, f in zip(renders, frames)]
+        out["dvs"] = {**_image_metrics(pairs), **_split_psnr(pairs, masks)}
+        pairs = [(f.image, f.sharp) for f in frames]
+        out["input_blur"] = {**_image_metrics(pairs), **_split_psnr(pairs, masks)}
     # What can be measured without ground truth: how well the model, blurred as in training,
     # explains the inputs, and how much finer detail its sharp renders carry than the inputs.
     refit = [frame_render_fwd(model, k, model.Ks[k], model.widths[k], model.heights[k])[0]["image"]
@@ -169,7 +192,7 @@ def _trajectory_and_nvs(run: LoadedRun, scene, mids, test_pose_steps=0) -> dict:
                                           PoseFitConfig(steps=int(test_pose_steps)), model.config.render)
                 fitted.append((model.render(pose_fit, f.time, f.K, f.width, f.height), f.image))
                 moves.append((float(np.linalg.norm(info["xi"][3:])), float(np.linalg.norm(info["xi"][:3]))))
-        out["nvs"] = _image_metrics(pairs)
+        out["nvs"] = {**_image_metrics(pairs), **_split_psnr(pairs, [f.mask for f in scene.test_frames])}
         if fitted:
             out["nvs_pose_opt"] = {**_image_metrics(fitted), "steps": int(test_pose_steps),
                                    "mean_rotation_deg": float(np.degrees(np.mean([m[0] for m in moves]))),
@@ -193,6 +216,11 @@ def verdict(result: dict, baseline: dict = None) -> list:
         else:
             lines.append(f"deblurred renders {d:.2f} dB against the sharp frames, {gain:+.2f} dB over the blurry "
                          f"inputs ({i:.2f} dB)")
+        dm, im = (result.get(k, {}).get("moving_psnr") for k in ("dvs", "input_blur"))
+        if dm is not None and im is not None:
+            lines.append(f"{'on the moving pixels the method LOST to its input' if dm < im else 'on the moving pixels'}"
+                         f": {dm:.2f} dB against the blurry inputs' {im:.2f} dB ({dm - im:+.2f} dB; "
+                         f"{100 * result['dvs']['moving_share']:.0f} % of the pixels move)")
         b = _psnr_of(baseline or {}, "dvs")
         if b is not None:
             lines.append(f"{'the blur model LOST to the no-blur baseline' if d < b else 'the blur model beat the no-blur baseline'}"

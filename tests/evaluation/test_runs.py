@@ -1,5 +1,6 @@
 """Evaluation helpers: the NVS alignment uses orientations, so collinear camera paths align."""
 import numpy as np
+import pytest
 
 from d2gs_np.evaluation import metrics
 from d2gs_np.evaluation.runs import align_with_orientations
@@ -69,3 +70,28 @@ def test_the_verdict_says_a_loss_first_and_compares_with_the_baseline():
     assert "no sharp frames" in line and "31.20 dB" in line and "1.80x" in line and "sharper than" in line
     assert "no sharper" in verdict({"input_fit": {"psnr": 31.2}, "sharpness": {"ratio": 0.9}})[0]
     assert verdict({}) == []
+
+
+def test_split_psnr_pools_the_moving_and_the_static_pixels():
+    from d2gs_np.evaluation.runs import _split_psnr
+
+    rng = np.random.default_rng(1)
+    pairs = [(rng.uniform(size=(6, 8, 3)), rng.uniform(size=(6, 8, 3))) for _ in range(3)]
+    masks = [rng.uniform(size=(6, 8)) < 0.3 for _ in range(2)] + [None]  # the last frame: all static
+    got = _split_psnr(pairs, masks)
+    A, B = (np.concatenate([p[i] for p in pairs], axis=1) for i in (0, 1))  # one wide image
+    M = np.concatenate([m if m is not None else np.zeros((6, 8), bool) for m in masks], axis=1)
+    assert got["moving_psnr"] == pytest.approx(metrics.psnr(A, B, mask=M), rel=1e-12)
+    assert got["static_psnr"] == pytest.approx(metrics.psnr(A, B, mask=~M), rel=1e-12)
+    assert got["moving_share"] == pytest.approx(M.mean(), rel=1e-15)
+    assert _split_psnr(pairs, [None] * 3) == {}
+    assert _split_psnr(pairs[:1], [np.zeros((6, 8), bool)])["moving_psnr"] is None  # nothing moves
+
+
+def test_the_verdict_speaks_of_the_moving_pixels():
+    from d2gs_np.evaluation.runs import verdict
+
+    r = {"dvs": {"psnr": 28.0, "moving_psnr": 20.5, "moving_share": 0.13}, "input_blur": {"psnr": 26.5, "moving_psnr": 21.0}}
+    lines = verdict(r)
+    assert len(lines) == 2 and "moving pixels the method LOST to its input" in lines[1] and "-0.50 dB" in lines[1]
+    assert "13 %" in lines[1]
