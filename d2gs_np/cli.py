@@ -533,8 +533,8 @@ def build_parser() -> argparse.ArgumentParser:
     t.add_argument("--config", default=None, help="experiment config JSON (see ExperimentConfig)")
     t.add_argument("--iters", type=_COUNT, default=None)
     t.add_argument("--time-budget", type=_SECONDS, default=None,
-                   help="seconds of training: the run ends when they are spent, its schedule stretched over the "
-                        "steps they buy (docs/method.md §7)")
+                   help="seconds of training: the run ends when they are spent, its schedule complete; a schedule "
+                        "that ends earlier trains on at its end (docs/method.md §7)")
     t.add_argument("--seed", type=_SEED, default=None)
     t.add_argument("--blur", choices=["auto", "on", "off"], default=None,
                    help="blur model (default auto; docs/method.md §4, §9)")

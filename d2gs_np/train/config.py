@@ -154,9 +154,9 @@ class TrainConfig:
     prune_every: int = 250
     prune_opacity: float = 0.005
     time_budget: Optional[float] = None  # seconds of training; stops cleanly when exceeded
-    # With a time budget: True ends the run when the budget ends, its schedule of iters steps stretched
-    # over however many steps the budget buys (read by the clock); False also ends it at iters steps
-    # (the budget then only cuts a slow run short). docs/method.md §8.
+    # With a time budget: True ends the run when the budget ends; a run that finishes its schedule of
+    # iters steps early trains on at the schedule's end (final rates, full resolution) until then.
+    # False also ends it at iters steps. docs/method.md §7.
     stretch_to_budget: bool = True
     eval_frames: int = 4  # held-out PSNR on this many frames (sharp GT if present, else blurry)
     quiet: bool = False

@@ -112,15 +112,15 @@ def render_scale(step, total_steps, r0=0.2, kind="cosine", ramp_fraction=0.5):
     return min(1.0, max(r0, r))
 
 
-def training_progress(step, seconds, total_steps, time_budget=None, stretch=False):
+def training_progress(step, seconds, total_steps, time_budget=None):
     """How far a run is, in [0, 1]: ``step / total_steps``, or with a time budget (seconds of
-    training) the larger of that and ``seconds / time_budget``, whichever ends the run first; with
-    ``stretch`` (``TrainConfig.stretch_to_budget``) ``seconds / time_budget`` alone: the budget
-    ends the run, and a run whose steps are faster than its schedule gets more of them.
+    training) the larger of that and ``seconds / time_budget``, whichever ends the schedule first.
 
     Every schedule of a run (progressive resolution, stages, learning-rate decays, densification
     and pruning windows) reads this progress, so a run stopped by its budget has finished its
     schedule, and a run without one behaves exactly as before (progress = step / total_steps).
+    A run that finishes its schedule inside its budget trains on at the schedule's end until the
+    budget is spent (``TrainConfig.stretch_to_budget``, the trainer's loop).
     """
     if total_steps < 1:
         raise ValueError(f"total_steps must be >= 1; got {total_steps}")
@@ -128,18 +128,16 @@ def training_progress(step, seconds, total_steps, time_budget=None, stretch=Fals
     if time_budget is not None:
         if not time_budget > 0:
             raise ValueError(f"time_budget must be > 0 seconds; got {time_budget}")
-        p = seconds / time_budget if stretch else max(p, seconds / time_budget)
+        p = max(p, seconds / time_budget)
     return min(max(p, 0.0), 1.0)
 
 
-def schedule_step(step, seconds, total_steps, time_budget=None, stretch=False):
+def schedule_step(step, seconds, total_steps, time_budget=None):
     """The step the schedules are read at: ``step`` without a budget (exactly), else
-    ``floor(progress x total_steps)`` (at most ``total_steps``; never less than ``step`` unless
-    ``stretch``, which reads the schedule by the clock alone)."""
+    ``max(step, floor(progress x total_steps))``."""
     if time_budget is None:
         return int(step)
-    at = int(math.floor(training_progress(step, seconds, total_steps, time_budget, stretch) * total_steps))
-    return at if stretch else max(int(step), at)
+    return max(int(step), int(math.floor(training_progress(step, seconds, total_steps, time_budget) * total_steps)))
 
 
 def _check_size(width, height):

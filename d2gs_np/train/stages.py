@@ -116,6 +116,5 @@ class Planner:
         return int(perm[pos])
 
     def plan(self, step: int, sched: int) -> StepPlan:
-        # a budget moves the schedule ahead of the step, or (stretched) behind it
-        lr_scale = sched / step if step > 0 and sched > 0 else 1.0
+        lr_scale = sched / step if sched > step > 0 else 1.0
         return StepPlan(step, sched, self.stage_at(sched), self.frame_for_step(step), self.scale_at(sched), lr_scale)

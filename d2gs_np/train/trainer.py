@@ -260,10 +260,10 @@ class Trainer:
         last_stage = None
         while not self._schedule_done(self.step_index, self.stopwatch.seconds()):
             step = self.step_index
-            # The step the schedules are read at: the step itself, or where the clock says when
-            # a time budget is given, so a budgeted run finishes its schedule and, stretched, uses
-            # all of its budget (schedule.training_progress).
-            sched = schedule_step(step, self.stopwatch.seconds(), total, budget, stretch)
+            # The step the schedules are read at: the step itself, or further along when a time
+            # budget binds, so a budgeted run finishes its schedule (schedule.training_progress);
+            # past the schedule's end (stretch_to_budget) its final settings.
+            sched = schedule_step(step, self.stopwatch.seconds(), total, budget)
             stage = self.planner.stage_at(sched)
             if stage.name != last_stage:
                 self.log.note(f"stage {stage.name} from step {step}" + (f" (schedule step {sched})"
@@ -319,8 +319,7 @@ class Trainer:
         if state.step % tc.log_every == 0 or state.last or record.heldout_psnr is not None:
             seconds = self.stopwatch.seconds()
             # how far the run is after this step: what a time budget has bought (1 when it is spent)
-            progress = min(1.0, training_progress(state.step + 1, seconds, tc.iters, tc.time_budget,
-                                                  tc.stretch_to_budget))
+            progress = min(1.0, training_progress(state.step + 1, seconds, tc.iters, tc.time_budget))
             self.log.row(step=state.step, seconds=round(seconds, 4), stage=state.stage.name, loss=record.loss,
                          train_psnr=record.train_psnr, heldout_psnr=record.heldout_psnr,
                          scale=round(record.scale, 4), num_gaussians=self.num_gaussians(),

@@ -153,23 +153,5 @@ def test_progress_with_a_budget_follows_whichever_ends_the_run_first():
     assert schedule_step(0, 0.0, 1000, 60.0) == 0
     with pytest.raises(ValueError, match="time_budget"):
         training_progress(1, 1.0, 10, 0.0)
-    with pytest.raises(ValueError, match="time_budget"):
-        training_progress(1, 1.0, 10, 0.0, stretch=True)
     with pytest.raises(ValueError, match="total_steps"):
         training_progress(1, 1.0, 0)
-
-
-def test_a_stretched_schedule_reads_the_clock_alone():
-    from d2gs_np.train.schedule import schedule_step, training_progress
-
-    # fast steps: 900 steps in 6 of 60 s are a tenth of the way, schedule step 100 (behind the step)
-    assert training_progress(900, 6.0, 1000, 60.0, stretch=True) == pytest.approx(0.1)
-    assert schedule_step(900, 6.0, 1000, 60.0, stretch=True) == 100
-    # slow steps: as without stretch, the clock is ahead of the step
-    assert schedule_step(10, 30.0, 1000, 60.0, stretch=True) == schedule_step(10, 30.0, 1000, 60.0) == 500
-    # past the schedule's steps but inside the budget: still on it; over budget: the end
-    assert schedule_step(5000, 59.9, 1000, 60.0, stretch=True) == 998
-    assert schedule_step(5000, 61.0, 1000, 60.0, stretch=True) == 1000
-    # without a budget, stretch changes nothing
-    assert schedule_step(900, 6.0, 1000, None, stretch=True) == 900
-    assert training_progress(900, 6.0, 1000, None, stretch=True) == 0.9
