@@ -16,9 +16,10 @@ from d2gs_np.geometry.se3 import se3_inverse
 
 SUITE_CLIP = dict(subframes=4, num_test_views=0)  # the suite's 24 frames at 240x135, cheaper blur
 # Small blurry suite clips (8-12 frames at 160x90 or 240x135) leave COLMAP's SIFT without an initial
-# pair or register 3-10 frames (docs/results.md §13): the import test needs the 24-frame clip.
+# pair or register 3-10 frames (docs/results.md §13, pose backends): the import test needs the
+# 24-frame clip, and the small one shows the refusal.
 SMALL_CLIP = dict(subframes=4, num_test_views=0, num_frames=8, width=160, height=90)
-# Bounds from one measurement on photo_room seed 0 (docs/results.md §13, the pycolmap row): ATE 4.7 %
+# Bounds from one measurement on this clip (docs/results.md §15, the pycolmap backend): ATE 4.7 %
 # of the scene depth (COLMAP seeds 1 and the sequential matcher: 1.0-1.1 %), so 8 % leaves room for
 # another pycolmap build's RANSAC; relative rotation error 1.08 deg RMS per frame (true turns
 # 1.4-2.1 deg per frame), bound 2 deg. ATE alone cannot tell a wrong pose convention on this
