@@ -193,6 +193,8 @@ def _to_result(model, names, weak_observations, log_lines):
         o_uv.append(im.xys[seen])
     o_f, o_p, o_uv = np.concatenate(o_f), np.concatenate(o_p), np.concatenate(o_uv).reshape(-1, 2)
     reg = np.flatnonzero(np.isfinite(poses[:, 0, 0]))
+    if not len(o_f):  # no 3D point: no depth to fix the scale with
+        raise ValueError(f"pycolmap registered frames {reg.tolist()} but triangulated no points; use --sfm classical")
     # our gauge on the registered frames: fix_gauge puts its first pose at the identity
     sub = np.full(N, -1)
     sub[reg] = np.arange(len(reg))
