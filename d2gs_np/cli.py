@@ -264,11 +264,18 @@ def _parse_size(text):
 def _cmd_import_video(args):
     from d2gs_np.video.importer import ImportConfig, import_video
 
+    if args.sfm == "pycolmap":  # refused before any work when the optional package is missing
+        from d2gs_np.importers.colmap_sfm import require_pycolmap
+        require_pycolmap()
     check_output_path(args.out, "output scene folder")
     cfg = ImportConfig(stride=args.stride, max_frames=args.max_frames,
                        size=None if args.size is None else _parse_size(args.size), focal=args.focal,
                        start=args.start, end=args.end, masks=not args.no_masks)
-    import_video(args.video, args.out, cfg, overwrite=args.overwrite)
+    if args.sfm == "pycolmap":
+        from d2gs_np.importers.colmap_sfm import import_video_pycolmap
+        import_video_pycolmap(args.video, args.out, cfg, overwrite=args.overwrite)
+    else:
+        import_video(args.video, args.out, cfg, overwrite=args.overwrite)
 
 
 def _cmd_import_colmap(args):
@@ -489,6 +496,9 @@ def build_parser() -> argparse.ArgumentParser:
     v.add_argument("--start", type=_finite_float(0.0), default=None, help="start time in seconds (video files)")
     v.add_argument("--end", type=_finite_float(0.0), default=None, help="end time in seconds (video files)")
     v.add_argument("--no-masks", action="store_true", help="write empty motion masks (a static scene)")
+    v.add_argument("--sfm", choices=("classical", "pycolmap"), default="classical",
+                   help="pose backend: our KLT tracks, PnP and bundle adjustment (default), or COLMAP's SIFT and "
+                        "incremental mapping through the optional package pycolmap (docs/dataset_format.md §8)")
     v.add_argument("--overwrite", action="store_true", help="write into an existing, non-empty folder")
     v.set_defaults(func=_cmd_import_video)
 

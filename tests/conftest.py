@@ -59,6 +59,8 @@ SLOW_TESTS = {
         "ray-casts the 24-frame suite clip (its first 6 frames are registered)",
     "video/test_import.py::test_register_video_with_given_tracks_is_the_same_registration":
         "registers a 10-frame 240x135 suite clip twice",
+    "importers/test_colmap_sfm.py::test_pycolmap_backend_registers_the_blurry_suite_clip":
+        _SUITE_IMPORT + " through pycolmap, twice (the masked round)",
     "video/test_real_clip.py::test_the_real_clip_imports_with_sub_pixel_reprojection":
         "imports 23 frames of a real video end to end",
     "video/test_real_clip.py::test_a_stretch_across_the_cut_is_refused_naming_the_frames":

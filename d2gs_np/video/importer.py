@@ -11,6 +11,13 @@ masks dropped -> ``write_scene`` with ``points3d.ply``
 and ``import_report.json`` (per-frame keypoints and inlier observations, weakly constrained
 frames, the focal length, the reprojection error, the static-world check).
 
+Pose backends: the classical registration above is the default; ``import_video(backend=...)``
+takes another (a ``PoseBackend``: ``d2gs_np.importers.colmap_sfm`` runs pycolmap, ``d2gs
+import-video --sfm pycolmap``), which replaces ``register_video`` in the first registration and in
+the mask rounds; the static-world check needs the KLT tracks and runs for the classical one only.
+The motion masks, the dropped points and the scene folder are the same for both, and the report's
+``sfm`` entry says which backend ran and what it measured.
+
 Intrinsics: ``focal`` (pixels, at the output size) if given and then kept fixed; otherwise the
 guess of a 65 degree horizontal field of view, f = 0.5 max(W, H) / tan(32.5 deg) = 0.785
 max(W, H) (a phone's main camera filming 16:9 video), refined by the bundle adjustment. The
@@ -24,6 +31,7 @@ import json
 import time
 from dataclasses import asdict, dataclass, field
 from pathlib import Path
+from typing import Callable
 
 import numpy as np
 
@@ -38,7 +46,7 @@ from d2gs_np.video.segment import border_share, track_groups
 from d2gs_np.video.sfm import SfmConfig, register_video
 from d2gs_np.pose.tracks import klt_tracks
 
-__all__ = ["ImportConfig", "import_video", "guess_focal", "REPORT_FILE", "GUESS_FOV_X_DEG"]
+__all__ = ["ImportConfig", "PoseBackend", "import_video", "guess_focal", "REPORT_FILE", "GUESS_FOV_X_DEG"]
 
 REPORT_FILE = "import_report.json"
 GUESS_FOV_X_DEG = 65.0  # horizontal field of view assumed when no focal length is given
@@ -78,6 +86,26 @@ class ImportConfig:
         check_int(self.mask_rounds, "ImportConfig.mask_rounds", 0)
         if not isinstance(self.sfm, SfmConfig) or not isinstance(self.mask, MaskConfig):
             raise TypeError("ImportConfig.sfm must be an SfmConfig and ImportConfig.mask a MaskConfig")
+
+
+@dataclass(frozen=True)
+class PoseBackend:
+    """A camera registration ``import_video`` runs instead of the classical one.
+
+    ``register(images, K, refine_focal, masks, log) -> (SfmResult, info)``: images a list of (H, W, 3)
+    uint8 frames, K (3, 3) the starting intrinsics, masks None or one (H, W) bool array per frame
+    (True = moving: no features there); the SfmResult in ``register_video``'s gauge and layout, every
+    frame registered (else a ValueError naming the frames), info a JSON-able dict for the report.
+    """
+
+    name: str
+    register: Callable
+
+    def __post_init__(self):
+        if not isinstance(self.name, str) or not self.name:
+            raise TypeError(f"PoseBackend.name must be a non-empty str; got {self.name!r}")
+        if not callable(self.register):
+            raise TypeError(f"PoseBackend.register must be callable; got {type(self.register).__name__}")
 
 
 def _drop_points(res, keep):
@@ -157,11 +185,15 @@ def _check_out(out, overwrite):
     return out
 
 
-def import_video(source, out, config: ImportConfig = None, overwrite=False, log=print) -> dict:
-    """Import ``source`` into the scene folder ``out``; returns the report (also written as JSON)."""
+def import_video(source, out, config: ImportConfig = None, overwrite=False, log=print,
+                 backend: PoseBackend = None) -> dict:
+    """Import ``source`` into the scene folder ``out``; returns the report (also written as JSON).
+    backend: None for the classical registration, or a PoseBackend (module docstring)."""
     cfg = ImportConfig() if config is None else config
     if not isinstance(cfg, ImportConfig):
         raise TypeError(f"config must be an ImportConfig; got {type(cfg).__name__}")
+    if backend is not None and not isinstance(backend, PoseBackend):
+        raise TypeError(f"backend must be a PoseBackend or None; got {type(backend).__name__}")
     check_decode_args(source, cfg.stride, cfg.max_frames, cfg.size, cfg.start, cfg.end)
     out = _check_out(out, overwrite)
     t0 = time.perf_counter()
@@ -174,13 +206,28 @@ def import_video(source, out, config: ImportConfig = None, overwrite=False, log=
     if log:
         log(f"intrinsics: focal {f0:.1f} px ({'given' if cfg.focal is not None else 'guessed, refined below'}), "
             f"principal point at the centre")
-    tracks = None
-    if cfg.sfm.tracker == "klt":
-        tracks = klt_tracks(imgs, cfg.sfm.tracks, None, seed=cfg.sfm.features.seed)
-    res = register_video(imgs, K, cfg.sfm, refine_focal=cfg.focal is None, log=log, tracks=tracks)
-    motion_info = {"checked": False}
-    if tracks is not None:
-        res, motion_info = static_motion(imgs, K, cfg, tracks, res, log)
+    refine = cfg.focal is None
+    t_sfm = time.perf_counter()  # seconds in the registrations (not the masks) go to the report's "sfm"
+    if backend is None:
+        tracks = None
+        if cfg.sfm.tracker == "klt":
+            tracks = klt_tracks(imgs, cfg.sfm.tracks, None, seed=cfg.sfm.features.seed)
+        res = register_video(imgs, K, cfg.sfm, refine_focal=refine, log=log, tracks=tracks)
+        sfm_info = {}
+        motion_info = {"checked": False}
+        if tracks is not None:
+            res, motion_info = static_motion(imgs, K, cfg, tracks, res, log)
+
+        def register_masked(masks):
+            return register_video(imgs, K, cfg.sfm, refine_focal=refine, masks=masks, log=log), {}
+    else:
+        res, sfm_info = backend.register(imgs, K, refine, None, log)
+        motion_info = {"checked": False, "reason": f"the static-world check needs the classical KLT tracks; the "
+                                                   f"{backend.name} backend ran"}
+
+        def register_masked(masks):
+            return backend.register(imgs, K, refine, masks, log)
+    sfm_seconds = time.perf_counter() - t_sfm
     masks = [np.zeros((H, W), dtype=bool) for _ in range(N)]
     mask_info = {}
     if cfg.masks:
@@ -191,23 +238,29 @@ def import_video(source, out, config: ImportConfig = None, overwrite=False, log=
         for rnd in range(cfg.mask_rounds):
             if res.rotation_only or not any(m.any() for m in masks):
                 break
+            t_sfm = time.perf_counter()
             try:
-                res2 = register_video(imgs, K, cfg.sfm, refine_focal=cfg.focal is None, masks=masks, log=log)
+                res2, info2 = register_masked(masks)
             except ValueError as e:
                 if log:
                     log(f"registration without the masked pixels failed ({str(e)[:200]}); keeping the previous one")
                 break
+            finally:
+                sfm_seconds += time.perf_counter() - t_sfm
             weaker = sorted(set(res2.weak_frames) - set(res.weak_frames))
             if weaker:  # the masks took too much of these frames: their poses would rest on a few points
                 if log:
                     log(f"registration without the masked pixels leaves frames {weaker} weakly constrained; keeping "
                         "the previous one")
                 break
-            res = res2
+            res, sfm_info = res2, info2
             masks, mask_info = _masks(res)
+        sfm_points = len(res.points)
         res = _drop_points(res, mask_info["static_points"])
         if log:
             log(f"motion masks: {100 * float(np.mean(mask_info['moving_fraction'])):.1f}% of pixels moving on average")
+    else:
+        sfm_points = len(res.points)
     # scene scale: 95th percentile of the sparse points' depths in their frames
     z = np.einsum("oij,oj->oi", res.cam_T_world[res.obs_frame, :3, :3], res.points[res.obs_point])[:, 2] \
         + res.cam_T_world[res.obs_frame, 2, 3]
@@ -223,11 +276,15 @@ def import_video(source, out, config: ImportConfig = None, overwrite=False, log=
         "source": str(source), "frames": N, "size": [W, H], "source_frames": dec.source_index,
         "source_names": dec.names, "fps": dec.fps, "focal_px": float(res.K[0, 0]),
         "focal_given": cfg.focal is not None, "rotation_only": res.rotation_only,
-        "init_pair": list(res.init_pair), "init_parallax_deg": res.init_parallax_deg,
+        "init_pair": None if res.init_pair is None else list(res.init_pair),
+        "init_parallax_deg": res.init_parallax_deg,
         "reprojection_rms_px": res.reprojection_rms_px, "num_points": int(len(res.points)),
         "keypoints_per_frame": res.num_keypoints.tolist(), "observations_per_frame": res.num_observations.tolist(),
         "weak_frames": res.weak_frames, "moving_fraction": mask_info.get("moving_fraction"),
         "static_motion": motion_info,
+        "sfm": {"backend": "classical" if backend is None else backend.name, "registered_frames": N,
+                "reprojection_rms_px": res.reprojection_rms_px, "points": int(sfm_points),
+                "seconds": sfm_seconds, **sfm_info},
         "seconds": time.perf_counter() - t0, "log": res.log,
         "config": {k: v for k, v in asdict(cfg).items() if k not in ("sfm", "mask")},
     }

@@ -52,7 +52,7 @@ from d2gs_np.scene.initialize import triangulate_matches
 from d2gs_np.pose.bundle import BundleProblem, bundle_adjust, params_to_poses, poses_to_params
 from d2gs_np.pose.tracks import klt_tracks
 
-__all__ = ["SfmConfig", "SfmResult", "register_video", "build_tracks", "NoParallaxError"]
+__all__ = ["SfmConfig", "SfmResult", "register_video", "build_tracks", "fix_gauge", "NoParallaxError"]
 
 
 class NoParallaxError(ValueError):
@@ -283,6 +283,19 @@ def _check_tracks(tracks, N):
     return obs_frame, obs_track, obs_uv, int(T), nkp
 
 
+def fix_gauge(cam_T_world, points, obs_frame, obs_point):
+    """The registration's gauge (module docstring): frame 0 at the identity and the median depth of
+    the points in their observing frames 1. cam_T_world (N, 4, 4), points (P, 3), obs_frame and
+    obs_point (O,); returns new (cam_T_world, points)."""
+    T0 = cam_T_world[0].copy()
+    poses = cam_T_world @ np.linalg.inv(T0)
+    pts = points @ T0[:3, :3].T + T0[:3, 3]
+    depths = np.einsum("oij,oj->oi", poses[obs_frame, :3, :3], pts[obs_point])[:, 2] + poses[obs_frame, 2, 3]
+    s = 1.0 / float(np.median(depths))
+    poses[:, :3, 3] *= s
+    return poses, pts * s
+
+
 def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks=None, log=print,
                    tracks=None) -> SfmResult:
     """Camera poses, refined intrinsics and sparse points of a frame sequence (module docstring).
@@ -502,14 +515,7 @@ def register_video(images, K, config: SfmConfig = None, refine_focal=True, masks
         cols = np.zeros((len(pts), 3))
         np.add.at(cols, o_p, _sample_colors(images, o_f, o_uv))
         cols /= np.maximum(np.bincount(o_p, minlength=len(pts)), 1)[:, None]
-        # gauge: frame 0 at the identity, median point depth 1
-        T0 = poses[0].copy()
-        poses = poses @ np.linalg.inv(T0)
-        pts = pts @ T0[:3, :3].T + T0[:3, 3]
-        depths = np.einsum("oij,oj->oi", poses[o_f, :3, :3], pts[o_p])[:, 2] + poses[o_f, 2, 3]
-        s = 1.0 / float(np.median(depths))
-        pts = pts * s
-        poses[:, :3, 3] *= s
+        poses, pts = fix_gauge(poses, pts, o_f, o_p)
         if not 0.5 <= K[0, 0] / K_start[0, 0] <= 2.0:
             raise ValueError(f"the focal length drifted to {K[0, 0]:.1f} px from {K_start[0, 0]:.1f} px")
         say(f"registered all {N} frames: {len(pts)} points, reprojection rms {rms:.2f} px; "
