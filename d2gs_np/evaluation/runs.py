@@ -123,6 +123,13 @@ def evaluate(run: LoadedRun, scene, test_pose_steps: int = 0) -> dict:
             out.update(_trajectory_and_nvs(run, scene, mids, test_pose_steps))
         except ValueError as e:  # e.g. a camera that never moves: no Sim(3) alignment exists
             out["trajectory"] = {"skipped": str(e)}
+    elif scene.test_frames and len(frames) >= 3:
+        # no true poses: test views in the given poses' frame (e.g. a stereo benchmark's other camera)
+        try:
+            out.update(_novel_views(run, scene, mids, run.model.poses_est, test_pose_steps))
+            out["nvs"]["aligned_to"] = "given poses"
+        except ValueError as e:
+            out["nvs"] = {"skipped": str(e)}
     out["train_seconds"] = float(run.meta["seconds"])
     out["steps"] = int(run.meta["step"])
     out["num_gaussians"] = int(model.num_gaussians())
@@ -175,28 +182,38 @@ def _trajectory_and_nvs(run: LoadedRun, scene, mids, test_pose_steps=0) -> dict:
                                                 "rpe_r": float(rpe_rb),
                                                 "scale": float(metrics.align_trajectory(P0, gt)[0])}
     if scene.test_frames:
-        # Test views are given in the true frame; the similarity aligning our trajectory to the
-        # truth, inverted, carries them into the reconstruction's frame. It is fitted on camera
-        # centres AND orientations: a hand-held path is close to a line or an arc, about which
-        # centres alone leave the rotation undetermined (ATE keeps the centres-only protocol).
-        s, R, t = metrics.sim3_inverse(*align_with_orientations(mids, gt, scene.scene_scale))
-        pairs, fitted, moves = [], [], []
-        model = run.model
-        for f in scene.test_frames:
-            pose = metrics.sim3_apply_to_poses(s, R, t, f.cam_T_world)
-            pairs.append((model.render(pose, f.time, f.K, f.width, f.height), f.image))
-            if test_pose_steps > 0:
-                scene_params = {n: v for n, v in model.params.items() if n.startswith(SCENE_PREFIXES)}
-                ri, _ = render_inputs_fwd(scene_params, float(f.time), model.config.deform)
-                pose_fit, info = fit_pose(ri, pose, f.K, f.width, f.height, f.image, model.background,
-                                          PoseFitConfig(steps=int(test_pose_steps)), model.config.render)
-                fitted.append((model.render(pose_fit, f.time, f.K, f.width, f.height), f.image))
-                moves.append((float(np.linalg.norm(info["xi"][3:])), float(np.linalg.norm(info["xi"][:3]))))
-        out["nvs"] = {**_image_metrics(pairs), **_split_psnr(pairs, [f.mask for f in scene.test_frames])}
-        if fitted:
-            out["nvs_pose_opt"] = {**_image_metrics(fitted), "steps": int(test_pose_steps),
-                                   "mean_rotation_deg": float(np.degrees(np.mean([m[0] for m in moves]))),
-                                   "mean_translation": float(np.mean([m[1] for m in moves]))}
+        out.update(_novel_views(run, scene, mids, gt, test_pose_steps))
+    return out
+
+
+def _novel_views(run: LoadedRun, scene, mids, reference, test_pose_steps=0) -> dict:
+    """``nvs`` (and ``nvs_pose_opt``) of the scene's test views, given in the frame of the
+    ``reference`` poses (N, 4, 4) of the training frames: the true ones, or the given ones for a
+    scene without ground-truth poses whose test views share the given poses' frame (a stereo
+    benchmark's second camera, docs/dataset_format.md §11)."""
+    out = {}
+    # The similarity aligning our trajectory to the reference, inverted, carries the test views
+    # into the reconstruction's frame. It is fitted on camera centres AND orientations: a
+    # hand-held path is close to a line or an arc, about which centres alone leave the rotation
+    # undetermined (ATE keeps the centres-only protocol).
+    s, R, t = metrics.sim3_inverse(*align_with_orientations(mids, reference, scene.scene_scale))
+    pairs, fitted, moves = [], [], []
+    model = run.model
+    for f in scene.test_frames:
+        pose = metrics.sim3_apply_to_poses(s, R, t, f.cam_T_world)
+        pairs.append((model.render(pose, f.time, f.K, f.width, f.height), f.image))
+        if test_pose_steps > 0:
+            scene_params = {n: v for n, v in model.params.items() if n.startswith(SCENE_PREFIXES)}
+            ri, _ = render_inputs_fwd(scene_params, float(f.time), model.config.deform)
+            pose_fit, info = fit_pose(ri, pose, f.K, f.width, f.height, f.image, model.background,
+                                      PoseFitConfig(steps=int(test_pose_steps)), model.config.render)
+            fitted.append((model.render(pose_fit, f.time, f.K, f.width, f.height), f.image))
+            moves.append((float(np.linalg.norm(info["xi"][3:])), float(np.linalg.norm(info["xi"][:3]))))
+    out["nvs"] = {**_image_metrics(pairs), **_split_psnr(pairs, [f.mask for f in scene.test_frames])}
+    if fitted:
+        out["nvs_pose_opt"] = {**_image_metrics(fitted), "steps": int(test_pose_steps),
+                               "mean_rotation_deg": float(np.degrees(np.mean([m[0] for m in moves]))),
+                               "mean_translation": float(np.mean([m[1] for m in moves]))}
     return out
 
 

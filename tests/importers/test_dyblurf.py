@@ -179,3 +179,18 @@ def test_bad_folders_are_refused_before_any_work(stereo, tmp_path, capsys):
     (bad / "sharp_images" / "00003.png").unlink()
     _refused(["import-dyblurf", bad, out], capsys, "sharp_images", "5 images", "6 stereo pairs")
     assert not out.exists()
+
+
+def test_an_imported_benchmark_scene_trains_and_scores_deblurring_and_novel_views(stereo, tmp_path):
+    # the benchmark's protocol: deblurring against sharp_images, novel views against the right
+    # camera's inference_images, placed through the given (COLMAP) poses: there are no true ones
+    folder, *_ = stereo
+    scene, run = tmp_path / "scene", tmp_path / "run"
+    assert main(["import-dyblurf", str(folder), str(scene)]) == 0
+    assert main(["train", str(scene), "--out", str(run), "--iters", "4", "--quiet"]) == 0
+    assert main(["eval", str(run)]) == 0
+    m = json.loads((run / "metrics.json").read_text())
+    assert "trajectory" not in m  # no true poses to score a trajectory against
+    assert np.isfinite(m["dvs"]["psnr"]) and np.isfinite(m["input_blur"]["psnr"])
+    assert m["nvs"]["aligned_to"] == "given poses" and m["nvs"]["num_images"] == len(load_scene(scene).test_frames)
+    assert 5.0 < m["nvs"]["psnr"] < 60.0
