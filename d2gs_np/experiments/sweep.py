@@ -343,6 +343,9 @@ def flatten(m: dict) -> dict:
         "dvs_psnr": g("dvs", "psnr"), "dvs_ssim": g("dvs", "ssim"), "input_psnr": g("input_blur", "psnr"),
         "input_ssim": g("input_blur", "ssim"), "nvs_psnr": g("nvs", "psnr"), "nvs_ssim": g("nvs", "ssim"),
         "dvs_flip": g("dvs", "flip"), "input_flip": g("input_blur", "flip"), "nvs_flip": g("nvs", "flip"),
+        "dvs_moving_psnr": g("dvs", "moving_psnr"), "input_moving_psnr": g("input_blur", "moving_psnr"),
+        "dvs_static_psnr": g("dvs", "static_psnr"), "input_static_psnr": g("input_blur", "static_psnr"),
+        "nvs_moving_psnr": g("nvs", "moving_psnr"),
         "ate": g("trajectory", "ate"), "ate_initial": g("trajectory", "initial", "ate"),
         "ate_bundle": g("trajectory", "bundle_adjusted", "ate"),
         "num_gaussians": g("num_gaussians"), "steps": g("steps"), "train_seconds": g("train_seconds"),
@@ -437,14 +440,16 @@ def _fmt(x, spec=".2f"):
 
 
 def table(records) -> str:
-    lines = ["| scene | seed | variant | status | input dB | DVS PSNR dB | DVS SSIM | DVS FLIP | NVS PSNR dB | "
-             "NVS SSIM | ATE initial -> trained | Gaussians | steps | train s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+    lines = ["| scene | seed | variant | status | input dB | DVS PSNR dB | DVS SSIM | DVS FLIP | moving px: input -> DVS dB | "
+             "static px: input -> DVS dB | NVS PSNR dB | NVS SSIM | ATE initial -> trained | Gaussians | steps | train s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in records:
         status = r["status"] if r["status"] == "ok" else f"FAILED: {r.get('error', '')}"
         lines.append(
             f"| {r['scene']} | {r['seed']} | {r['variant']} | {status} | {_fmt(r.get('input_psnr'))} | "
             f"{_fmt(r.get('dvs_psnr'))} | {_fmt(r.get('dvs_ssim'), '.3f')} | {_fmt(r.get('dvs_flip'), '.4f')} | "
+            f"{_fmt(r.get('input_moving_psnr'))} -> {_fmt(r.get('dvs_moving_psnr'))} | "
+            f"{_fmt(r.get('input_static_psnr'))} -> {_fmt(r.get('dvs_static_psnr'))} | "
             f"{_fmt(r.get('nvs_psnr'))} | "
             f"{_fmt(r.get('nvs_ssim'), '.3f')} | {_fmt(r.get('ate_initial'), '.4f')} -> {_fmt(r.get('ate'), '.4f')} | "
             f"{_fmt(r.get('num_gaussians'), 'd')} | {_fmt(r.get('steps'), 'd')} | {_fmt(r.get('train_seconds'), '.0f')} |")

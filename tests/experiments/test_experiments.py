@@ -191,3 +191,14 @@ def test_cells_sharing_a_scene_never_read_it_half_written(tmp_path):
     assert not errors, errors
     assert len(set(folders)) == 1 and ex.scene_done_marker(folders[0]).exists()
     assert not [p.name for p in folders[0].parent.iterdir() if ".tmp-" in p.name]
+
+
+def test_the_table_shows_the_moving_and_the_static_pixels_apart():
+    from d2gs_np.experiments.sweep import flatten, table
+
+    metrics = {"dvs": {"psnr": 27.0, "moving_psnr": 21.25, "static_psnr": 28.5},
+               "input_blur": {"psnr": 26.0, "moving_psnr": 22.75, "static_psnr": 26.5}, "nvs": {"moving_psnr": 18.0}}
+    row = flatten(metrics)
+    assert (row["dvs_moving_psnr"], row["input_static_psnr"], row["nvs_moving_psnr"]) == (21.25, 26.5, 18.0)
+    line = table([dict(scene="s", seed=0, variant="v", status="ok", **row)]).splitlines()[2]
+    assert "22.75 -> 21.25" in line and "26.50 -> 28.50" in line
