@@ -57,3 +57,16 @@ def test_comparison_strip_shape():
     a = np.zeros((4, 5, 3))
     s = comparison_strip([[a, a, a], [a, a, a]])
     assert s.shape == (4 * 2 + 2, 5 * 3 + 2 * 2, 3)
+
+
+def test_mover_crop_frames_the_moving_pixels_with_a_margin():
+    from d2gs_np.reporting.html import mover_crop
+
+    mask = np.zeros((40, 60), bool)
+    mask[10:18, 50:58] = True  # 8 x 8 near the right border
+    img = np.random.default_rng(0).uniform(size=(40, 60, 3))
+    crops, (y0, y1, x0, x1) = mover_crop(mask, [img, 1 - img], pad=0.25, zoom=2)
+    assert (y0, y1, x0, x1) == (8, 20, 48, 60)  # 2 px each side, clipped at the right border
+    assert crops[0].shape == (24, 24, 3) and np.array_equal(crops[0][::2, ::2], img[8:20, 48:60])
+    assert np.array_equal(crops[1][::2, ::2], 1 - img[8:20, 48:60])
+    assert mover_crop(np.zeros((4, 4), bool), [img]) == (None, None)

@@ -87,6 +87,23 @@ def zoom_crop(reference, images, fraction=_CROP_FRACTION, zoom=_ZOOM):
     return crops, (y0, x0, side)
 
 
+def mover_crop(mask, images, pad=0.25, zoom=_ZOOM):
+    """The same crop of each image around the moving pixels of ``mask`` (H, W) bool: their bounding
+    box grown by ``pad`` of its size on every side (clipped to the image), enlarged ``zoom`` times
+    by pixel repetition. Returns (list of crops, (y0, y1, x0, x1)); (None, None) when nothing moves."""
+    mask = np.asarray(mask, bool)
+    if not mask.any():
+        return None, None
+    ys, xs = np.nonzero(mask)
+    h, w = mask.shape
+    py = int(np.ceil(pad * (ys.max() - ys.min() + 1)))
+    px = int(np.ceil(pad * (xs.max() - xs.min() + 1)))
+    y0, y1 = max(0, ys.min() - py), min(h, ys.max() + 1 + py)
+    x0, x1 = max(0, xs.min() - px), min(w, xs.max() + 1 + px)
+    crops = [np.repeat(np.repeat(np.asarray(im)[y0:y1, x0:x1], zoom, 0), zoom, 1) for im in images]
+    return crops, (int(y0), int(y1), int(x0), int(x1))
+
+
 # ------------------------------------------------------------------ gathering a run
 def _gather(run_dir, num_frames):
     run_dir = Path(run_dir)
@@ -106,6 +123,13 @@ def _gather(run_dir, num_frames):
         f = scene.frames[int(k)]
         render = model.render(mids[k], f.time, f.K, f.width, f.height)
         frames.append({"k": int(k), "input": f.image, "render": render, "sharp": f.sharp})
+    mover = None
+    areas = [0 if f.mask is None else int(np.count_nonzero(f.mask)) for f in scene.frames]
+    if max(areas) > 0:  # the frame where the movers cover most pixels: blurry / ours / truth around them
+        k = int(np.argmax(areas))
+        f = scene.frames[k]
+        mover = {"k": k, "mask": f.mask, "input": f.image, "sharp": f.sharp,
+                 "render": model.render(mids[k], f.time, f.K, f.width, f.height)}
     novel = []
     if scene.test_frames and scene.has_gt_poses and len(scene.frames) >= 3:
         from d2gs_np.evaluation.runs import align_with_orientations
@@ -120,7 +144,7 @@ def _gather(run_dir, num_frames):
     if lpath.exists():
         notes = json.loads(lpath.read_text()).get("notes", [])
     gt = np.stack([f.gt_cam_T_world for f in scene.frames]) if scene.has_gt_poses else None
-    return {"dir": run_dir, "name": run_dir.name, "result": result, "frames": frames, "novel": novel,
+    return {"dir": run_dir, "name": run_dir.name, "result": result, "frames": frames, "novel": novel, "mover": mover,
             "notes": notes, "poses_est": model.poses_est, "mids": mids, "gt": gt}
 
 
@@ -293,6 +317,17 @@ def _pictures(r):
         row += "".join(_img(png_data_uri(c), f"zoom x{_ZOOM} at ({x0}, {y0}), {side} px: {n}")
                        for c, n in zip(crops, names))
         parts.append(f'<div class="row">{row}</div>')
+    m = r.get("mover")
+    if m is not None:
+        ims = [m["input"], m["render"]] + ([m["sharp"]] if m["sharp"] is not None else [])
+        names = ["blurry input", "deblurred render", "sharp truth"][:len(ims)]
+        scores = [""] * len(ims)
+        if m["sharp"] is not None:
+            scores[:2] = [f", moving pixels {metrics.psnr(im, m['sharp'], mask=m['mask']):.2f} dB" for im in ims[:2]]
+        crops, (y0, y1, x0, x1) = mover_crop(m["mask"], ims)
+        parts.append('<div class="row">' + "".join(
+            _img(png_data_uri(c), f"largest mover, frame {m['k']}, rows {y0}-{y1}, columns {x0}-{x1}: {n}{sc}")
+            for c, n, sc in zip(crops, names, scores)) + "</div>")
     for i, nv in enumerate(r["novel"]):
         p = metrics.psnr(nv["render"], nv["truth"])
         parts.append('<div class="row">' + _img(png_data_uri(nv["render"]), f"novel view {i}: render ({p:.2f} dB)")
