@@ -291,9 +291,10 @@ class Trainer:
                 raise TrainingInterrupted(f"checkpoint of step {self.step_index} written to {self._saved_path}",
                                           self.step_index, self._saved_path)
             if out_of_time:
-                self.log.note(f"time budget of {budget:.0f}s reached at step {self.step_index} (schedule step "
-                              f"{sched} of {total}: schedule complete); stopping")
                 break
+        if budget is not None and self.stopwatch.seconds() >= budget:
+            self.log.note(f"time budget of {budget:.0f}s reached at step {self.step_index} (schedule step "
+                          f"{self.state.sched} of {total}: schedule complete); stopping")
         self.checkpoint(final=True)
         return self.state.record
 

@@ -140,7 +140,8 @@ def test_case7_outlier_camera_is_refused_far_one_warned(base, tmp_path, capsys):
 
 # ------------------------------------------------------------------ case 8: masks
 def _rewrite_masks(scene, fn):
-    for p in sorted((scene / "masks").glob("*.png")):
+    # every mask of the scene, the training frames' and the test views' (one encoding per scene)
+    for p in sorted(q for q in scene.rglob("*.png") if q.parent.name == "masks"):
         cv2.imwrite(str(p), fn(cv2.imread(str(p), cv2.IMREAD_GRAYSCALE)))
 
 
