@@ -22,7 +22,6 @@ model.
 """
 from __future__ import annotations
 
-import json
 import struct
 import time
 from dataclasses import dataclass, field
@@ -35,13 +34,12 @@ from d2gs_np.data.io import write_scene
 from d2gs_np.data.scene import Frame, Scene
 from d2gs_np.geometry.camera import make_intrinsics
 from d2gs_np.geometry.quaternion import quat_to_rotmat, rotmat_to_quat
-from d2gs_np.importers.folders import check_out_folder, read_rgb
+from d2gs_np.importers.folders import REPORT_FILE, write_report, check_out_folder, read_rgb
 
 __all__ = ["CAMERA_MODELS", "SUPPORTED_MODELS", "ColmapCamera", "ColmapImage", "ColmapModel", "find_model",
            "read_model", "write_model", "colmap_to_cam_T_world", "cam_T_world_to_colmap", "camera_intrinsics",
            "undistort_image", "import_colmap", "REPORT_FILE"]
 
-REPORT_FILE = "import_report.json"
 # COLMAP's camera models: id -> (name, number of parameters) (src/colmap/sensor/models.h)
 CAMERA_MODELS = {
     0: ("SIMPLE_PINHOLE", 3), 1: ("PINHOLE", 4), 2: ("SIMPLE_RADIAL", 4), 3: ("RADIAL", 5), 4: ("OPENCV", 8),
@@ -495,9 +493,7 @@ def import_colmap(sparse_dir, images_dir, out, overwrite=False, log=print) -> di
         "poses": "COLMAP world-to-camera (OpenCV axes) taken as cam_T_world unchanged",
         "seconds": time.perf_counter() - t0,
     }
-    with open(out / REPORT_FILE, "w", encoding="utf-8") as fh:
-        json.dump(report, fh, indent=2)
-        fh.write("\n")
+    write_report(out, report)
     if log:
         log(f"wrote {N} frames ({len(model.cameras)} camera(s), {len(undistorted)} undistorted) and "
             f"{len(model.point_ids)} sparse points from the COLMAP model in {folder} to {out} "

@@ -26,7 +26,6 @@ centre of a pinhole camera and stores only f.
 """
 from __future__ import annotations
 
-import json
 import time
 from pathlib import Path
 
@@ -37,11 +36,11 @@ from d2gs_np.data.scene import Frame, Scene
 from d2gs_np.geometry.camera import camera_center, make_intrinsics
 from d2gs_np.geometry.se3 import nearest_rigid, se3_inverse
 from d2gs_np.importers.colmap import find_model, read_model
-from d2gs_np.importers.folders import check_out_folder, list_images, read_grey, read_rgb, resize_to
+from d2gs_np.importers.folders import (REPORT_FILE, check_out_folder, list_images, read_grey, read_rgb, resize_to,
+                                       write_report)
 
 __all__ = ["llff_to_cam_T_world", "cam_T_world_to_llff", "import_dyblurf", "image_folder_name", "REPORT_FILE"]
 
-REPORT_FILE = "import_report.json"
 POSES_FILE = "poses_bounds.npy"
 _ASPECT_SLACK_PX = 1.0  # a resized folder's width may differ by rounding from w H / h (LLFF rounds it)
 
@@ -194,9 +193,7 @@ def import_dyblurf(folder, out, size=None, overwrite=False, log=print) -> dict:
         "poses": "LLFF [down, right, backwards] camera-to-world -> OpenCV cam_T_world = inv([c1, c0, -c2 | t])",
         "seconds": time.perf_counter() - t0,
     }
-    with open(out / REPORT_FILE, "w", encoding="utf-8") as fh:
-        json.dump(report, fh, indent=2)
-        fh.write("\n")
+    write_report(out, report)
     if log:
         log(f"wrote {n} left frames ({W}x{H}, {img_dir}), {len(tests)} right-camera test views"
             f"{', sharp frames' if sharp is not None else ''}{', motion masks' if masks is not None else ''} to {out} "

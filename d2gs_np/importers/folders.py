@@ -8,6 +8,8 @@ guessed background.
 """
 from __future__ import annotations
 
+import json
+import os
 from pathlib import Path
 
 import cv2
@@ -84,3 +86,15 @@ def resize_to(img, width, height, nearest=False) -> np.ndarray:
         return img
     interp = cv2.INTER_NEAREST if nearest else cv2.INTER_AREA
     return cv2.resize(img, (int(width), int(height)), interpolation=interp)
+
+
+REPORT_FILE = "import_report.json"
+
+
+def write_report(out, report: dict) -> Path:
+    """Write an importer's report to OUT/import_report.json atomically (a reader never sees half)."""
+    path = Path(out) / REPORT_FILE
+    tmp = path.with_name(path.name + ".tmp")
+    tmp.write_text(json.dumps(report, indent=2) + "\n", encoding="utf-8")
+    os.replace(tmp, path)
+    return path
