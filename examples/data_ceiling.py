@@ -1,21 +1,21 @@
 """How well can any view-consistent model score against a suite scene's sharp frames?
 
-A suite scene's sharp frames are ray-cast with ``SuiteConfig.supersample`` (2) x 2 samples per
-pixel from bilinear texture lookups, without mip-maps. Where a photograph's texture is finer
-than that sampling (a gravel floor seen at a grazing angle), each frame's pixels are an aliased
-few samples of it: the pattern depends on the camera's sub-pixel position, so it differs from
-frame to frame. A 3D scene rendered consistently into every view cannot follow it: it can at best
-render each pixel's area-filtered colour.
+A suite scene's sharp frames are ray-cast with ``SuiteConfig.supersample`` x supersample samples
+per pixel from bilinear texture lookups, without mip-maps (8 x 8 since #39; 2 x 2 before). Where a
+photograph's texture is finer than that sampling (a gravel floor seen at a grazing angle), each
+frame's pixels are an aliased few samples of it: the pattern depends on the camera's sub-pixel
+position, so it differs from frame to frame. A 3D scene rendered consistently into every view
+cannot follow it: it can at best render each pixel's area-filtered colour.
 
-This script renders every frame's view again at ``--supersample`` (default 8) x 8 samples per
-pixel (a closer approximation of that area-filtered colour) and scores it against the scene's
+This script renders every frame's view again at ``--supersample`` (default 16) x 16 samples per
+pixel (a close approximation of that area-filtered colour) and scores it against the scene's
 stored sharp frames, as ``d2gs eval`` scores a run (mean over frames of the per-frame PSNR,
 ``metrics.psnr``). That is about the best a view-consistent reconstruction can score there: a
 ceiling set by the data, not by the method. It also scores the pixels of the bottom
 ``--bottom`` share of the image rows apart (the suite's floors).
 
     python examples/data_ceiling.py runs/suite/scenes/wall_disk_s0_sharp [more scene folders] \\
-        [--supersample 8] [--every 1] [--out ceiling.csv]
+        [--supersample 16] [--every 1] [--out ceiling.csv]
 
 Each folder must hold the ``suite_config.json`` that ``d2gs make-scene`` writes beside a suite
 scene (the world is rebuilt from it).
@@ -32,7 +32,7 @@ from pathlib import Path
 import numpy as np
 
 
-def ceiling(scene_dir, supersample=8, bottom=0.3, every=1):
+def ceiling(scene_dir, supersample=16, bottom=0.3, every=1):
     """Dict: scene, frames, psnr (mean over frames), psnr_bottom, psnr_top, seconds, for the views
     of the folder's frames (every ``every``-th) rendered at ``supersample`` against its stored sharp
     frames."""
@@ -73,7 +73,7 @@ def ceiling(scene_dir, supersample=8, bottom=0.3, every=1):
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("scenes", nargs="+", help="suite scene folders (with suite_config.json)")
-    ap.add_argument("--supersample", type=int, default=8, help="samples per pixel side of the re-render (8)")
+    ap.add_argument("--supersample", type=int, default=16, help="samples per pixel side of the re-render (16)")
     ap.add_argument("--bottom", type=float, default=0.3, help="share of the image rows scored apart (0.3)")
     ap.add_argument("--every", type=int, default=1, help="score every k-th frame (1: all)")
     ap.add_argument("--out", help="also write the table as CSV here")

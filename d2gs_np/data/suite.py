@@ -52,7 +52,7 @@ from pathlib import Path
 
 import numpy as np
 
-from d2gs_np.base.checks import check_choice, check_int, check_number
+from d2gs_np.base.checks import check_bool, check_choice, check_int, check_number
 from d2gs_np.data.camera_paths import as_times, eval_sines, fov_intrinsics, random_sines, shaken_look_at
 from d2gs_np.data.raycast import cast_depth, cast_view
 from d2gs_np.data.scene import Scene
@@ -206,7 +206,13 @@ class SuiteConfig:
     num_frames: int = 24
     exposure_fraction: float = 0.7  # exposure / frame interval in [0, 1]; 0 = sharp video
     subframes: int = 16
-    supersample: int = 2
+    # Area sampling (docs/method.md §10): sharp frames and test views cast supersample^2 rays per pixel;
+    # each blur sub-frame casts blur_supersample^2, shifted within their cells per sub-frame when
+    # stratify is on (16 sub-frames x 2 x 2 -> 8 x 8 positions per pixel over the exposure).
+    # The suite before #39 is supersample=2, blur_supersample=2, stratify=False.
+    supersample: int = 8
+    blur_supersample: int = 2
+    stratify: bool = True
     pan: float = 0.8  # sideways camera travel over the clip (world units)
     yaw_deg: float = 30.0  # the camera turns this much (degrees, about the vertical) over the clip
     shake: float = 1.0  # hand-shake amplitude scale (0 = tripod-smooth path)
@@ -226,6 +232,8 @@ class SuiteConfig:
         check_int(self.num_frames, "SuiteConfig.num_frames", 2)
         check_int(self.subframes, "SuiteConfig.subframes", 1)
         check_int(self.supersample, "SuiteConfig.supersample", 1)
+        check_int(self.blur_supersample, "SuiteConfig.blur_supersample", 1)
+        check_bool(self.stratify, "SuiteConfig.stratify")
         check_int(self.num_test_views, "SuiteConfig.num_test_views", 0, self.num_frames, hint="at most num_frames")
         check_int(self.seed, "SuiteConfig.seed", 0)
         check_number(self.exposure_fraction, "SuiteConfig.exposure_fraction", 0.0, 1.0)
@@ -483,10 +491,11 @@ def _cast(world: SuiteWorld, origin, dirs, t):
     return rgb, depth, pid >= len(world.patches)
 
 
-def render_suite_view(world: SuiteWorld, cam_T_world, t, K, width, height, supersample=2):
-    """Sharp ray-cast image (H, W, 3) and moving-pixel mask (H, W) at a pose and time."""
+def render_suite_view(world: SuiteWorld, cam_T_world, t, K, width, height, supersample=8, offset=(0.0, 0.0)):
+    """Sharp ray-cast image (H, W, 3) and moving-pixel mask (H, W) at a pose and time
+    (``raycast.cast_view``: supersample^2 rays per pixel, shifted by ``offset`` within their cells)."""
     return cast_view(lambda origin, dirs: _cast(world, origin, dirs, float(t)), cam_T_world, K, width, height,
-                     supersample)
+                     supersample, offset)
 
 
 def suite_depth_map(world: SuiteWorld, cam_T_world, t, K, width, height):
@@ -591,9 +600,10 @@ def generate_suite(config: SuiteConfig) -> Scene:
     est = gt.copy() if exact else se3_exp(delta) @ gt
     scene = render_clip(
         lambda t: suite_camera_pose(world, t),
-        lambda T, t, K, W, H, ss: render_suite_view(world, T, t, K, W, H, ss),
+        lambda T, t, K, W, H, ss, offset=(0.0, 0.0): render_suite_view(world, T, t, K, W, H, ss, offset),
         times=times, tau=tau, subframes=config.subframes, est_poses=est, K=_intrinsics(config),
         width=config.width, height=config.height, supersample=config.supersample,
+        blur_supersample=config.blur_supersample, stratify=config.stratify,
         num_test_views=config.num_test_views, test_offset=config.test_offset_fraction * world.depth,
         exposure_fraction=config.exposure_fraction, scene_scale=world.depth)
     if exact:

@@ -55,7 +55,7 @@ import numpy as np
 
 from d2gs_np.base.checks import check_bool, check_int, check_number
 from d2gs_np.data.camera_paths import as_times, eval_sines, fov_intrinsics, random_sines, shaken_look_at
-from d2gs_np.data.raycast import cast_depth, cast_view
+from d2gs_np.data.raycast import cast_depth, cast_view, stratified_offsets
 from d2gs_np.data.scene import Frame, Scene
 from d2gs_np.geometry.se3 import se3_exp
 from d2gs_np.geometry.so3 import so3_exp
@@ -565,21 +565,28 @@ def generate(config: SyntheticConfig) -> Scene:
 
 
 def render_clip(camera_pose_fn, render_fn, *, times, tau, subframes, est_poses, K, width, height, supersample,
-                num_test_views, test_offset, exposure_fraction, scene_scale) -> Scene:
+                num_test_views, test_offset, exposure_fraction, scene_scale, blur_supersample=None,
+                stratify=False) -> Scene:
     """Frames of a video of an analytic world, shared by every synthetic scene family.
 
     camera_pose_fn(t (M,)) -> true cam_T_world (M, 4, 4); render_fn(cam_T_world, t, K, W, H,
-    supersample) -> (sharp rgb (H, W, 3), moving (H, W) bool). Blurry frame k is the mean of
-    ``subframes`` sharp sub-frames at t_k + (u_i - 0.5) tau, u_i evenly spaced in [0, 1], with the
+    supersample[, offset]) -> (sharp rgb (H, W, 3), moving (H, W) bool). Blurry frame k is the mean
+    of ``subframes`` sharp sub-frames at t_k + (u_i - 0.5) tau, u_i evenly spaced in [0, 1], with the
     camera and the objects at that time; its mask is the union of the sub-frames' moving pixels.
+    Sharp frames and test views use ``supersample`` rays per pixel side, the sub-frames
+    ``blur_supersample`` (default: the same); with ``stratify`` each sub-frame's rays are shifted
+    within their cells (``raycast.stratified_offsets``, passed as render_fn's ``offset``), so the
+    sub-frames together sample the pixel area as finely as the exposure's time.
     est_poses (N, 4, 4) are the poses the method is given. Test views: sharp renders at
     ``num_test_views`` evenly spaced training times from the true camera moved by +-test_offset
     along its own x axis (alternating sides).
     """
     W, H, ss = width, height, supersample
+    ss_blur = supersample if blur_supersample is None else blur_supersample
     blurred = tau > 0
     S = subframes if blurred else 1
     u = np.linspace(0.0, 1.0, S) if S > 1 else np.array([0.5])
+    offsets = stratified_offsets(S) if stratify else None
     gt = camera_pose_fn(times)
     start = camera_pose_fn(times - 0.5 * tau)
     end = camera_pose_fn(times + 0.5 * tau)
@@ -593,7 +600,8 @@ def render_clip(camera_pose_fn, render_fn, *, times, tau, subframes, est_poses, 
             ts = tk + (u - 0.5) * tau
             sub_poses = camera_pose_fn(ts)
             for i in range(S):
-                img, dyn = render_fn(sub_poses[i], ts[i], K, W, H, ss)
+                extra = (offsets[i],) if stratify else ()
+                img, dyn = render_fn(sub_poses[i], ts[i], K, W, H, ss_blur, *extra)
                 acc += img
                 mask |= dyn
             blurry = acc / S

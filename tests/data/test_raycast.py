@@ -2,7 +2,7 @@
 import numpy as np
 import pytest
 
-from d2gs_np.data.raycast import cast_depth, cast_view, check_view, pixel_rays
+from d2gs_np.data.raycast import cast_depth, cast_view, check_view, pixel_rays, stratified_offsets
 from d2gs_np.geometry.camera import look_at, make_intrinsics, project_points
 
 # Rays and hits are a few float64 operations on O(1-10) values: ~1e-15 relative; 1e-12 leaves
@@ -56,6 +56,46 @@ def test_supersampling_is_the_mean_of_shifted_single_samples():
     assert dyn2.any() and not dyn2.all()  # the mask test can fail both ways
 
 
+@pytest.mark.parametrize("offset", [(0.25, -0.125), (-0.5, 0.5)])
+def test_an_offset_shifts_every_sub_sample_within_its_cell(offset):
+    # an offset (ox, oy) moves sub-sample (a, b) of pixel (i, j) to (j + (a + 0.5 + ox)/s, ...): the
+    # same as casting without offset through a principal point moved by -(ox, oy)/s
+    T, K = _camera()
+    W, H, s = 10, 6, 2
+    img, dyn = cast_view(plane_cast, T, K, W, H, supersample=s, offset=offset)
+    Ks = K.copy()
+    Ks[0, 2] -= offset[0] / s
+    Ks[1, 2] -= offset[1] / s
+    ref, ref_dyn = cast_view(plane_cast, T, Ks, W, H, supersample=s)
+    np.testing.assert_allclose(img, ref, rtol=0, atol=ATOL)
+    assert np.array_equal(dyn, ref_dyn)
+    assert np.abs(img - cast_view(plane_cast, T, K, W, H, supersample=s)[0]).max() > 1e-3  # it moved
+
+
+@pytest.mark.parametrize("count", [1, 4, 9, 16, 5, 20])
+def test_stratified_offsets_put_one_cast_in_each_cell_of_the_finer_grid(count):
+    off = stratified_offsets(count)
+    m = int(np.ceil(np.sqrt(count)))
+    assert off.shape == (count, 2) and np.all(np.abs(off) < 0.5)
+    cells = np.round((off + 0.5) * m - 0.5).astype(int)  # cell (column, row) of each cast
+    np.testing.assert_allclose((cells + 0.5) / m - 0.5, off, rtol=0, atol=1e-15)  # cell centres
+    ids = cells[:, 1] * m + cells[:, 0]
+    first = ids[: min(count, m * m)]
+    assert len(set(first.tolist())) == len(first)  # no cell twice before every cell is used
+    if count == m * m and count > 1:
+        # shuffled: the first half of the casts (early in an exposure) is not one half of the pixel
+        assert 0 < np.sum(off[: count // 2, 1] < 0) < count // 2
+    np.testing.assert_array_equal(off, stratified_offsets(count))  # fixed, not random per call
+
+
+def test_a_stratified_blur_samples_the_pixel_area_as_finely_as_its_casts_together():
+    # 16 casts of 1 sample each, stratified, give exactly the 4 x 4 supersampled image
+    T, K = _camera()
+    W, H = 10, 6
+    acc = sum(cast_view(plane_cast, T, K, W, H, supersample=1, offset=o)[0] for o in stratified_offsets(16))
+    np.testing.assert_allclose(acc / 16, cast_view(plane_cast, T, K, W, H, supersample=4)[0], rtol=0, atol=ATOL)
+
+
 def test_depth_is_the_camera_z_of_the_hit_through_each_pixel_centre():
     T, K = _camera()
     depth = cast_depth(plane_cast, T, K, 9, 5)
@@ -75,6 +115,9 @@ def test_depth_is_the_camera_z_of_the_hit_through_each_pixel_centre():
     (dict(height=True), ValueError, "height must be an integer >= 1"),
     (dict(supersample=0), ValueError, "supersample must be an integer >= 1"),
     (dict(supersample=1.5), ValueError, "supersample must be an integer >= 1"),
+    (dict(offset=(0.6, 0.0)), ValueError, r"offset must be two finite numbers in \[-0.5, 0.5\]"),
+    (dict(offset=(np.nan, 0.0)), ValueError, "offset must be two finite numbers"),
+    (dict(offset=(0.1,)), ValueError, "offset must be two finite numbers"),
 ])
 def test_bad_views_are_rejected_before_any_ray_is_cast(args, exc, match):
     T, K = _camera()
@@ -85,6 +128,6 @@ def test_bad_views_are_rejected_before_any_ray_is_cast(args, exc, match):
 
     with pytest.raises(exc, match=match):
         cast_view(no_cast, **view)
-    if "supersample" not in args:
+    if "supersample" not in args and "offset" not in args:
         with pytest.raises(exc, match=match):
             check_view(view["cam_T_world"], view["K"], view["width"], view["height"])

@@ -7,6 +7,7 @@ import pytest
 
 from d2gs_np.data import suite
 from d2gs_np.data.io import load_scene
+from d2gs_np.data.raycast import stratified_offsets
 from d2gs_np.geometry.camera import project_points
 from d2gs_np.geometry.se3 import se3_inverse, se3_log
 
@@ -101,9 +102,12 @@ def test_blurry_frame_is_the_mean_of_its_subframes():
     tau = cfg.exposure_fraction / (cfg.num_frames - 1)
     ts = tk + (np.linspace(0, 1, cfg.subframes) - 0.5) * tau
     acc = np.zeros((27, 48, 3))
-    for t in ts:
-        acc += suite.render_suite_view(world, suite.suite_camera_pose(world, t), t, K, 48, 27, cfg.supersample)[0]
+    for t, o in zip(ts, stratified_offsets(cfg.subframes)):  # each sub-frame's rays shifted in their cells
+        acc += suite.render_suite_view(world, suite.suite_camera_pose(world, t), t, K, 48, 27, cfg.blur_supersample,
+                                       o)[0]
     np.testing.assert_allclose(scene.frames[k].image, acc / len(ts), atol=RERENDER_ATOL)
+    sharp = suite.render_suite_view(world, suite.suite_camera_pose(world, tk), tk, K, 48, 27, cfg.supersample)[0]
+    np.testing.assert_allclose(scene.frames[k].sharp, sharp, atol=RERENDER_ATOL)
     np.testing.assert_allclose(scene.frames[k].gt_exposure_start, suite.suite_camera_pose(world, ts[0]), atol=1e-12)
 
 
