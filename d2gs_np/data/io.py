@@ -226,7 +226,7 @@ def _top_level_optional(data, where):
 class _Spec:
     """Validated metadata of one frame plus where its files are."""
 
-    __slots__ = ("label", "short", "fields", "image_file", "mask_file", "sharp_file", "rounding")
+    __slots__ = ("label", "short", "fields", "image_file", "mask_file", "sharp_file", "depth_file", "rounding")
 
 
 def _resolve_path(root, rel, label, field):
@@ -297,7 +297,9 @@ def _parse_frame(root, source, index, frame, defaults):
                 f"image (more than {_PRINCIPAL_POINT_MAX_OUTSIDE:g} is refused): give cx, cy in pixels of this "
                 "image (the image centre is w/2, h/2)")
     f["K"] = make_intrinsics(fx, fy, cx, cy)
-    spec.mask_file = spec.sharp_file = None
+    spec.mask_file = spec.sharp_file = spec.depth_file = None
+    if frame.get("depth_file_path") is not None:
+        f["depth_file_path"], spec.depth_file = _resolve_path(root, frame["depth_file_path"], label, "depth_file_path")
     if frame.get("mask_path") is not None:
         f["mask_path"], spec.mask_file = _resolve_path(root, frame["mask_path"], label, "mask_path")
     if frame.get("sharp_file_path") is not None:
@@ -449,6 +451,35 @@ def _check_png(path, label, what, width, height, gray):
         )
 
 
+# ------------------------------------------------------------------ depth maps
+def _check_npy(path, label, width, height):
+    """Existence and .npy header check of a depth map: a 2-D float array of the frame's size."""
+    if path.is_dir():
+        raise ValueError(f"{label}: depth path {path} is a folder, not a .npy file; fix 'depth_file_path' in the JSON")
+    if not path.is_file():
+        raise FileNotFoundError(f"{label}: depth file {path} does not exist; fix 'depth_file_path' in the JSON or "
+                                "add the file")
+    try:
+        with open(path, "rb") as fh:
+            major, _ = np.lib.format.read_magic(fh)
+            read = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
+            shape, _, dtype = read(fh)
+    except (ValueError, OSError) as e:
+        raise ValueError(f"{label}: depth file {path} is not a valid .npy array ({e}); save it with numpy.save") from e
+    if shape != (height, width) or not np.issubdtype(dtype, np.floating):
+        raise ValueError(f"{label}: depth file {path} holds a {dtype} array of shape {shape}; the format needs a float "
+                         f"array of shape (h, w) = ({height}, {width}): camera z per pixel")
+
+
+def _decode_depth(path, label):
+    d = np.load(path, allow_pickle=False).astype(np.float64)
+    bad = np.isnan(d) | (d <= 0) | np.isneginf(d)
+    if np.any(bad):
+        raise ValueError(f"{label}: depth file {path} has {int(bad.sum())} pixel(s) that are NaN or not positive; depth "
+                         "is the camera z of the first surface (> 0), +inf where the ray hits nothing")
+    return d
+
+
 def _decode(path, label, what, gray):
     flags = cv2.IMREAD_GRAYSCALE if gray else cv2.IMREAD_COLOR
     arr = cv2.imread(str(path), flags)
@@ -555,6 +586,8 @@ def load_scene(path, load_images=True) -> Scene:
             _check_png(spec.mask_file, spec.label, "mask", w, h, gray=True)
         if spec.sharp_file is not None:
             _check_png(spec.sharp_file, spec.label, "sharp image", w, h, gray=False)
+        if spec.depth_file is not None:
+            _check_npy(spec.depth_file, spec.label, w, h)
 
     # 3. pixels
     def build(spec):
@@ -565,6 +598,8 @@ def load_scene(path, load_images=True) -> Scene:
                 fr.mask = _decode(spec.mask_file, spec.label, "mask", gray=True)
             if spec.sharp_file is not None:
                 fr.sharp = _decode(spec.sharp_file, spec.label, "sharp image", gray=False)
+            if spec.depth_file is not None:
+                fr.depth = _decode_depth(spec.depth_file, spec.label)
         return fr
 
     frames, test_frames = [build(s) for s in train], [build(s) for s in test]
@@ -587,14 +622,15 @@ def load_scene(path, load_images=True) -> Scene:
 
 
 # --------------------------------------------------------------------- writing
-def _check_out_path(rel, where, field):
+def _check_out_path(rel, where, field, suffix=".png"):
     if not isinstance(rel, str) or not rel:
         raise ValueError(f"{where}: {field} must be a non-empty relative path string; got {rel!r}")
     p = Path(rel)
     if p.is_absolute() or ".." in p.parts:
         raise ValueError(f"{where}: {field} {rel!r} must be a relative path inside the scene folder")
-    if p.suffix.lower() != ".png":
-        raise ValueError(f"{where}: {field} {rel!r} must end in .png (images are written as PNG)")
+    if p.suffix.lower() != suffix:
+        what = "images are written as PNG" if suffix == ".png" else "depth maps are written as .npy"
+        raise ValueError(f"{where}: {field} {rel!r} must end in {suffix} ({what})")
     return p.as_posix()
 
 
@@ -655,6 +691,19 @@ def _plan_frame(fr, where, used):
         srel = _check_out_path(fr.sharp_file_path or f"sharp/{stem}.png", where, "sharp_file_path")
         d["sharp_file_path"] = srel
         writes.append((srel, "rgb", fr.sharp))
+    if fr.depth is not None or fr.depth_file_path is not None:
+        if fr.depth is None:
+            raise ValueError(f"{where}: depth_file_path is set but depth is None; load with load_images=True first")
+        dep = np.asarray(fr.depth)
+        if dep.shape != (h, w) or not np.issubdtype(dep.dtype, np.floating):
+            raise ValueError(f"{where}: depth must be a float array of shape ({h}, {w}); got {dep.dtype} {dep.shape}")
+        if np.any(np.isnan(dep) | (dep <= 0) | np.isneginf(dep)):
+            raise ValueError(f"{where}: depth has NaN or non-positive values; it is camera z (> 0), +inf for no hit")
+        parent = Path(rel).parent
+        default = (parent.parent if parent.name == "images" else parent) / "depth" / f"{stem}.npy"
+        drel = _check_out_path(fr.depth_file_path or default.as_posix(), where, "depth_file_path", ".npy")
+        d["depth_file_path"] = drel
+        writes.append((drel, "depth", dep))
     for r, _, _ in writes:
         if r in used:
             raise ValueError(f"{where}: output path {r!r} is also used by {used[r]}; give each file its own path")
@@ -753,6 +802,9 @@ def write_scene(scene: Scene, path, overwrite=False) -> None:
             for rel, kind, arr in writes:
                 out = root / rel
                 out.parent.mkdir(parents=True, exist_ok=True)
+                if kind == "depth":  # float32: 7 significant digits, far below any depth error measured
+                    np.save(out, np.asarray(arr, dtype=np.float32), allow_pickle=False)
+                    continue
                 if kind == "mask":
                     px = np.where(arr, 255, 0).astype(np.uint8)
                 else:

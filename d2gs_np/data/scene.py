@@ -28,6 +28,10 @@ class Frame:
     mask_path: Optional[str] = None
     sharp: Optional[np.ndarray] = None  # (H, W, 3) ground-truth sharp mid-exposure image
     sharp_file_path: Optional[str] = None
+    # (H, W) float64 true depth: camera z of the first surface through each pixel centre at the
+    # frame's time and true pose; +inf where the ray hits nothing (geometry evaluation)
+    depth: Optional[np.ndarray] = None
+    depth_file_path: Optional[str] = None
     gt_cam_T_world: Optional[np.ndarray] = None  # (4, 4) true mid-exposure pose
     gt_exposure_start: Optional[np.ndarray] = None  # (4, 4) true cam_T_world at exposure start
     gt_exposure_end: Optional[np.ndarray] = None  # (4, 4) true cam_T_world at exposure end
@@ -64,6 +68,10 @@ class Scene:
     @property
     def has_moving_pixels(self) -> bool:
         return self.has_masks and any(bool(np.any(f.mask)) for f in self.frames)
+
+    @property
+    def has_depth(self) -> bool:
+        return bool(self.frames) and all(f.depth is not None for f in self.frames)
 
     @property
     def has_sharp(self) -> bool:

@@ -604,6 +604,7 @@ def generate_suite(config: SuiteConfig) -> Scene:
         times=times, tau=tau, subframes=config.subframes, est_poses=est, K=_intrinsics(config),
         width=config.width, height=config.height, supersample=config.supersample,
         blur_supersample=config.blur_supersample, stratify=config.stratify,
+        depth_fn=lambda T, t, K, W, H: suite_depth_map(world, T, t, K, W, H),
         num_test_views=config.num_test_views, test_offset=config.test_offset_fraction * world.depth,
         exposure_fraction=config.exposure_fraction, scene_scale=world.depth)
     if exact:

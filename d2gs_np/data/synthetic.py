@@ -558,7 +558,8 @@ def generate(config: SyntheticConfig) -> Scene:
         times=times, tau=exposure_length(config), subframes=config.subframes, est_poses=est,
         K=intrinsics(config), width=config.width, height=config.height, supersample=config.supersample,
         num_test_views=config.num_test_views, test_offset=config.test_offset_fraction * SCENE_SCALE,
-        exposure_fraction=config.exposure_fraction, scene_scale=SCENE_SCALE)
+        exposure_fraction=config.exposure_fraction, scene_scale=SCENE_SCALE,
+        depth_fn=lambda T, t, K, W, H: depth_map(world, T, t, K, W, H))
     if config.rot_noise_deg == 0 and config.trans_noise_fraction == 0:
         scene.poses_trusted = True  # the given poses are the true ones (docs/dataset_format.md §4)
     return scene
@@ -566,7 +567,7 @@ def generate(config: SyntheticConfig) -> Scene:
 
 def render_clip(camera_pose_fn, render_fn, *, times, tau, subframes, est_poses, K, width, height, supersample,
                 num_test_views, test_offset, exposure_fraction, scene_scale, blur_supersample=None,
-                stratify=False) -> Scene:
+                stratify=False, depth_fn=None) -> Scene:
     """Frames of a video of an analytic world, shared by every synthetic scene family.
 
     camera_pose_fn(t (M,)) -> true cam_T_world (M, 4, 4); render_fn(cam_T_world, t, K, W, H,
@@ -576,7 +577,8 @@ def render_clip(camera_pose_fn, render_fn, *, times, tau, subframes, est_poses, 
     Sharp frames and test views use ``supersample`` rays per pixel side, the sub-frames
     ``blur_supersample`` (default: the same); with ``stratify`` each sub-frame's rays are shifted
     within their cells (``raycast.stratified_offsets``, passed as render_fn's ``offset``), so the
-    sub-frames together sample the pixel area as finely as the exposure's time.
+    sub-frames together sample the pixel area as finely as the exposure's time. depth_fn(cam_T_world,
+    t, K, W, H) -> (H, W), if given, is each frame's and test view's true depth (``Frame.depth``).
     est_poses (N, 4, 4) are the poses the method is given. Test views: sharp renders at
     ``num_test_views`` evenly spaced training times from the true camera moved by +-test_offset
     along its own x axis (alternating sides).
@@ -612,6 +614,7 @@ def render_clip(camera_pose_fn, render_fn, *, times, tau, subframes, est_poses, 
             file_path=f"images/{name}", time=float(tk), cam_T_world=est_poses[k], K=K.copy(), width=W, height=H,
             image=blurry, mask=mask, mask_path=f"masks/{name}", sharp=sharp, sharp_file_path=f"sharp/{name}",
             gt_cam_T_world=gt[k], gt_exposure_start=start[k], gt_exposure_end=end[k],
+            depth=None if depth_fn is None else depth_fn(gt[k], tk, K, W, H),
         ))
 
     test_frames = []
@@ -626,6 +629,7 @@ def render_clip(camera_pose_fn, render_fn, *, times, tau, subframes, est_poses, 
                 height=H, image=img, gt_cam_T_world=T.copy(),
                 # the view's moving pixels: novel views are scored on them apart (evaluation.runs)
                 mask=np.asarray(moving, dtype=bool), mask_path=f"test/masks/{j:04d}.png",
+                depth=None if depth_fn is None else depth_fn(T, times[k], K, W, H),
             ))
     return Scene(
         frames=frames, test_frames=test_frames, exposure_fraction=float(exposure_fraction),

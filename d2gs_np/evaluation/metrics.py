@@ -27,6 +27,10 @@ Images
 - Masks are (H, W) bool arrays; a masked metric averages over the pixels where
   the mask is True (for SSIM: the True pixels of the interior).
 
+Depth (``depth_errors``): AbsRel and delta < 1.25 of a rendered depth map against the true one,
+over the pixels with a finite positive true depth, in the true depth's units (the caller scales
+a reconstruction's depths into them).
+
 Trajectories: ``ate``, ``rpe`` and the Sim(3) alignment are defined in
 ``d2gs_np.geometry.trajectory`` (so that the pose solver and the video importer, below this layer,
 can use them) and re-exported here.
@@ -37,6 +41,7 @@ from __future__ import annotations
 import numpy as np
 
 from d2gs_np.geometry.camera import project_points
+from d2gs_np.geometry.depth import depth_error_terms
 from d2gs_np.geometry.trajectory import align_trajectory, ate, rpe, sim3_apply_to_poses, sim3_inverse, umeyama
 from d2gs_np.losses.ssim import SSIM_WINDOW, ssim_map
 from d2gs_np.scene.deformation import deform_basis
@@ -46,6 +51,8 @@ __all__ = [
     "ssim",
     "flip",
     "gradient_energy",
+    "depth_error_terms",
+    "depth_errors",
     "lpips",
     "umeyama",
     "align_trajectory",
@@ -186,6 +193,18 @@ def gradient_energy(img):
     if not np.all(np.isfinite(a)):
         raise ValueError("img contains NaN or inf; every pixel must be finite")
     return float(np.mean(np.diff(a, axis=1) ** 2) + np.mean(np.diff(a, axis=0) ** 2))
+
+
+def depth_errors(pred, true, mask=None) -> dict:
+    """AbsRel (mean |pred - true| / true) and delta1 (share of pixels with max(pred/true,
+    true/pred) < 1.25) of a depth map over the scored pixels of ``depth_error_terms``;
+    ``num_pixels`` 0 gives None for both."""
+    if mask is not None:
+        _check_mask(mask, np.shape(true))
+    rel, ratio = depth_error_terms(pred, true, mask)
+    if rel.size == 0:
+        return {"absrel": None, "delta1": None, "num_pixels": 0}
+    return {"absrel": float(rel.mean()), "delta1": float(np.mean(ratio < 1.25)), "num_pixels": int(rel.size)}
 
 
 def lpips(img, ref, *args, **kwargs):

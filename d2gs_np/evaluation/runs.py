@@ -102,11 +102,16 @@ def evaluate(run: LoadedRun, scene, test_pose_steps: int = 0) -> dict:
         raise ValueError(f"the scene's {len(frames)} frames do not match the {model.num_frames} frames (times) the "
                          "run was trained on; evaluate with the scene it was trained on")
     mids = model.mid_poses()
-    renders = [model.render(mids[k], f.time, f.K, f.width, f.height) for k, f in enumerate(frames)]
+    outs = [model.render_outputs(mids[k], f.time, f.K, f.width, f.height) for k, f in enumerate(frames)]
+    renders = [o["image"] for o in outs]
     if scene.has_sharp:
         masks = [f.mask for f in frames]
         pairs = [(r, f.sharp) for r, f in zip(renders, frames)]
         out["dvs"] = {**_image_metrics(pairs), **_split_psnr(pairs, masks)}
+    if scene.has_depth:
+        s = _depth_scale(mids, scene)
+        out.setdefault("dvs", {})["depth"] = _depth_metrics([s * o["expected_depth"] for o in outs],
+                                                            [f.depth for f in frames], [f.mask for f in frames], s)
         pairs = [(f.image, f.sharp) for f in frames]
         out["input_blur"] = {**_image_metrics(pairs), **_split_psnr(pairs, masks)}
     # What can be measured without ground truth: how well the model, blurred as in training,
@@ -197,11 +202,13 @@ def _novel_views(run: LoadedRun, scene, mids, reference, test_pose_steps=0) -> d
     # hand-held path is close to a line or an arc, about which centres alone leave the rotation
     # undetermined (ATE keeps the centres-only protocol).
     s, R, t = metrics.sim3_inverse(*align_with_orientations(mids, reference, scene.scene_scale))
-    pairs, fitted, moves = [], [], []
+    pairs, fitted, moves, depths = [], [], [], []
     model = run.model
     for f in scene.test_frames:
         pose = metrics.sim3_apply_to_poses(s, R, t, f.cam_T_world)
-        pairs.append((model.render(pose, f.time, f.K, f.width, f.height), f.image))
+        o = model.render_outputs(pose, f.time, f.K, f.width, f.height)
+        pairs.append((o["image"], f.image))
+        depths.append(o["expected_depth"] / s)  # s maps the reference's units into ours
         if test_pose_steps > 0:
             scene_params = {n: v for n, v in model.params.items() if n.startswith(SCENE_PREFIXES)}
             ri, _ = render_inputs_fwd(scene_params, float(f.time), model.config.deform)
@@ -210,10 +217,46 @@ def _novel_views(run: LoadedRun, scene, mids, reference, test_pose_steps=0) -> d
             fitted.append((model.render(pose_fit, f.time, f.K, f.width, f.height), f.image))
             moves.append((float(np.linalg.norm(info["xi"][3:])), float(np.linalg.norm(info["xi"][:3]))))
     out["nvs"] = {**_image_metrics(pairs), **_split_psnr(pairs, [f.mask for f in scene.test_frames])}
+    if all(f.depth is not None for f in scene.test_frames):
+        out["nvs"]["depth"] = _depth_metrics(depths, [f.depth for f in scene.test_frames],
+                                             [f.mask for f in scene.test_frames], 1.0 / s)
     if fitted:
         out["nvs_pose_opt"] = {**_image_metrics(fitted), "steps": int(test_pose_steps),
                                "mean_rotation_deg": float(np.degrees(np.mean([m[0] for m in moves]))),
                                "mean_translation": float(np.mean([m[1] for m in moves]))}
+    return out
+
+
+def _depth_scale(mids, scene) -> float:
+    """The factor that carries the reconstruction's depths into the true depths' units: the scale
+    of the similarity aligning our mid poses to the true ones (as the novel views use it); 1
+    without true poses (the given poses' units are then the truth's) or when no alignment exists."""
+    if not scene.has_gt_poses or len(scene.frames) < 3:
+        return 1.0
+    gt = np.stack([f.gt_cam_T_world for f in scene.frames])
+    try:
+        return float(align_with_orientations(mids, gt, scene.scene_scale)[0])
+    except ValueError:
+        return 1.0
+
+
+def _depth_metrics(preds, trues, masks, scale) -> dict:
+    """AbsRel and delta1 (``metrics.depth_errors``) pooled over views (every scored pixel weighs
+    alike), on all, static and moving pixels (``masks``; a view without one is all static), and
+    the ``scale`` the rendered depths were multiplied by."""
+    terms = {"": [], "_static": [], "_moving": []}
+    for p, t, m in zip(preds, trues, masks):
+        moving = np.zeros(np.shape(t), bool) if m is None else np.asarray(m, bool)
+        terms[""].append(metrics.depth_error_terms(p, t))
+        terms["_static"].append(metrics.depth_error_terms(p, t, ~moving))
+        terms["_moving"].append(metrics.depth_error_terms(p, t, moving))
+    out = {}
+    for part, ts in terms.items():
+        rel = np.concatenate([r for r, _ in ts])
+        ratio = np.concatenate([q for _, q in ts])
+        out[f"absrel{part}"] = float(rel.mean()) if rel.size else None
+        out[f"delta1{part}"] = float(np.mean(ratio < 1.25)) if rel.size else None
+    out["scale"] = float(scale)
     return out
 
 

@@ -21,7 +21,7 @@ from pathlib import Path
 from d2gs_np.train.checkpoint import atomic_write_text
 
 LOG_FIELDS = ("step", "seconds", "stage", "loss", "train_psnr", "heldout_psnr", "scale", "num_gaussians", "progress",
-              "views")
+              "views", "heldout_depth_absrel")
 
 
 class Stopwatch:

@@ -249,6 +249,16 @@ class Model:
         view: a training frame index k (its mid-exposure pose; t, K and the size default to the
             frame's), or a (4, 4) cam_T_world pose (then t, K, width and height are required).
         """
+        return self.render_outputs(view, t, K, width, height)["image"]
+
+    def render_depth(self, view, t=None, K=None, width=None, height=None):
+        """(expected depth (H, W), alpha (H, W)) of the same render as ``render`` (arguments alike):
+        sum_i w_i z_i / alpha, the camera z the Gaussians composite to, and their coverage."""
+        out = self.render_outputs(view, t, K, width, height)
+        return out["expected_depth"], out["alpha"]
+
+    def render_outputs(self, view, t=None, K=None, width=None, height=None) -> dict:
+        """Everything the rasteriser returns for ``render``'s view (``render.api.render_fwd``'s out)."""
         if isinstance(view, numbers.Integral) and not isinstance(view, bool):
             k = self._frame(view)
             pose = self.mid_pose(k)
@@ -266,7 +276,7 @@ class Model:
         out, _ = render_fwd(ri["means"], ri["quats"], ri["scales"], ri["opacities"], ri["colors"],
                             np.asarray(pose, dtype=np.float64), np.asarray(K, dtype=np.float64), int(width),
                             int(height), self.background, dataclasses.replace(self.config.render, raster_float32=False))
-        return out["image"]
+        return out
 
     def _frame(self, k) -> int:
         if isinstance(k, bool) or not isinstance(k, numbers.Integral) or not 0 <= k < self.num_frames:

@@ -41,6 +41,7 @@ from typing import Callable, Optional
 
 import numpy as np
 
+from d2gs_np.geometry.depth import depth_error_terms
 from d2gs_np.pose.correspond import correspondences
 from d2gs_np.losses.smoothness import knn
 from d2gs_np.data.scene import Scene
@@ -120,7 +121,9 @@ def load_plugin_states(plugins, arrays, meta):
 class HeldOutPSNR(Plugin):
     """Held-out PSNR every ``every`` steps and at the last: sharp renders at the optimised
     mid-exposure poses against the sharp frames (if the scene has them), on ``num_frames`` evenly
-    spaced frames at full resolution. Recorded as ``heldout_psnr`` (None without sharp frames)."""
+    spaced frames at full resolution. Recorded as ``heldout_psnr`` (None without sharp frames),
+    and, for a scene with true depth maps, the same renders' depth AbsRel as
+    ``heldout_depth_absrel`` (in the given poses' units, unaligned: ``d2gs eval`` aligns)."""
 
     name = "heldout_psnr"
     timed = False
@@ -131,15 +134,31 @@ class HeldOutPSNR(Plugin):
     def on_step(self, state):
         if not (self.every and (state.step % self.every == 0 or state.last)):
             return state
-        return state.replace(record=state.record.replace(heldout_psnr=self.heldout_psnr(state.model)))
+        h = self.heldout(state.model)
+        return state.replace(record=state.record.replace(heldout_psnr=h["psnr"],
+                                                         heldout_depth_absrel=h["depth_absrel"]))
+
+    def heldout(self, model) -> dict:
+        """{"psnr": held-out PSNR or None, "depth_absrel": AbsRel or None} of one set of renders."""
+        frames = self.scene.frames
+        sharp = self.scene.has_sharp
+        depth = self.scene.has_depth
+        if not (sharp or depth):
+            return {"psnr": None, "depth_absrel": None}
+        idx = np.unique(np.linspace(0, len(frames) - 1, self.num_frames).round().astype(int))
+        mses, rels = [], []
+        for k in idx:
+            out = model.render_outputs(int(k))
+            if sharp:
+                mses.append(float(np.mean((out["image"] - frames[k].sharp) ** 2)))
+            if depth:
+                rels.append(depth_error_terms(out["expected_depth"], frames[k].depth)[0])
+        rel = np.concatenate(rels) if rels else np.zeros(0)
+        return {"psnr": psnr_from_mse(float(np.mean(mses))) if mses else None,
+                "depth_absrel": float(rel.mean()) if rel.size else None}
 
     def heldout_psnr(self, model) -> Optional[float]:
-        if not self.scene.has_sharp:
-            return None
-        n = len(self.scene.frames)
-        idx = np.unique(np.linspace(0, n - 1, self.num_frames).round().astype(int))
-        mses = [float(np.mean((model.render(int(k)) - self.scene.frames[k].sharp) ** 2)) for k in idx]
-        return psnr_from_mse(float(np.mean(mses)))
+        return self.heldout(model)["psnr"]
 
 
 class GradientStatistics(Plugin):

@@ -53,6 +53,7 @@ class StepRecord:
     train_psnr: float = float("nan")  # of the render against its target, on the pixels that carry loss
     losses: dict = field(default_factory=dict)  # term name -> its unweighted value (log column loss_<name>)
     heldout_psnr: Optional[float] = None  # plugins.HeldOutPSNR on its steps (None also without sharp frames)
+    heldout_depth_absrel: Optional[float] = None  # the same renders' depth AbsRel (None without true depth)
     pose_solver: Optional[dict] = None  # pose_solver.PoseSolver on its steps: the summary of its call
 
     def replace(self, **changes) -> "StepRecord":

@@ -325,6 +325,7 @@ class Trainer:
                          train_psnr=record.train_psnr, heldout_psnr=record.heldout_psnr,
                          scale=round(record.scale, 4), num_gaussians=self.num_gaussians(),
                          progress=round(progress, 4), views=record.views,
+                         heldout_depth_absrel=record.heldout_depth_absrel,
                          **{f"loss_{t.name}": record.losses.get(t.name) for t in self.terms})
             self.log.progress(self.step_index, tc.iters, seconds, record.loss, record.train_psnr, state.stage.name,
                               fraction=progress)

@@ -747,3 +747,68 @@ def test_warnings_are_issued_once_the_scene_is_read_and_kept_on_it(scene_dir):
     assert loaded.warnings[1].startswith("transforms.json: frames[1] ('images/0001.png') is one flat colour")
     with pytest.warns(SceneWarning):
         assert load_scene(root, load_images=False).warnings == loaded.warnings[:1]  # pixels not read
+
+
+# ------------------------------------------------------------------ depth maps
+# Depth maps are written as float32: a relative rounding of at most 2^-24 ~ 6e-8.
+DEPTH_RTOL = 2.0 ** -24
+
+
+def _with_depth(rng, scene):
+    for fr in scene.frames + scene.test_frames:
+        d = 1.0 + 4.0 * rng.random((fr.height, fr.width))
+        d[0, 0] = np.inf  # a ray that hits nothing
+        fr.depth = d
+    return scene
+
+
+def test_depth_maps_round_trip_beside_their_images(tmp_path):
+    rng = np.random.default_rng(3)
+    scene = _with_depth(rng, _scene(rng))
+    write_scene(scene, tmp_path / "s")
+    assert (tmp_path / "s" / "depth" / "0000.npy").is_file()  # beside images/, as masks/ and sharp/ are
+    assert (tmp_path / "s" / "test" / "depth" / "0100.npy").is_file()  # test views: under test/
+    loaded = load_scene(tmp_path / "s")
+    assert loaded.has_depth
+    for a, b in zip(scene.frames + scene.test_frames, loaded.frames + loaded.test_frames):
+        assert b.depth.dtype == np.float64 and np.isposinf(b.depth[0, 0])
+        np.testing.assert_allclose(b.depth, a.depth, rtol=DEPTH_RTOL, atol=0)
+    assert load_scene(tmp_path / "s", load_images=False).frames[0].depth is None  # metadata only
+
+
+def test_a_scene_without_depth_maps_has_none():
+    rng = np.random.default_rng(4)
+    assert not _scene(rng).has_depth
+
+
+@pytest.mark.parametrize("bad, match", [
+    (lambda p: np.save(p, np.ones((H, W + 1))), r"shape \(1[0-9], 1[0-9]\).*needs a float array of shape"),
+    (lambda p: np.save(p, np.ones((H, W), np.int32)), "int32 array"),
+    (lambda p: p.write_bytes(b"not an npy file"), "not a valid .npy array"),
+    (lambda p: p.unlink(), "depth file .* does not exist"),
+])
+def test_a_bad_depth_file_is_refused_before_any_pixel_is_decoded(tmp_path, bad, match):
+    rng = np.random.default_rng(5)
+    write_scene(_with_depth(rng, _scene(rng)), tmp_path / "s")
+    img = tmp_path / "s" / "images" / "0000.png"
+    img.write_bytes(img.read_bytes()[:60])  # a valid header, a truncated body: fails only at decoding
+    bad(tmp_path / "s" / "depth" / "0002.npy")
+    with pytest.raises((ValueError, FileNotFoundError), match=match) as e:
+        load_scene(tmp_path / "s")
+    assert "frames[2]" in str(e.value) or "0002" in str(e.value)
+
+
+@pytest.mark.parametrize("value", [np.nan, 0.0, -1.0, -np.inf])
+def test_depth_that_is_not_a_positive_camera_z_is_refused(tmp_path, value):
+    rng = np.random.default_rng(6)
+    scene = _with_depth(rng, _scene(rng))
+    write_scene(scene, tmp_path / "s")
+    d = np.load(tmp_path / "s" / "depth" / "0001.npy")
+    d[3, 4] = value
+    np.save(tmp_path / "s" / "depth" / "0001.npy", d)
+    with pytest.raises(ValueError, match="1 pixel.*NaN or not positive"):
+        load_scene(tmp_path / "s")
+    scene.frames[1].depth[3, 4] = value  # and the writer refuses it before writing anything
+    with pytest.raises(ValueError, match="depth has NaN or non-positive values"):
+        write_scene(scene, tmp_path / "t")
+    assert not (tmp_path / "t").exists()

@@ -108,6 +108,12 @@ def test_blurry_frame_is_the_mean_of_its_subframes():
     np.testing.assert_allclose(scene.frames[k].image, acc / len(ts), atol=RERENDER_ATOL)
     sharp = suite.render_suite_view(world, suite.suite_camera_pose(world, tk), tk, K, 48, 27, cfg.supersample)[0]
     np.testing.assert_allclose(scene.frames[k].sharp, sharp, atol=RERENDER_ATOL)
+    # the true depth: through the pixel centres from the true mid-exposure pose at the frame's time
+    depth = suite.suite_depth_map(world, suite.suite_camera_pose(world, tk), tk, K, 48, 27)
+    np.testing.assert_array_equal(scene.frames[k].depth, depth)
+    T = scene.test_frames[1].cam_T_world
+    np.testing.assert_array_equal(scene.test_frames[1].depth,
+                                  suite.suite_depth_map(world, T, scene.test_frames[1].time, K, 48, 27))
     np.testing.assert_allclose(scene.frames[k].gt_exposure_start, suite.suite_camera_pose(world, ts[0]), atol=1e-12)
 
 

@@ -33,7 +33,7 @@ from d2gs_np.blur.exposure import exposure_from_scene
 from d2gs_np.blur.render import blur_render_bwd, blur_render_fwd
 from d2gs_np.blur.views import backward_subset
 from d2gs_np.data.synthetic import make_scene
-from d2gs_np.evaluation.runs import evaluate, load_run
+from d2gs_np.evaluation.runs import align_with_orientations, evaluate, load_run
 from d2gs_np.geometry.se3 import se3_exp, se3_interpolate
 from d2gs_np.losses.frequency import frequency_bwd, frequency_fwd
 from d2gs_np.losses.photometric import photometric_bwd, photometric_fwd
@@ -217,7 +217,7 @@ def test_evaluation_equals_mid_pose_renders_written_out(scene, tmp_path):
     times = np.array([g.time for g in scene.frames], dtype=np.float64)
     bg = np.asarray(cfg.train.background, dtype=np.float64)
     scene_params = {n: v for n, v in params.items() if n.startswith(("static.", "dynamic."))}
-    renders, mids = [], []
+    renders, depths, mids = [], [], []
     for k, f in enumerate(scene.frames):
         (xs, xe), _ = traj_model.endpoints_fwd(params, cfg.trajectory, np.array([k]), poses, times)
         mid = se3_interpolate(se3_exp(xs[0]) @ poses[k], se3_exp(xe[0]) @ poses[k], 0.5)
@@ -226,12 +226,20 @@ def test_evaluation_equals_mid_pose_renders_written_out(scene, tmp_path):
                             np.asarray(f.K, np.float64), f.width, f.height, bg,
                             dataclasses.replace(cfg.render, raster_float32=False))  # evaluation: float64
         renders.append(img["image"])
+        depths.append(img["expected_depth"])
         mids.append(mid)
     m = evaluate(load_run(tmp_path / "run"), scene)
     assert m["dvs"]["psnr"] == float(np.mean([metrics.psnr(r, f.sharp) for r, f in zip(renders, scene.frames)]))
     assert m["dvs"]["ssim"] == float(np.mean([metrics.ssim(r, f.sharp) for r, f in zip(renders, scene.frames)]))
     gt = np.stack([f.gt_cam_T_world for f in scene.frames])
     assert m["trajectory"]["ate"] == float(metrics.ate(np.stack(mids), gt))
+    # depth: the same renders' expected depth, carried into the truth's units by the alignment's
+    # scale, scored on every pixel with a true depth (pooled over the frames)
+    s = align_with_orientations(np.stack(mids), gt, scene.scene_scale)[0]
+    assert m["dvs"]["depth"]["scale"] == s
+    rel = np.concatenate([np.abs(s * d - f.depth).ravel() / f.depth.ravel() for d, f in zip(depths, scene.frames)])
+    np.testing.assert_allclose(m["dvs"]["depth"]["absrel"], rel.mean(), rtol=1e-12)
+    assert 0.0 < m["dvs"]["depth"]["absrel"] < 1.0 and 0.0 <= m["dvs"]["depth"]["delta1"] <= 1.0
 
 
 def test_a_changed_step_is_caught(scene, tmp_path):

@@ -332,7 +332,8 @@ def test_heldout_is_evaluated_before_pruning_and_densification(dynamic_scene, tm
     counts, seen = [], []
     tr = Trainer(dynamic_scene, cfg, tmp_path / "run", plugins=[Count()])
     heldout = next(p for p in tr.plugins if p.name == "heldout_psnr")
-    monkeypatch.setattr(heldout, "heldout_psnr", lambda model: seen.append(model.num_gaussians()) or 20.0)
+    monkeypatch.setattr(heldout, "heldout", lambda model: seen.append(model.num_gaussians()) or {"psnr": 20.0,
+                                                                                                  "depth_absrel": None})
     after_adam, step = [], tr.step
 
     def step_then_count(*args):  # the number of Gaussians the Adam step left
