@@ -70,3 +70,38 @@ def test_mover_crop_frames_the_moving_pixels_with_a_margin():
     assert crops[0].shape == (24, 24, 3) and np.array_equal(crops[0][::2, ::2], img[8:20, 48:60])
     assert np.array_equal(crops[1][::2, ::2], 1 - img[8:20, 48:60])
     assert mover_crop(np.zeros((4, 4), bool), [img]) == (None, None)
+
+
+def test_depth_pictures_share_the_truths_colour_scale_and_mark_where_there_is_no_surface():
+    from d2gs_np.reporting.html import depth_pictures
+
+    true = np.array([[2.0, 4.0, np.inf], [2.0, 4.0, 4.0]])
+    depth = np.array([[2.0, 4.0, 3.0], [3.0, 0.0, 4.0]])  # exact, exact, (no truth), +50 %, nothing, exact
+    rendered, truth, err = depth_pictures(depth, true)
+    assert rendered.shape == truth.shape == err.shape == (2, 3, 3)
+    np.testing.assert_array_equal(rendered[0, :2], truth[0, :2])  # the same depth, the same colour
+    assert not np.array_equal(truth[0, 0], truth[0, 1])  # near and far differ
+    np.testing.assert_array_equal(truth[0, 2], 0.0)  # no surface: black
+    np.testing.assert_array_equal(rendered[1, 1], 0.0)  # nothing rendered: black
+    np.testing.assert_array_equal(err[0, 0], err[1, 2])  # both exact: the bottom of the error scale
+    assert np.sum(err[1, 0]) > np.sum(err[0, 0])  # a 50 % error is brighter (magma rises with the value)
+    np.testing.assert_array_equal(err[1, 1], err[1, 0])  # 100 % and 50 % are both at the top (0.5)
+
+
+def test_the_error_plot_gets_a_depth_panel_when_the_log_has_depth(tmp_path, monkeypatch):
+    import matplotlib.pyplot as plt
+
+    from d2gs_np.reporting import html as report
+
+    run = tmp_path / "a"
+    run.mkdir()
+    (run / "log.csv").write_text("step,seconds,stage,loss,train_psnr,heldout_psnr,heldout_depth_absrel\n"
+                                 "0,0.1,joint,0.1,20,19,0.30\n5,1.0,joint,0.1,22,,\n10,2.0,joint,0.1,25,24,0.12\n")
+    made = []
+    real = plt.subplots
+    monkeypatch.setattr(plt, "subplots", lambda *a, **k: made.append(a) or real(*a, **k))
+    assert report._error_vs_time_uri([{"name": "a", "dir": run}]).startswith("data:image/png;base64,")
+    assert made[-1][:2] == (1, 2)  # PSNR and depth AbsRel; without the column one panel
+    (run / "log.csv").write_text("step,seconds,stage,loss,train_psnr,heldout_psnr\n0,0.1,joint,0.1,20,19\n")
+    report._error_vs_time_uri([{"name": "a", "dir": run}])
+    assert made[-1][:2] == (1, 1)

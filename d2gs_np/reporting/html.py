@@ -10,11 +10,12 @@ Sections:
    other run given, e.g. the no-blur baseline), novel views, trajectory errors of the given and
    the refined poses (ATE, RPE), steps and seconds of training;
 3. pictures: blurry input | deblurred render | sharp truth on a few frames, each with a zoomed
-   crop of its most detailed region, and the novel views beside their truth;
+   crop of its most detailed region, and the novel views beside their truth; where the scene has
+   true depth, each one's rendered depth | true depth | relative depth error (``depth_pictures``);
 4. the camera trajectories (given, refined, true) seen from above, after the Sim(3) alignment
    of ATE;
-5. error against wall-clock time: held-out PSNR (and ATE, when the log records it) against
-   seconds of training, every run on one plot.
+5. error against wall-clock time: held-out PSNR (and ATE and held-out depth AbsRel, when the
+   log records them) against seconds of training, every run on one plot.
 
 Only what the run and its scene have is shown: a scene without sharp frames has no DVS row and
 no truth column; one without true poses no trajectory errors or plot. Metrics come from
@@ -119,10 +120,12 @@ def _gather(run_dir, num_frames):
     mids = model.mid_poses()
     ks = np.unique(np.linspace(0, scene.num_frames - 1, num_frames).round().astype(int))
     frames = []
+    dscale = _get(result, "dvs", "depth", "scale") or 1.0  # our depths into the truth's units (evaluate)
     for k in ks:
         f = scene.frames[int(k)]
-        render = model.render(mids[k], f.time, f.K, f.width, f.height)
-        frames.append({"k": int(k), "input": f.image, "render": render, "sharp": f.sharp})
+        out = model.render_outputs(mids[k], f.time, f.K, f.width, f.height)
+        frames.append({"k": int(k), "input": f.image, "render": out["image"], "sharp": f.sharp,
+                       "depth": dscale * out["expected_depth"], "true_depth": f.depth})
     mover = None
     areas = [0 if f.mask is None else int(np.count_nonzero(f.mask)) for f in scene.frames]
     if max(areas) > 0:  # the frame where the movers cover most pixels: blurry / ours / truth around them
@@ -138,7 +141,9 @@ def _gather(run_dir, num_frames):
         s, R, t = metrics.sim3_inverse(*align_with_orientations(mids, gt, scene.scene_scale))
         for f in scene.test_frames[:2]:
             pose = metrics.sim3_apply_to_poses(s, R, t, f.cam_T_world)
-            novel.append({"render": model.render(pose, f.time, f.K, f.width, f.height), "truth": f.image})
+            out = model.render_outputs(pose, f.time, f.K, f.width, f.height)
+            novel.append({"render": out["image"], "truth": f.image, "depth": out["expected_depth"] / s,
+                          "true_depth": f.depth})
     notes = []
     lpath = run_dir / "log.json"
     if lpath.exists():
@@ -195,7 +200,10 @@ def _error_vs_time_uri(runs):
     if not logs:
         return None
     has_ate = any("ate" in c and np.isfinite(c["ate"]).any() for _, c in logs)
-    fig, axes = plt.subplots(1, 2 if has_ate else 1, figsize=(10.5 if has_ate else 6.0, 3.8), squeeze=False)
+    key = "heldout_depth_absrel"
+    has_depth = any(key in c and np.isfinite(c[key]).any() for _, c in logs)
+    panels = 1 + has_ate + has_depth
+    fig, axes = plt.subplots(1, panels, figsize=(4.5 * panels + 1.5, 3.8), squeeze=False)
     ax = axes[0, 0]
     for name, c in logs:
         line, = ax.plot(c["seconds"], c["train_psnr"], alpha=0.3, lw=1)
@@ -216,6 +224,16 @@ def _error_vs_time_uri(runs):
                 ax.plot(c["seconds"][ok], c["ate"][ok], "o-", ms=3, label=name)
         ax.set_xlabel("training time [s]")
         ax.set_ylabel("ATE")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    if has_depth:
+        ax = axes[0, panels - 1]
+        for name, c in logs:
+            if key in c:
+                ok = np.isfinite(c[key])
+                ax.plot(c["seconds"][ok], c[key][ok], "o-", ms=3, label=name)
+        ax.set_xlabel("training time [s]")
+        ax.set_ylabel("held-out depth AbsRel (given poses' units)")
         ax.grid(alpha=0.3)
         ax.legend(fontsize=7)
     fig.suptitle("error against wall-clock time (JIT warm-up and evaluation excluded)", fontsize=9)
@@ -254,6 +272,12 @@ _METRIC_ROWS = (
     ("novel views: SSIM", ("nvs", "ssim"), ".3f"),
     ("novel views: FLIP (lower is better)", ("nvs", "flip"), ".4f"),
     ("novel views, test poses refined: PSNR [dB]", ("nvs_pose_opt", "psnr"), ".2f"),
+    ("depth AbsRel, deblurred views (lower is better)", ("dvs", "depth", "absrel"), ".4f"),
+    ("depth AbsRel, deblurred views, static pixels", ("dvs", "depth", "absrel_static"), ".4f"),
+    ("depth AbsRel, deblurred views, moving pixels", ("dvs", "depth", "absrel_moving"), ".4f"),
+    ("depth delta < 1.25, deblurred views", ("dvs", "depth", "delta1"), ".3f"),
+    ("depth AbsRel, novel views", ("nvs", "depth", "absrel"), ".4f"),
+    ("depth delta < 1.25, novel views", ("nvs", "depth", "delta1"), ".3f"),
     ("ATE, given poses", ("trajectory", "initial", "ate"), ".4f"),
     ("ATE, given poses after bundle adjustment (start of training)", ("trajectory", "bundle_adjusted", "ate"), ".4f"),
     ("ATE, refined poses", ("trajectory", "ate"), ".4f"),
@@ -299,6 +323,40 @@ def _verdicts(runs):
     return "".join(parts)
 
 
+def depth_pictures(depth, true_depth, max_rel=0.5):
+    """(rendered, true, error) RGB images of a depth map and its truth: inverse depth on one
+    colour scale (the truth's range; black where there is no surface), and |d - d*| / d* from 0
+    to ``max_rel`` (and above)."""
+    import matplotlib
+
+    t = np.asarray(true_depth, dtype=np.float64)
+    d = np.asarray(depth, dtype=np.float64)
+    ok = np.isfinite(t) & (t > 0)
+    lo, hi = (np.min(1.0 / t[ok]), np.max(1.0 / t[ok])) if ok.any() else (0.0, 1.0)
+    cmap = matplotlib.colormaps["viridis"]
+
+    def inv(x):
+        good = np.isfinite(x) & (x > 0)
+        v = np.where(good, 1.0 / np.where(good, x, 1.0), 0.0)
+        img = cmap(np.clip((v - lo) / max(hi - lo, 1e-12), 0.0, 1.0))[..., :3]
+        img[~good] = 0.0
+        return img
+    rel = np.where(ok, np.abs(np.where(np.isfinite(d), d, 0.0) - np.where(ok, t, 1.0)) / np.where(ok, t, 1.0), 0.0)
+    err = matplotlib.colormaps["magma"](np.clip(rel / max_rel, 0.0, 1.0))[..., :3]
+    err[~ok] = 0.0
+    return inv(d), inv(t), err
+
+
+def _depth_row(item, what):
+    if item.get("true_depth") is None:
+        return ""
+    ims = depth_pictures(item["depth"], item["true_depth"])
+    absrel = metrics.depth_errors(item["depth"], item["true_depth"])["absrel"]
+    names = (f"{what}: rendered depth (AbsRel {_fmt(absrel, '.4f')})", f"{what}: true depth",
+             f"{what}: |depth error| / depth, 0 to 0.5")
+    return '<div class="row">' + "".join(_img(png_data_uri(im), n) for im, n in zip(ims, names)) + "</div>"
+
+
 def _img(uri, title=""):
     return f'<figure><img src="{uri}"><figcaption>{html.escape(title)}</figcaption></figure>'
 
@@ -317,6 +375,7 @@ def _pictures(r):
         row += "".join(_img(png_data_uri(c), f"zoom x{_ZOOM} at ({x0}, {y0}), {side} px: {n}")
                        for c, n in zip(crops, names))
         parts.append(f'<div class="row">{row}</div>')
+        parts.append(_depth_row(f, f"frame {f['k']}"))
     m = r.get("mover")
     if m is not None:
         ims = [m["input"], m["render"]] + ([m["sharp"]] if m["sharp"] is not None else [])
@@ -332,6 +391,7 @@ def _pictures(r):
         p = metrics.psnr(nv["render"], nv["truth"])
         parts.append('<div class="row">' + _img(png_data_uri(nv["render"]), f"novel view {i}: render ({p:.2f} dB)")
                      + _img(png_data_uri(nv["truth"]), f"novel view {i}: truth") + "</div>")
+        parts.append(_depth_row(nv, f"novel view {i}"))
     return "".join(parts)
 
 
