@@ -2,7 +2,8 @@
 
 For each run folder (trained on a scene written by ``d2gs make-scene`` or ``d2gs experiment``:
 its folder holds ``suite_config.json``, from which the true world is rebuilt, and the true depth
-maps of ``docs/dataset_format.md §3``), three diagnoses:
+maps of ``docs/dataset_format.md §3``, cast from the world for a scene written before them), three
+diagnoses:
 
 1. **Novel views, by what went wrong** (docs/method.md §10 aligns the test views as ``d2gs eval``
    does). Each test pixel with a true surface is put in one class: ``moving`` (the test view's
@@ -139,10 +140,14 @@ def diagnose(run_dir) -> dict:
     run = load_run(run_dir)
     scene_dir = run.meta.get("scene_root")
     scene = load_scene(scene_dir)
-    if not (scene.has_depth and scene.has_gt_poses and scene.test_frames):
-        raise ValueError(f"{scene_dir}: the diagnosis needs true depth maps, true poses and test views (a suite scene "
-                         "written since #40)")
+    if not (scene.has_gt_poses and scene.test_frames):
+        raise ValueError(f"{scene_dir}: the diagnosis needs true poses and test views (a suite scene)")
     world = _world(scene_dir)
+    if not scene.has_depth:  # a suite scene written before scenes carried depth maps: cast them
+        for f in scene.frames:
+            f.depth = suite.suite_depth_map(world, f.gt_cam_T_world, f.time, f.K, f.width, f.height)
+        for f in scene.test_frames:  # a test view's pose is its true pose
+            f.depth = suite.suite_depth_map(world, f.cam_T_world, f.time, f.K, f.width, f.height)
     model = run.model
     params = {n: v for n, v in model.params.items() if n.startswith(("static.", "dynamic."))}
     static = _static_only(params)

@@ -23,6 +23,9 @@ Variants (``EXPERIMENTS``):
 - ``suite``: what ``examples/suite.py`` runs (sharp / blurry with true poses, with and without
   the blur model / blurry with the given noisy poses); ``suite-ablation``: the ablation's
   regularisers with true poses (``examples/suite.py --variants render_only ...``).
+- ``exposure-start``, ``exposure-path``, ``exposure-defaults`` (#39): where the exposure starts,
+  its path, the defaults before and after; ``dynamic-depth`` (#40, #44): the dynamic seeds' depth
+  by the rule against the scene's true depth (an oracle).
 A variant is a name, config overrides (a nested dict merged into the config's JSON form, so a
 variant is data and every key is checked by ``ExperimentConfig.from_dict``), scene overrides
 (``SuiteConfig`` fields, e.g. exposure 0 or true poses) and an optional preprocessing of the
@@ -145,6 +148,13 @@ EXPERIMENTS = {
         Variant("three_knot_gfirst", config={"trajectory": {"path": "three_knot"},
                                              "train": {"camera_from_fraction": 0.2}}),
         Variant("noblur", config={"train": {"blur": "off"}, "pose_solver": {"mode": "off"}}),
+    ),
+    # Is the dynamic set's depth what tears movers in novel views (issues #40, #44, docs/method.md §8)?
+    # The seeds at 0.8 x the frame's median static depth (the rule) against seeds at the scene's true
+    # depth (an oracle: the suite's depth maps), the rest alike, with the given (noisy) poses.
+    "dynamic-depth": (
+        Variant("static_median", config={"init": {"dynamic_depth": "static_median"}}),
+        Variant("oracle_depth", config={"init": {"dynamic_depth": "scene"}}),
     ),
     "suite": (
         Variant("sharp", scene=_SHARP),

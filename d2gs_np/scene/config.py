@@ -18,6 +18,7 @@ __all__ = ["DeformConfig", "InitConfig", "StereoConfig", "MotionInitConfig", "WA
 
 # how a seed's pixel can follow its object's track (``MotionInitConfig.warp``)
 WARPS = ("centroid", "similarity", "homography", "flow")
+DYNAMIC_DEPTHS = ("static_median", "scene")  # InitConfig.dynamic_depth
 
 
 @dataclass(frozen=True)
@@ -110,6 +111,10 @@ class InitConfig:
     depth_range_mad: float = 0.0  # 0: the plain percentiles (default; 3 with distinct_px = 1: docs/method.md §8)
     dynamic_depth_factor: float = 0.8  # dynamic depth = factor x frame's median static depth
     dynamic_depth_jitter: float = 0.05  # relative half-width of the uniform depth jitter
+    # Where a dynamic seed's depth comes from: "static_median" (the rule above) or "scene": the
+    # scene's depth maps (depth_file_path) at the seed's pixel, for data with measured depth. On
+    # synthetic scenes those are the truth: a run with "scene" is then an oracle (docs/method.md §8).
+    dynamic_depth: str = "static_median"
 
     def __post_init__(self):
         if not isinstance(self.features, FeatureConfig):
@@ -138,6 +143,7 @@ class InitConfig:
             raise ValueError(f"InitConfig.fallback_depth_range must satisfy 0 < near < far; got {(lo, hi)}")
         check_number(self.dynamic_depth_factor, "InitConfig.dynamic_depth_factor", 0.0, 1.0, lo_open=True)
         check_number(self.dynamic_depth_jitter, "InitConfig.dynamic_depth_jitter", 0.0, 1.0, hi_open=True)
+        check_choice(self.dynamic_depth, "InitConfig.dynamic_depth", DYNAMIC_DEPTHS)
 
 
 def _pair(v, name):

@@ -63,7 +63,9 @@ Dynamic points (only if some frame has a motion mask with a True pixel; otherwis
   position inside each drawn pixel), colour from that frame's image.
 - Depth: ``dynamic_depth_factor`` (< 1) times the median depth of the triangulated static
   points that project into that frame (the whole set's median if none does), times a
-  uniform jitter in [1 - j, 1 + j] with j = ``dynamic_depth_jitter``. Choice: movers are usually
+  uniform jitter in [1 - j, 1 + j] with j = ``dynamic_depth_jitter``; with ``dynamic_depth =
+  "scene"`` the scene's own depth map at the seed's pixel instead (where finite), times the
+  jitter (measured depth; on a synthetic scene the truth, an oracle). Choice: movers are usually
   in front of the background they occlude, and a per-frame static depth is the only depth
   evidence available before training; the jitter gives the set some thickness. The
   deformation model moves these points over time, so their exact placement matters less.
@@ -338,6 +340,9 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
     if not isinstance(rng, np.random.Generator):
         raise TypeError(f"rng must be a np.random.Generator (np.random.default_rng(seed)); got {type(rng).__name__}")
     _check_scene(scene)
+    if config.dynamic_depth == "scene" and not scene.has_depth:
+        raise ValueError("InitConfig.dynamic_depth = 'scene' needs a depth map for every training frame "
+                         "(depth_file_path, docs/dataset_format.md §3); this scene has none: use 'static_median'")
     frames = scene.frames
     N = len(frames)
     fc = config.features
@@ -448,6 +453,12 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
         dyn_src, dyn_pix = _random_pixels(rng, frames, dyn_pools, config.dynamic_points)
         jitter = rng.uniform(1.0 - config.dynamic_depth_jitter, 1.0 + config.dynamic_depth_jitter, len(dyn_src))
         depth = config.dynamic_depth_factor * frame_depth[dyn_src] * jitter
+        if config.dynamic_depth == "scene":  # the scene's depth maps at the seeds' pixels (checked above)
+            measured = np.array([frames[k].depth[min(max(int(p[1]), 0), frames[k].height - 1),
+                                                 min(max(int(p[0]), 0), frames[k].width - 1)]
+                                 for k, p in zip(dyn_src, dyn_pix)]) * jitter
+            ok = np.isfinite(measured) & (measured > 0)
+            depth = np.where(ok, measured, depth)
         dynamic_points = np.empty((len(dyn_src), 3))
         dynamic_colors = np.empty((len(dyn_src), 3))
         for k in np.unique(dyn_src):

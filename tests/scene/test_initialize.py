@@ -169,6 +169,24 @@ def test_dynamic_depth_is_the_scaled_median_static_depth_of_the_frame(scene):
         np.testing.assert_allclose(zd, expected, rtol=1e-12)
 
 
+def test_dynamic_depth_from_the_scene_is_its_depth_map_at_the_seed_pixel(scene):
+    assert scene.has_depth  # the synthetic presets write their true depth
+    cfg = InitConfig(dynamic_depth="scene", dynamic_depth_jitter=0.0, dynamic_points=50)
+    _, _, dyn, _, info = initialize_points(scene, cfg, np.random.default_rng(3))
+    src, pix = info["dynamic_source_frames"], info["dynamic_source_pixels"]
+    for k in np.unique(src):
+        f = scene.frames[k]
+        uv, zd = project_points(dyn[src == k], f.cam_T_world, f.K)
+        p = pix[src == k]
+        np.testing.assert_allclose(zd, f.depth[p[:, 1].astype(int), p[:, 0].astype(int)], rtol=1e-12)
+        np.testing.assert_allclose(uv, p, atol=ROUNDTRIP_TOL_PX)  # lifted along its own pixel's ray
+    bare = dataclasses.replace(scene, frames=[dataclasses.replace(f, depth=None) for f in scene.frames])
+    with pytest.raises(ValueError, match="dynamic_depth = 'scene' needs a depth map"):
+        initialize_points(bare, cfg, np.random.default_rng(3))
+    with pytest.raises(ValueError, match="InitConfig.dynamic_depth"):
+        InitConfig(dynamic_depth="sensor")
+
+
 def test_no_moving_pixels_give_no_dynamic_points():
     # shake_scale 1: mild blur, so that this tiny scene still triangulates some static points
     static_scene = syn.make_scene("static", seed=0, width=96, height=54, num_frames=4, num_test_views=0,
