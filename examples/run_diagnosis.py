@@ -46,7 +46,6 @@ import numpy as np
 
 CLASSES = ("moving", "unseen", "in_front", "behind", "depth_ok")
 _NEAR, _FAR = 0.9, 1.1  # depth ratio bounds of "depth_ok"
-_SEEN_TOL = 0.01  # relative depth agreement that counts a training view as seeing a point
 
 
 def _world(scene_dir):
@@ -74,22 +73,6 @@ def _render(model, params, pose, t, f):
     return out
 
 
-def _seen(points, frames):
-    """(P,) bool: a world point is seen by some training frame (in its image, in front, and at the
-    frame's true depth there within _SEEN_TOL)."""
-    from d2gs_np.geometry.camera import project_points
-
-    seen = np.zeros(len(points), bool)
-    for f in frames:
-        uv, z = project_points(points, f.gt_cam_T_world, f.K)
-        j, i = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
-        ok = (z > 0) & (j >= 0) & (j < f.width) & (i >= 0) & (i < f.height)
-        d = np.full(len(points), np.nan)
-        d[ok] = f.depth[i[ok], j[ok]]
-        seen |= ok & (np.abs(z - d) <= _SEEN_TOL * d)
-    return seen
-
-
 def _classify(view_pose, f, depth, moving, frames, check_seen):
     """Class index (H, W) of each pixel (-1: no true surface), CLASSES order."""
     t = f.depth
@@ -102,13 +85,9 @@ def _classify(view_pose, f, depth, moving, frames, check_seen):
     cls[stat & (ratio > _FAR)] = 3
     cls[stat & (ratio >= _NEAR) & (ratio <= _FAR)] = 4
     if check_seen:
-        i, j = np.nonzero(stat)
-        Kinv = np.linalg.inv(f.K)
-        rays = (Kinv @ np.stack([j + 0.5, i + 0.5, np.ones(len(i))])) * t[i, j]  # camera points
-        T = np.linalg.inv(view_pose)
-        pts = (T[:3, :3] @ rays + T[:3, 3:4]).T
-        unseen = ~_seen(pts, frames)
-        cls[i[unseen], j[unseen]] = 1
+        from d2gs_np.evaluation.runs import seen_by_training
+
+        cls[stat & ~seen_by_training(view_pose, f, frames)] = 1
     return cls
 
 

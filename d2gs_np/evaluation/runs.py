@@ -220,11 +220,58 @@ def _novel_views(run: LoadedRun, scene, mids, reference, test_pose_steps=0) -> d
     if all(f.depth is not None for f in scene.test_frames):
         out["nvs"]["depth"] = _depth_metrics(depths, [f.depth for f in scene.test_frames],
                                              [f.mask for f in scene.test_frames], 1.0 / s)
+        if scene.has_depth and scene.has_gt_poses:
+            out["nvs"].update(_seen_psnr(pairs, scene))
     if fitted:
         out["nvs_pose_opt"] = {**_image_metrics(fitted), "steps": int(test_pose_steps),
                                "mean_rotation_deg": float(np.degrees(np.mean([m[0] for m in moves]))),
                                "mean_translation": float(np.mean([m[1] for m in moves]))}
     return out
+
+
+SEEN_DEPTH_TOL = 0.01  # relative depth agreement that counts a training frame as seeing a point
+
+
+def seen_by_training(view_pose, view, frames):
+    """(H, W) bool: the pixels of a view (pose ``view_pose``, intrinsics and true depth ``view.depth``)
+    whose surface point some training frame sees: inside its image, in front of it, and at its
+    true depth there within SEEN_DEPTH_TOL (``frames``' true poses and depth maps). False where
+    the view has no surface."""
+    from d2gs_np.geometry.camera import project_points
+
+    t = view.depth
+    ok = np.isfinite(t) & (t > 0)
+    i, j = np.nonzero(ok)
+    rays = (np.linalg.inv(view.K) @ np.stack([j + 0.5, i + 0.5, np.ones(len(i))])) * t[i, j]
+    T = np.linalg.inv(view_pose)
+    pts = (T[:3, :3] @ rays + T[:3, 3:4]).T
+    seen = np.zeros(len(pts), bool)
+    for f in frames:
+        uv, z = project_points(pts, f.gt_cam_T_world, f.K)
+        c, r = np.floor(uv[:, 0]).astype(np.int64), np.floor(uv[:, 1]).astype(np.int64)
+        inside = (z > 0) & (c >= 0) & (c < f.width) & (r >= 0) & (r < f.height)
+        d = np.full(len(pts), np.nan)
+        d[inside] = f.depth[r[inside], c[inside]]
+        seen |= inside & (np.abs(z - d) <= SEEN_DEPTH_TOL * d)
+    out = np.zeros(t.shape, bool)
+    out[i[seen], j[seen]] = True
+    return out
+
+
+def _seen_psnr(pairs, scene) -> dict:
+    """Novel-view PSNR on the pixels some training frame saw (``seen_by_training``) and on the
+    rest, pooled over the test views, and the unseen share: what a test camera beside the path
+    sees that no training view did cannot be reconstructed, only extrapolated."""
+    sums, counts = np.zeros(2), np.zeros(2)
+    for (a, b), f in zip(pairs, scene.test_frames):
+        seen = seen_by_training(f.cam_T_world, f, scene.frames)
+        e = ((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2).sum(-1)
+        sums += [e[seen].sum(), e[~seen].sum()]
+        counts += [3 * seen.sum(), 3 * (~seen).sum()]
+
+    def db(k):
+        return float(10.0 * np.log10(counts[k] / sums[k])) if counts[k] and sums[k] > 0 else None
+    return {"seen_psnr": db(0), "unseen_psnr": db(1), "unseen_share": float(counts[1] / counts.sum())}
 
 
 def _depth_scale(mids, scene) -> float:

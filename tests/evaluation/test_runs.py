@@ -95,3 +95,33 @@ def test_the_verdict_speaks_of_the_moving_pixels():
     lines = verdict(r)
     assert len(lines) == 2 and "moving pixels the method LOST to its input" in lines[1] and "-0.50 dB" in lines[1]
     assert "13 %" in lines[1]
+
+
+def _plane_view(x):
+    """A camera at (x, 0, 0) looking down -z at the plane z = -4, and its true depth (4 everywhere)."""
+    from d2gs_np.data.scene import Frame
+    from d2gs_np.geometry.camera import look_at, make_intrinsics
+
+    T = look_at([x, 0.0, 0.0], [x, 0.0, -4.0], up=(0.0, 1.0, 0.0))
+    K = make_intrinsics(20.0, 20.0, 10.0, 6.0)
+    return Frame(file_path="v.png", time=0.5, cam_T_world=T, K=K, width=20, height=12, gt_cam_T_world=T,
+                 depth=np.full((12, 20), 4.0))
+
+
+def test_seen_by_training_is_what_some_training_frame_sees_at_its_depth():
+    from d2gs_np.evaluation.runs import seen_by_training
+
+    view = _plane_view(0.0)
+    assert seen_by_training(view.cam_T_world, view, [_plane_view(0.0)]).all()
+    # a training camera 2 units to the right sees the plane from x = 0 to 4 at depth 4 (half-width
+    # 10 px / 20 px x 4 = 2): of the view's columns (x from -2 to 2), those with x >= 0 are seen
+    seen = seen_by_training(view.cam_T_world, view, [_plane_view(2.0)])
+    np.testing.assert_array_equal(seen.all(axis=0), np.arange(20) >= 10)
+    assert (seen == seen[:1]).all()  # whole columns
+    # a training frame whose depth there is nearer (an occluder) does not see the plane
+    blocked = _plane_view(0.0)
+    blocked.depth = np.full((12, 20), 3.0)
+    assert not seen_by_training(view.cam_T_world, view, [blocked]).any()
+    none = _plane_view(0.0)
+    none.depth[:, :5] = np.inf  # no surface there: not counted as seen
+    assert not seen_by_training(none.cam_T_world, none, [_plane_view(0.0)])[:, :5].any()
