@@ -108,12 +108,12 @@ def evaluate(run: LoadedRun, scene, test_pose_steps: int = 0) -> dict:
         masks = [f.mask for f in frames]
         pairs = [(r, f.sharp) for r, f in zip(renders, frames)]
         out["dvs"] = {**_image_metrics(pairs), **_split_psnr(pairs, masks)}
+        pairs = [(f.image, f.sharp) for f in frames]
+        out["input_blur"] = {**_image_metrics(pairs), **_split_psnr(pairs, masks)}
     if scene.has_depth:
         s = _depth_scale(mids, scene)
         out.setdefault("dvs", {})["depth"] = _depth_metrics([s * o["expected_depth"] for o in outs],
                                                             [f.depth for f in frames], [f.mask for f in frames], s)
-        pairs = [(f.image, f.sharp) for f in frames]
-        out["input_blur"] = {**_image_metrics(pairs), **_split_psnr(pairs, masks)}
     # What can be measured without ground truth: how well the model, blurred as in training,
     # explains the inputs, and how much finer detail its sharp renders carry than the inputs.
     refit = [frame_render_fwd(model, k, model.Ks[k], model.widths[k], model.heights[k])[0]["image"]
