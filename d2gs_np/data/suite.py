@@ -209,7 +209,7 @@ class SuiteConfig:
     # Area sampling (docs/method.md §10): sharp frames and test views cast supersample^2 rays per pixel;
     # each blur sub-frame casts blur_supersample^2, shifted within their cells per sub-frame when
     # stratify is on (16 sub-frames x 2 x 2 -> 8 x 8 positions per pixel over the exposure).
-    # The suite before #39 is supersample=2, blur_supersample=2, stratify=False.
+    # supersample=2, blur_supersample=2, stratify=False is the unfiltered 2 x 2 suite (docs/results.md §4).
     supersample: int = 8
     blur_supersample: int = 2
     stratify: bool = True

@@ -66,8 +66,8 @@ _NLOC = 15
 # Tile-local pixel layout: the tile is cut into column strips _STRIP pixels wide, each stored
 # row-major, one after the other, so that the rows [ia, ib) of one strip are one contiguous run of
 # lanes. A Gaussian visits only the strips its columns reach: narrower strips waste fewer lanes
-# on the sides, wider ones make longer runs (vector loops need several vectors per run). 4
-# measured best with 8 float64 lanes per vector (examples/profile_step.py). The backward pass
+# on the sides, wider ones make longer runs (vector loops need several vectors per run); the width
+# is chosen by examples/profile_step.py (docs/results.md §6). The backward pass
 # sums gradients in this lane order, so results depend on it (deterministically).
 _STRIP = 8
 _ROW_GROUP = 2  # bands are padded to a multiple of this many rows (``_pad_rows``): 16-lane runs

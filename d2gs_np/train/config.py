@@ -38,8 +38,8 @@ class LossConfig:
     lambda_ssim: float = 0.2  # L_render = (1 - lambda_ssim) L1 + lambda_ssim (1 - SSIM)
     # Regularisers (docs/method.md §6); each enters the loss when its weight is > 0. L_ts, L_gs and
     # L_reproj default off (weight 0; the short-budget ablation of docs/method.md §6 decided it);
-    # L_freq defaults on at the method's weight, on the static pixels only (measured on the whole
-    # suite, docs/method.md §6). The method's weights are METHOD_REGULARISER_WEIGHTS below.
+    # L_freq defaults on at the method's weight, on the static pixels only (docs/method.md §6 says
+    # why). The method's weights are METHOD_REGULARISER_WEIGHTS below.
     lambda_ts: float = 0.0  # L_ts = ts_time_weight l_time + ts_spatial_weight l_spatial, times this
     ts_time_weight: float = 1.0  # lambda_t
     ts_spatial_weight: float = 1.0  # lambda_s
@@ -96,8 +96,8 @@ class LearningRates:
     camera_spread_final: float = 1e-6
     exposure: float = 1e-2
     # The constant-rate Gaussian blocks (log_scales, quats, opacity_logits, colors, deform_other)
-    # decay log-linearly to final_ratio x their rate over the run; 1 keeps them constant (3DGS):
-    # a decay to 0.1 lost on cube_sign (docs/results.md §7).
+    # decay log-linearly to final_ratio x their rate over the run; 1 keeps them constant, as 3DGS
+    # does (why: docs/results.md §7).
     final_ratio: float = 1.0
     # The length that scales the position rates (means, deform): "camera", 3DGS's camera extent
     # (train.learning_rates.scene_extent), or "scene", the scene's size (train.learning_rates.size_extent: the
@@ -300,8 +300,8 @@ class PruneConfig:
 class ExperimentConfig:
     train: TrainConfig = field(default_factory=TrainConfig)
     loss: LossConfig = field(default_factory=LossConfig)
-    # training steps rasterise in float32 (RenderConfig.raster_float32; docs/method.md §8): a step
-    # ~1.2x faster on a trained scene (docs/results.md §7); evaluation and Model.render stay float64
+    # training steps rasterise in float32 (RenderConfig.raster_float32; docs/method.md §8) for speed
+    # (docs/results.md §7); evaluation and Model.render stay float64
     render: RenderConfig = field(default_factory=lambda: RenderConfig(raster_float32=True))
     deform: DeformConfig = field(default_factory=DeformConfig)
     blur: BlurConfig = field(default_factory=BlurConfig)

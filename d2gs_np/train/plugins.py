@@ -37,7 +37,7 @@ from __future__ import annotations
 
 from dataclasses import dataclass
 from pathlib import Path
-from typing import Callable, Optional
+from typing import Callable
 
 import numpy as np
 
@@ -156,9 +156,6 @@ class HeldOutPSNR(Plugin):
         rel = np.concatenate(rels) if rels else np.zeros(0)
         return {"psnr": psnr_from_mse(float(np.mean(mses))) if mses else None,
                 "depth_absrel": float(rel.mean()) if rel.size else None}
-
-    def heldout_psnr(self, model) -> Optional[float]:
-        return self.heldout(model)["psnr"]
 
 
 class GradientStatistics(Plugin):
