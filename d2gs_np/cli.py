@@ -416,7 +416,7 @@ DEMO_PRESET = "cube_sign"  # the suite scene with every component on: movers, bl
 # their short baselines for the method to beat its input in the budget (docs/results.md §2)
 DEMO_SCENE = {"num_frames": 24, "width": 160, "height": 90}
 DEMO_ITERS = 2000  # the schedule's length; DEMO_BUDGET decides where it ends
-DEMO_BUDGET = 420.0  # seconds of training: the demo in about 7.5 min wall, cold JIT cache included (docs/results.md §2)
+DEMO_BUDGET = 420.0  # seconds of training: the demo in about 8.5 min wall, install and cold JIT cache included (docs/results.md §2)
 DEMO_QUICK_SCENE = {"num_frames": 6, "width": 96, "height": 54}
 DEMO_QUICK_ITERS = 80  # a smoke run: every stage, the blur model and the report, in about a minute
 
