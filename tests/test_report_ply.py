@@ -2,7 +2,8 @@
 import numpy as np
 
 from d2gs_np.data.ply import SH_C0, read_ply, write_ply
-from d2gs_np.reporting.plots import comparison_strip, plot_error_vs_time, plot_loss_terms, read_log
+from d2gs_np.reporting.plots import (comparison_strip, heldout_curve, plot_curves_by_scene, plot_error_vs_time,
+                                     plot_loss_terms, read_log)
 
 
 def _fake_run(path, rows):
@@ -20,6 +21,33 @@ def test_plot_error_vs_time_writes_a_png(tmp_path):
     c = read_log(tmp_path / "a")
     np.testing.assert_array_equal(c["step"], [0, 10, 20])
     assert np.isnan(c["heldout_psnr"][1]) and c["heldout_psnr"][2] == 26.0
+
+
+def test_curves_by_scene_draw_a_panel_per_scene_with_the_input_dashed(tmp_path, monkeypatch):
+    import matplotlib.figure
+    import pytest
+
+    _fake_run(tmp_path / "a", [(0, 0.1, 20.0, 19.0), (10, 1.0, 25.0, None), (20, 2.0, 27.0, 26.0)])
+    _fake_run(tmp_path / "b", [(0, 0.2, 18.0, 17.0), (20, 3.0, 24.0, 23.5)])
+    t, p = heldout_curve(tmp_path / "a")  # the rows without a held-out value left out
+    np.testing.assert_array_equal(t, [0.1, 2.0])
+    np.testing.assert_array_equal(p, [19.0, 26.0])
+    seen = {}
+    save = matplotlib.figure.Figure.savefig
+
+    def spy(fig, *args, **kwargs):  # what each panel holds when the figure is written
+        seen["panels"] = [(ax.get_title(), [line.get_linestyle() for line in ax.lines]) for ax in fig.axes]
+        return save(fig, *args, **kwargs)
+
+    monkeypatch.setattr(matplotlib.figure.Figure, "savefig", spy)
+    rows = [("wall_disk", "geodesic", 0, *heldout_curve(tmp_path / "a"), 24.0),
+            ("wall_disk", "noblur", 0, *heldout_curve(tmp_path / "b"), None),
+            ("crossing", "geodesic", 1, *heldout_curve(tmp_path / "b"), 21.0)]
+    out = plot_curves_by_scene(rows, tmp_path / "figs" / "c.png")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert seen["panels"] == [("wall_disk", ["-", "-", "--"]), ("crossing", ["-", "--"])]
+    with pytest.raises(ValueError, match="no cells"):
+        plot_curves_by_scene([], tmp_path / "d.png")
 
 
 def test_plot_loss_terms_needs_term_columns(tmp_path):

@@ -479,9 +479,9 @@ def write_outputs(name, out, records, command=""):
     (out / f"{name}.md").write_text((f"`{command}`\n\n" if command else "") + md + "\n")
     ok = [r for r in records if r["status"] == "ok"]
     if ok:
-        from d2gs_np.reporting.plots import plot_error_vs_time
+        from d2gs_np.reporting.plots import heldout_curve, plot_curves_by_scene
 
-        plot_error_vs_time([r["run"] for r in ok], out / f"{name}_error_vs_time.png",
-                           labels=[f"{r['scene']}/{r['variant']}/s{r['seed']}" for r in ok],
-                           title=f"{name}: held-out PSNR against training seconds")
+        plot_curves_by_scene([(r["scene"], r["variant"], r["seed"], *heldout_curve(r["run"]), r.get("input_psnr"))
+                              for r in ok], out / f"{name}_error_vs_time.png",
+                             title=f"{name}: held-out PSNR against training seconds")
     return md

@@ -47,6 +47,56 @@ def plot_error_vs_time(run_dirs, out_png, labels=None, title="error against wall
     return _save(fig, ax, out_png)
 
 
+def heldout_curve(run_dir):
+    """(seconds (R,), held-out PSNR (R,)) of a run's logged held-out rows (empty when it logged none)."""
+    c = read_log(run_dir)
+    held = ~np.isnan(c.get("heldout_psnr", np.full(len(c["seconds"]), np.nan)))
+    return c["seconds"][held], c["heldout_psnr"][held]
+
+
+def plot_curves_by_scene(rows, out_png, title="held-out PSNR against training time"):
+    """One panel per scene: held-out PSNR against training seconds, a line per variant and seed, and
+    the blurry input's PSNR dashed (what training must rise above). An experiment's cells on one axis
+    cannot be read past a few; this is its figure.
+
+    rows: (scene, variant, seed, seconds (R,), held-out PSNR (R,), input PSNR or None) per cell.
+    """
+    import matplotlib
+
+    matplotlib.use("Agg")
+    import matplotlib.pyplot as plt
+
+    rows = list(rows)
+    if not rows:
+        raise ValueError("plot_curves_by_scene: no cells to plot")
+    scenes = list(dict.fromkeys(r[0] for r in rows))
+    colours = {v: plt.cm.tab10(i % 10) for i, v in enumerate(dict.fromkeys(r[1] for r in rows))}
+    n, cols = len(scenes), min(len(scenes), 3)
+    nrows = (n + cols - 1) // cols
+    fig, axes = plt.subplots(nrows, cols, figsize=(4.2 * cols, 3.2 * nrows), squeeze=False)
+    for ax, scene in zip(axes.ravel(), scenes):
+        inp = None
+        for s, v, seed, t, p, i in rows:
+            if s == scene:
+                ax.plot(t, p, "o-", ms=3, color=colours[v], label=f"{v} (seed {seed})")
+                inp = i if i is not None else inp
+        if inp is not None:
+            ax.axhline(inp, color="k", ls="--", lw=1, label="blurry input")
+        ax.set_title(scene, fontsize=10)
+        ax.set_xlabel("training time [s]")
+        ax.set_ylabel("held-out PSNR [dB]")
+        ax.grid(alpha=0.3)
+        ax.legend(fontsize=7)
+    for ax in axes.ravel()[n:]:
+        ax.axis("off")
+    fig.suptitle(f"{title} (JIT and evaluation excluded)", fontsize=10)
+    fig.tight_layout()
+    Path(out_png).parent.mkdir(parents=True, exist_ok=True)
+    fig.savefig(out_png, dpi=110)
+    plt.close(fig)
+    return Path(out_png)
+
+
 def plot_loss_terms(run_dir, out_png, title=None):
     """Each loss term's unweighted value (log columns ``loss_<name>``, docs/method.md §6) against
     training seconds, on a log axis (the terms differ by orders of magnitude)."""
