@@ -9,7 +9,7 @@ depth in its source frame against the ray-cast depth through its pixel at the tr
 is the scale of the poses used against the true ones (``pose_scale``; the bundle adjustment fixes
 the scene's scale only up to its prior), and the true depth range is given in that scale.
 
-    python examples/init_diagnostics.py SCENE [SCENE ...] [--out diag.json] [--no-pose-init]
+    python examples/init_diagnostics.py SCENE [SCENE ...] [--out diag.json] [--no-pose-init] [--config FILE]
 """
 from __future__ import annotations
 
@@ -145,18 +145,13 @@ def main(argv=None):
     p.add_argument("scenes", nargs="+")
     p.add_argument("--out", default=None, help="write the results as JSON here")
     p.add_argument("--no-pose-init", action="store_true", help="start from the given poses (no bundle adjustment)")
-    p.add_argument("--previous", action="store_true",
-                   help="the initialisation before the robust depth range and the distinctness check in pixels "
-                        "(depth_range_mad 0, stereo.distinct_px 0)")
+    p.add_argument("--config", default=None,
+                   help="a config JSON as `d2gs train --config` takes (e.g. {\"init\": {\"stereo\": {\"distinct_px\": 1}}}); "
+                        "default: the present defaults")
     args = p.parse_args(argv)
     from d2gs_np.train.config import ExperimentConfig
 
-    config = ExperimentConfig()
-    if args.previous:
-        init = config.init
-        init = dataclasses.replace(init, depth_range_mad=0.0,
-                                   stereo=dataclasses.replace(init.stereo, distinct_px=0.0))
-        config = dataclasses.replace(config, init=init)
+    config = ExperimentConfig.load(args.config) if args.config else ExperimentConfig()
     results = []
     for s in args.scenes:
         r = diagnose(s, pose_init=not args.no_pose_init, config=config)
