@@ -412,11 +412,11 @@ def _cmd_experiment(args):
 
 
 DEMO_PRESET = "cube_sign"  # the suite scene with every component on: movers, blur, noisy poses
-# 24 frames at 160x90: at 12 frames the exposures are twice as long and the noisy poses too far off
-# their short baselines for the method to beat its input in the budget (docs/results.md §2)
+# the suite's frame count at two thirds of its resolution: small enough for a laptop's budget, with
+# exposures short enough for the method to beat its input in it (why not 12 frames: docs/results.md §2)
 DEMO_SCENE = {"num_frames": 24, "width": 160, "height": 90}
 DEMO_ITERS = 2000  # the schedule's length; DEMO_BUDGET decides where it ends
-DEMO_BUDGET = 420.0  # seconds of training: the demo in about 8.5 min wall, install and cold JIT cache included (docs/results.md §2)
+DEMO_BUDGET = 420.0  # seconds of training: the whole demo within 10 minutes on 2 cores, install and JIT included (docs/results.md §2)
 DEMO_QUICK_SCENE = {"num_frames": 6, "width": 96, "height": 54}
 DEMO_QUICK_ITERS = 80  # a smoke run: every stage, the blur model and the report, in about a minute
 

@@ -118,7 +118,7 @@ EXPERIMENTS = {
         Variant("+reproj", scene=_TRUE_POSES, config={"loss": {**_NO_REG, "lambda_reproj": _REG["lambda_reproj"]}}),
         Variant("all", scene=_TRUE_POSES, config={"loss": dict(_REG)}),
     ),
-    # Where the exposure starts and when it learns (issue #39, docs/results.md §5): today's start on
+    # Where the exposure starts and when it learns (issue #39, docs/results.md §5): the default start on
     # the velocity of the neighbouring given poses, the same from a 5-frame fit, and a start at the
     # given pose (a tiny spread, as the public deblurring codebases start), each with and without a
     # first fifth of the steps that fits the Gaussians alone; the no-blur baseline beside them.

@@ -41,8 +41,8 @@ __all__ = ["reprojection_fwd", "reprojection_bwd", "reprojection_jacobian", "pos
            "bundle_adjust", "poses_to_params", "params_to_poses"]
 
 # The Schur solver's first Levenberg-Marquardt lambda (relative to diag(H)). The robust problems of
-# pose_init have several local minima, and the first steps choose among them: 1e-3 reached the
-# lowest first-round cost on all suite scenes but one (docs/results.md §12).
+# pose_init have several local minima, and the first steps choose among them: this one chooses
+# well on the suite (docs/results.md §12 compares the first lambdas).
 SCHUR_DAMPING_INIT = 1e-3
 
 

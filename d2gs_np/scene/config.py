@@ -58,7 +58,7 @@ class StereoConfig:
     max_cost_ratio: float = 0.8  # best cost / best cost away from the minimum
     depth_margin: float = 0.5  # the sweep covers [(1 - m) near, (1 + m) far] of the given range
     # the distinctness check compares with hypotheses this many source pixels away (0: two hypotheses
-    # away, the default; 1 fills cube_sign's stereo but cost novel views in 600 s runs: docs/method.md §8)
+    # away, the default; why not 1: docs/method.md §8)
     distinct_px: float = 0.0
 
     def __post_init__(self):
