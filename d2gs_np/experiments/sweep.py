@@ -156,6 +156,15 @@ EXPERIMENTS = {
         Variant("static_median", config={"init": {"dynamic_depth": "static_median"}}),
         Variant("oracle_depth", config={"init": {"dynamic_depth": "scene"}}),
     ),
+    # A background drawn at random each step against the fixed black one (issue #40, docs/method.md
+    # §10: half the pixels of a model trained over black were semi-transparent), with the given
+    # (noisy) and with true poses.
+    "background": (
+        Variant("black"),
+        Variant("random", config={"train": {"random_background": True}}),
+        Variant("black_true", scene=_TRUE_POSES),
+        Variant("random_true", scene=_TRUE_POSES, config={"train": {"random_background": True}}),
+    ),
     "suite": (
         Variant("sharp", scene=_SHARP),
         Variant("blur", scene=_TRUE_POSES),

@@ -138,6 +138,10 @@ class TrainConfig:
     camera_from_fraction: float = 0.0
     seed: int = 0
     background: tuple = (0.0, 0.0, 0.0)
+    # True: each step's render is moved over a background drawn at random for that step, so
+    # transparency costs loss and the model turns opaque where the images are (train/background.py);
+    # evaluation renders over ``background``.
+    random_background: bool = False
     lr: LearningRates = field(default_factory=LearningRates)
     # Components: "auto" lets the scene decide (docs/method.md §9); "on"/"off" force.
     dynamic: str = "auto"
@@ -181,7 +185,7 @@ class TrainConfig:
         for name in ("eval_every", "checkpoint_every", "prune_every"):
             check_int(getattr(self, name), f"TrainConfig.{name}", 0, hint="0 = never")
         check_int(self.seed, "TrainConfig.seed", 0, hint="a NumPy seed")
-        for name in ("progressive", "quiet", "stretch_to_budget"):
+        for name in ("progressive", "quiet", "stretch_to_budget", "random_background"):
             check_bool(getattr(self, name), f"TrainConfig.{name}")
         check_number(self.prune_opacity, "TrainConfig.prune_opacity", 0.0, 1.0, hi_open=True)
         if self.time_budget is not None:

@@ -44,6 +44,7 @@ import numpy as np
 from d2gs_np.data.scene import Scene
 from d2gs_np.render.api import warm_up
 from d2gs_np.scene.gaussians import STATIC, num_static
+from d2gs_np.train.background import background_rng, composite_bwd, composite_fwd
 from d2gs_np.train.checkpoint import atomic_write_text, save_checkpoint
 from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.learning_rates import centre_endpoint_grads, optimiser_step
@@ -192,8 +193,15 @@ class Trainer:
             return record  # loss and train PSNR NaN, no views
         out, saved = frame_render_fwd(state.model, k, tgt.K, tgt.width, tgt.height, plan.stage.static_only)
         views = int(out["poses"].shape[0]) if "poses" in out else 1
+        bg = None
+        if self.config.train.random_background:  # the render moved over a background drawn for this step
+            bg = background_rng(self.config.train.seed, step).random(3)
+            out = dict(out, image=composite_fwd(out["image"], out["alpha"], bg, state.model.background))
         inputs = TermInputs(out, tgt.image, loss_mask, state.model, k, plan.stage, tgt.mask)
         loss, values, v_render, v_terms = terms_fwd_bwd(self.terms, inputs)
+        if bg is not None and "image" in v_render:
+            v_bg = composite_bwd(v_render["image"], bg, state.model.background)
+            v_render["alpha"] = v_bg if v_render.get("alpha") is None else v_render["alpha"] + v_bg
         # The views a subset backward runs through (blur.backward_views) depend only on (seed, step),
         # so a resumed run draws the same ones.
         rng = backward_views_rng(self.config.train.seed, step)
