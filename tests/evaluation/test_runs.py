@@ -125,3 +125,37 @@ def test_seen_by_training_is_what_some_training_frame_sees_at_its_depth():
     none = _plane_view(0.0)
     none.depth[:, :5] = np.inf  # no surface there: not counted as seen
     assert not seen_by_training(none.cam_T_world, none, [_plane_view(0.0)])[:, :5].any()
+
+
+def test_view_metrics_score_each_test_view_and_its_seen_and_unseen_pixels():
+    from types import SimpleNamespace
+
+    from d2gs_np.evaluation import metrics
+    from d2gs_np.evaluation.runs import _seen_psnr, _view_metrics
+
+    rng = np.random.default_rng(0)
+    views = [_plane_view(0.0), _plane_view(-1.0)]
+    views[1].time = 0.9
+    # one training camera 2 units right: view 0 sees its right half seen, view 1 (at x = -1) its
+    # right quarter (columns x >= 0, i.e. >= 15)
+    scene = SimpleNamespace(test_frames=views, frames=[_plane_view(2.0)], has_depth=True, has_gt_poses=True)
+    truth = [rng.random((12, 20, 3)) for _ in views]
+    renders = [t.copy() for t in truth]
+    renders[0][:, :10] += 0.1  # error only where view 0 is unseen
+    renders[1] += 0.01 * rng.standard_normal(renders[1].shape)
+    pairs = list(zip(renders, truth))
+    out = _view_metrics(pairs, scene)
+    assert [v["time"] for v in out] == [0.5, 0.9]
+    for v, (a, b) in zip(out, pairs):
+        assert v["psnr"] == pytest.approx(metrics.psnr(a, b), abs=1e-12)
+    assert out[0]["unseen_share"] == pytest.approx(0.5) and out[1]["unseen_share"] == pytest.approx(0.75)
+    assert out[0]["seen_psnr"] is None  # no error on the seen half
+    assert out[0]["unseen_psnr"] == pytest.approx(20.0, abs=1e-9)  # 0.1 everywhere there
+    # the cap of the docstring: the view's PSNR with only its unseen pixels wrong
+    cap = out[0]["unseen_psnr"] - 10 * np.log10(out[0]["unseen_share"])
+    assert cap == pytest.approx(out[0]["psnr"], abs=1e-9)
+    # pooled over the views, the per-view sums give _seen_psnr's figures
+    pooled = _seen_psnr(pairs, scene)
+    n_seen = [(1 - v["unseen_share"]) * 240 for v in out]
+    mse_seen = sum(n * 10 ** (-v["seen_psnr"] / 10) for n, v in zip(n_seen, out) if v["seen_psnr"] is not None)
+    assert pooled["seen_psnr"] == pytest.approx(-10 * np.log10(mse_seen / sum(n_seen)), abs=1e-9)
