@@ -133,3 +133,14 @@ def test_the_error_plot_gets_a_depth_panel_when_the_log_has_depth(tmp_path, monk
     (run / "log.csv").write_text("step,seconds,stage,loss,train_psnr,heldout_psnr\n0,0.1,joint,0.1,20,19\n")
     report._error_vs_time_uri([{"name": "a", "dir": run}])
     assert made[-1][:2] == (1, 1)
+
+
+def test_the_metrics_table_lists_each_test_views_psnr():
+    from d2gs_np.reporting.html import _metrics_table
+
+    views = [{"time": 0.0, "psnr": 22.61}, {"time": 0.35, "psnr": 33.3}, {"time": 1.0, "psnr": None}]
+    table = _metrics_table([{"name": "a", "result": {"nvs": {"psnr": 27.9, "views": views}}},
+                            {"name": "b", "result": {"nvs": {"psnr": 25.0}}}])
+    row = next(r for r in table.split("<tr>") if "each test view" in r)
+    assert "0.00: 22.61<br>0.35: 33.30<br>1.00: &ndash;" in row
+    assert row.count("&ndash;") == 2  # run b has no per-view figures

@@ -272,6 +272,7 @@ _METRIC_ROWS = (
     ("novel views, pixels some training frame saw: PSNR [dB]", ("nvs", "seen_psnr"), ".2f"),
     ("novel views, pixels no training frame saw: PSNR [dB]", ("nvs", "unseen_psnr"), ".2f"),
     ("novel views, share of pixels no training frame saw", ("nvs", "unseen_share"), ".3f"),
+    ("novel views, each test view (time: PSNR [dB])", ("nvs", "views"), "views"),
     ("novel views: SSIM", ("nvs", "ssim"), ".3f"),
     ("novel views: FLIP (lower is better)", ("nvs", "flip"), ".4f"),
     ("novel views, test poses refined: PSNR [dB]", ("nvs_pose_opt", "psnr"), ".2f"),
@@ -303,6 +304,10 @@ def _metrics_table(runs):
                 key = "rpe_t" if "RPE_t" in label else "rpe_r" if "RPE_r" in label else "scale"
                 a, b = _get(m, "trajectory", "initial", key), _get(m, "trajectory", key)
                 cells.append(f"{_fmt(a, '.4f')} &rarr; {_fmt(b, '.4f')}")
+            elif spec == "views":
+                views = _get(m, *keys)
+                cells.append("<br>".join(f"{v['time']:.2f}: {_fmt(v.get('psnr'), '.2f')}" for v in views)
+                             if views else "&ndash;")
             else:
                 cells.append(_fmt(_get(m, *keys), spec))
         if any(c not in ("&ndash;", "&ndash; &rarr; &ndash;") for c in cells):
