@@ -202,7 +202,7 @@ def _novel_views(run: LoadedRun, scene, mids, reference, test_pose_steps=0) -> d
     # hand-held path is close to a line or an arc, about which centres alone leave the rotation
     # undetermined (ATE keeps the centres-only protocol).
     s, R, t = metrics.sim3_inverse(*align_with_orientations(mids, reference, scene.scene_scale))
-    pairs, fitted, moves, depths = [], [], [], []
+    pairs, fitted, moves, depths, split = [], [], [], [], None
     model = run.model
     for f in scene.test_frames:
         pose = metrics.sim3_apply_to_poses(s, R, t, f.cam_T_world)
@@ -221,8 +221,9 @@ def _novel_views(run: LoadedRun, scene, mids, reference, test_pose_steps=0) -> d
         out["nvs"]["depth"] = _depth_metrics(depths, [f.depth for f in scene.test_frames],
                                              [f.mask for f in scene.test_frames], 1.0 / s)
         if scene.has_depth and scene.has_gt_poses:
-            out["nvs"].update(_seen_psnr(pairs, scene))
-    out["nvs"]["views"] = _view_metrics(pairs, scene)
+            split = _seen_split(pairs, scene)
+            out["nvs"].update(_seen_psnr(pairs, scene, split))
+    out["nvs"]["views"] = _view_metrics(pairs, scene, split)
     if fitted:
         out["nvs_pose_opt"] = {**_image_metrics(fitted), "steps": int(test_pose_steps),
                                "mean_rotation_deg": float(np.degrees(np.mean([m[0] for m in moves]))),
@@ -259,40 +260,47 @@ def seen_by_training(view_pose, view, frames):
     return out
 
 
-def _seen_sums(a, b, f, frames):
-    """Squared error summed over the seen and the unseen pixels of one view, and their value counts."""
-    seen = seen_by_training(f.cam_T_world, f, frames)
-    e = ((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2).sum(-1)
-    return np.array([e[seen].sum(), e[~seen].sum()]), np.array([3 * seen.sum(), 3 * (~seen).sum()])
+def _seen_split(pairs, scene) -> list:
+    """Per test view: the squared error summed over its seen and its unseen pixels
+    (``seen_by_training``), and their value counts, as ((2,), (2,)) arrays."""
+    out = []
+    for (a, b), f in zip(pairs, scene.test_frames):
+        seen = seen_by_training(f.cam_T_world, f, scene.frames)
+        e = ((np.asarray(a, np.float64) - np.asarray(b, np.float64)) ** 2).sum(-1)
+        out.append((np.array([e[seen].sum(), e[~seen].sum()]), np.array([3 * seen.sum(), 3 * (~seen).sum()])))
+    return out
 
 
 def _db(sums, counts, k):
     return float(10.0 * np.log10(counts[k] / sums[k])) if counts[k] and sums[k] > 0 else None
 
 
-def _seen_psnr(pairs, scene) -> dict:
+def _seen_psnr(pairs, scene, split=None) -> dict:
     """Novel-view PSNR on the pixels some training frame saw (``seen_by_training``) and on the
     rest, pooled over the test views, and the unseen share: what a test camera beside the path
-    sees that no training view did cannot be reconstructed, only extrapolated."""
-    sums, counts = np.zeros(2), np.zeros(2)
-    for (a, b), f in zip(pairs, scene.test_frames):
-        s, c = _seen_sums(a, b, f, scene.frames)
-        sums, counts = sums + s, counts + c
+    sees that no training view did cannot be reconstructed, only extrapolated. ``split``: the
+    views' ``_seen_split``, when already computed."""
+    split = _seen_split(pairs, scene) if split is None else split
+    sums, counts = sum(s for s, _ in split), sum(c for _, c in split)
     return {"seen_psnr": _db(sums, counts, 0), "unseen_psnr": _db(sums, counts, 1),
             "unseen_share": float(counts[1] / counts.sum())}
 
 
-def _view_metrics(pairs, scene) -> list:
+def _view_metrics(pairs, scene, split=None) -> list:
     """Each test view's time and PSNR; with true depth maps and poses also its seen and unseen
-    PSNR and unseen share (``_seen_psnr`` per view). A test view beside the path's end sees a strip
-    no training frame saw, so its PSNR is capped whatever the model does elsewhere: at
-    ``unseen_psnr - 10 log10(unseen_share)`` with its unseen pixels as rendered (docs/method.md §10)."""
+    PSNR and unseen share (``_seen_psnr`` per view; ``split``: the views' ``_seen_split`` when
+    already computed). A test view beside the path's end sees a strip no training frame saw, so
+    its PSNR is capped whatever the model does elsewhere: at ``unseen_psnr - 10
+    log10(unseen_share)`` with its unseen pixels as rendered (docs/method.md §10)."""
+    if split is None and scene.has_depth and scene.has_gt_poses and all(f.depth is not None
+                                                                        for f in scene.test_frames):
+        split = _seen_split(pairs, scene)
     views = []
-    for (a, b), f in zip(pairs, scene.test_frames):
+    for k, ((a, b), f) in enumerate(zip(pairs, scene.test_frames)):
         p = float(metrics.psnr(a, b))
         v = {"time": float(f.time), "psnr": p if np.isfinite(p) else None}
-        if f.depth is not None and scene.has_depth and scene.has_gt_poses:
-            s, c = _seen_sums(a, b, f, scene.frames)
+        if split is not None:
+            s, c = split[k]
             v.update(seen_psnr=_db(s, c, 0), unseen_psnr=_db(s, c, 1), unseen_share=float(c[1] / c.sum()))
         views.append(v)
     return views

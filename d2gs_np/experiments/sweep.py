@@ -156,9 +156,8 @@ EXPERIMENTS = {
         Variant("static_median", config={"init": {"dynamic_depth": "static_median"}}),
         Variant("oracle_depth", config={"init": {"dynamic_depth": "scene"}}),
     ),
-    # A background drawn at random each step against the fixed black one (issue #40, docs/method.md
-    # §10: half the pixels of a model trained over black were semi-transparent), with the given
-    # (noisy) and with true poses.
+    # A background drawn at random each step against the fixed black one, over which a model can
+    # stay semi-transparent (issue #40, docs/method.md §10), with the given (noisy) and true poses.
     "background": (
         Variant("black"),
         Variant("random", config={"train": {"random_background": True}}),

@@ -42,7 +42,7 @@ __all__ = ["reprojection_fwd", "reprojection_bwd", "reprojection_jacobian", "pos
 
 # The Schur solver's first Levenberg-Marquardt lambda (relative to diag(H)). The robust problems of
 # pose_init have several local minima, and the first steps choose among them: this one chooses
-# well on the suite (docs/results.md §12 compares the first lambdas).
+# well (docs/results.md §12 compares the first lambdas).
 SCHUR_DAMPING_INIT = 1e-3
 
 

@@ -1,9 +1,9 @@
 """A random background behind each training step's render (``TrainConfig.random_background``).
 
 Every pixel of a photograph sees a surface, but a model rendered over a fixed black background
-can stand semi-transparent Gaussians in for dark colour: on the suite, half of a trained model's
-pixels had accumulated alpha below 0.95 (docs/method.md §10). From a new viewpoint such layers
-blend differently and the background shows through at the frame's edges. A background drawn at
+can stand semi-transparent Gaussians in for dark colour (docs/method.md §10 measures how much).
+From a new viewpoint such layers blend differently and the background shows through at the
+frame's edges. A background drawn at
 random each step makes any transmittance cost loss, so the model turns opaque where the photograph
 is. The public Gaussian-splatting trainers offer the same option (3DGS's ``--random_background``,
 gsplat's ``simple_trainer`` ``random_bkgd``).
