@@ -95,3 +95,17 @@ def test_random_background_must_be_a_bool():
     with pytest.raises((TypeError, ValueError), match="random_background"):
         TrainConfig(random_background="yes")
     assert dataclasses.replace(TrainConfig(), random_background=True).random_background is True
+
+
+def test_composite_at_alpha_zero_and_one_is_the_background_and_the_render():
+    """The extremes: where nothing is rendered (alpha 0) the pixel is the drawn background plus
+    what the render put there, where the render is opaque (alpha 1) the background is gone and
+    alpha's cotangent is still finite (the composite is linear in alpha)."""
+    image = np.array([[[0.1, 0.2, 0.3], [0.4, 0.5, 0.6]]])
+    alpha = np.array([[0.0, 1.0]])
+    bg, b0 = np.array([0.9, 0.5, 0.1]), np.zeros(3)
+    out = composite_fwd(image, alpha, bg, b0)
+    np.testing.assert_array_equal(out[0, 0], image[0, 0] + bg)
+    np.testing.assert_array_equal(out[0, 1], image[0, 1])
+    v = composite_bwd(np.ones_like(image), bg, b0)
+    np.testing.assert_array_equal(v, np.full((1, 2), -bg.sum()))
