@@ -619,7 +619,8 @@ def build_parser() -> argparse.ArgumentParser:
                     help="image size factor on the scene's default size")
     ex.add_argument("--frames", type=_COUNT, default=None, help="frames per scene (default: the scene's)")
     ex.add_argument("--jobs", type=_COUNT, default=1, help="cells at once on the local scheduler (default 1)")
-    ex.add_argument("--threads", type=_COUNT, default=1, help="Numba threads per cell (default 1)")
+    ex.add_argument("--threads", type=_COUNT, default=None,
+                    help="Numba threads per cell (default: cores // jobs, the whole machine)")
     ex.add_argument("--scheduler", default=None, help="address of a dask.distributed scheduler (default: local)")
     ex.add_argument("--retries", type=_int_at_least(0), default=1, help="retries of a failed cell (default 1)")
     ex.add_argument("--config", default=None, help="base experiment config JSON for every cell")

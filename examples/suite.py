@@ -35,11 +35,10 @@ against training seconds, every cell); likewise suite-ablation.* for the ablatio
 from __future__ import annotations
 
 import argparse
-import os
 import sys
 from pathlib import Path
 
-from d2gs_np.experiments.sweep import EXPERIMENTS, run_experiment
+from d2gs_np.experiments.sweep import EXPERIMENTS, default_threads, run_experiment
 
 VARIANTS = tuple(v.name for v in EXPERIMENTS["suite"])  # sharp, blur, noblur, noisy, noisy_noblur
 # Regulariser ablation (``d2gs experiment suite-ablation``): each variant turns on the method's
@@ -117,7 +116,7 @@ def main(argv=None):
         ap.error(f"unknown suite scene(s) {unknown}; choose from {sorted(SUITE)}")
     if args.jobs < 1 or args.budget <= 0 or args.size <= 0:
         ap.error("--jobs must be >= 1, --budget and --size > 0")
-    threads = args.threads or max(1, (os.cpu_count() or 1) // args.jobs)
+    threads = args.threads or default_threads(args.jobs)
     out = Path(args.out)
     cmd = "python examples/suite.py " + " ".join(argv if argv is not None else sys.argv[1:])
     kw = dict(seeds=[args.seed], budget=args.budget, iters=args.iters, size=args.size, jobs=args.jobs,

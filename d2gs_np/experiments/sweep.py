@@ -395,12 +395,23 @@ def _check_scenes(scenes):
                          f"presets {sorted(PRESETS)}")
 
 
+def default_threads(jobs: int, cores: Optional[int] = None) -> int:
+    """Numba threads per cell that spend this machine's cores: ``cores // jobs``, at least 1. With a
+    time budget the steps a cell buys follow its threads (a 600 s suite cell: 1.6x the steps on 2
+    threads against 1, docs/results.md §4), so one cell at a time should not leave cores idle."""
+    cores = (os.cpu_count() or 1) if cores is None else int(cores)
+    return max(1, cores // max(1, int(jobs)))
+
+
 def run_experiment(name: str, out, scenes, seeds=(0,), budget: Optional[float] = None, iters: Optional[int] = None,
-                   size: float = 1.0, jobs: int = 1, threads: int = 1, scheduler=None, retries: int = 1,
-                   config_path=None, variants=None, frames=None, command: str = "") -> list:
+                   size: float = 1.0, jobs: int = 1, threads: Optional[int] = None, scheduler=None,
+                   retries: int = 1, config_path=None, variants=None, frames=None, command: str = "") -> list:
     """Run an experiment's cells (module docstring); returns the records (failed cells included,
-    ``status == "failed"``) and writes the table, CSV and plot."""
+    ``status == "failed"``) and writes the table, CSV and plot. ``threads`` per cell defaults to
+    ``default_threads(jobs)`` (this machine's cores; give it for a remote ``scheduler``'s workers)."""
     _check_scenes(scenes)
+    if threads is None:
+        threads = default_threads(jobs)
     if budget is None and not iters:
         raise ValueError("give a time budget (seconds per cell) or a number of steps per cell")
     if budget is not None and not budget > 0:

@@ -45,6 +45,23 @@ def test_bad_requests_fail_before_any_cell(tmp_path):
     assert not (tmp_path / "runs").exists()
 
 
+def test_default_threads_spend_the_machine():
+    assert ex.default_threads(1, cores=2) == 2  # one cell at a time gets both cores
+    assert ex.default_threads(2, cores=2) == 1
+    assert ex.default_threads(3, cores=8) == 2  # the floor: never more threads than cores
+    assert ex.default_threads(4, cores=2) == 1  # never fewer than one
+
+
+def test_a_sweep_without_threads_gives_each_cell_cores_over_jobs(tmp_path, monkeypatch):
+    seen = []
+    monkeypatch.setattr(ex, "_run_cells", lambda cells, out, retries, kw, jobs, scheduler: seen.append(kw) or [])
+    monkeypatch.setattr(ex, "write_outputs", lambda *a, **k: None)
+    monkeypatch.setattr(ex.os, "cpu_count", lambda: 6)
+    ex.run_experiment("baselines", tmp_path, ["dynamic"], iters=2, variants=["full"], jobs=2)
+    ex.run_experiment("baselines", tmp_path, ["dynamic"], iters=2, variants=["full"], jobs=2, threads=1)
+    assert [kw["threads"] for kw in seen] == [3, 1]
+
+
 @pytest.fixture(scope="module")
 def cluster():
     distributed = pytest.importorskip("distributed")
