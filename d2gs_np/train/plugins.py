@@ -181,8 +181,11 @@ class GradientStatistics(Plugin):
 
 
 class Prune(Plugin):
-    """Every ``train.prune_every`` steps until 90 % of the run: remove transparent and oversized
-    Gaussians, and dynamic ones that escaped their motion masks (``train/prune.py``)."""
+    """Every ``train.prune_every`` steps until 90 % of the schedule, and past the schedule's end (a
+    run that trains on to spend its budget, ``TrainConfig.stretch_to_budget``) again until 90 % of
+    the budget: remove transparent and oversized Gaussians, and dynamic ones that escaped their
+    motion masks (``train/prune.py``). Without pruning past the schedule's end a sharp-input run
+    grew frame-wide translucent veils in front of the wall (docs/method.md §10, "Veils")."""
 
     name = "prune"
 
@@ -204,9 +207,16 @@ class Prune(Plugin):
 
     def on_step(self, state):
         tc = self.config.train
-        if entered_period(state, tc.prune_every) and state.sched < int(0.9 * tc.iters):
+        if entered_period(state, tc.prune_every) and self.active(state):
             state, _ = self.prune(state)
         return state
+
+    def active(self, state) -> bool:
+        """Whether this step is inside a pruning window (the class docstring)."""
+        iters = self.config.train.iters
+        if state.sched < int(0.9 * iters):
+            return True
+        return state.sched >= iters and state.budget_fraction is not None and state.budget_fraction < 0.9
 
     def prune(self, state):
         """(state, number removed) with the rules applied once."""

@@ -9,7 +9,8 @@ Persistent part (checkpointed, so a resumed run is exact):
 
 The step's part, set by the loop before the plugins run: ``step``, ``sched`` (the step the
 schedules were read at), ``prev_sched`` (the one the periods compare against), ``stage``,
-``last`` (the run's last step: iterations done or time budget spent), and the step's two
+``last`` (the run's last step: iterations done or time budget spent), ``budget_fraction`` (seconds
+of training after this step over the time budget; None without one), and the step's two
 channels, each a record with named fields:
 - ``record`` (``StepRecord``): what the step did (frame, render scale and size, loss, each loss
   term's value, train PSNR); plugins add theirs with ``record.replace`` (``heldout_psnr``,
@@ -84,6 +85,7 @@ class TrainState:
     record: Optional[StepRecord] = None
     screen_grads: Optional[ScreenGrads] = None
     last: bool = False
+    budget_fraction: Optional[float] = None
 
     @property
     def params(self) -> dict:

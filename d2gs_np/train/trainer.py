@@ -285,7 +285,8 @@ class Trainer:
             prev = self.state.last_sched if budget is not None else step - 1
             last = out_of_time or (step + 1 >= total and not (budget is not None and stretch))
             state = self.state.replace(step=step, sched=sched, prev_sched=prev, last_sched=sched, stage=stage,
-                                       record=record, last=last)
+                                       record=record, last=last,
+                                       budget_fraction=None if budget is None else self.stopwatch.seconds() / budget)
             for plugin in self.plugins:
                 state = self._on_step(plugin, state)
             self.stopwatch.pause()

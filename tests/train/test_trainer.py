@@ -500,6 +500,62 @@ def test_prune_removes_oversized_and_escaped_gaussians_and_keeps_state_in_step(d
             assert tr.adam_state["m"][name].shape == v.shape, name
 
 
+def test_prune_runs_past_the_schedule_end_until_90_percent_of_the_budget(dynamic_scene, tmp_path):
+    """A run that trains on past its schedule to spend its budget keeps pruning (an oversized
+    Gaussian grown there is removed) until 90 % of the budget; inside the schedule the window is
+    90 % of the steps, as before, and without a budget there is no stretched phase."""
+    from d2gs_np.train.plugins import Prune
+
+    tr = Trainer(dynamic_scene, _config(iters=10, prune_every=5), tmp_path / "run")
+    prune = Prune(tr.config, tr.extent, [f.mask for f in tr.frames])
+    prune.on_init(tr.model)
+    big = np.array(tr.params["static.log_scales"])
+    big[0] = np.log(0.5 * prune.extent)  # over the 0.1 x extent rule
+    tr.params = {**tr.params, "static.log_scales": big}
+    n = tr.params["static.means"].shape[0]
+
+    def at(sched, fraction):
+        return tr.state.replace(sched=sched, prev_sched=sched - 1, budget_fraction=fraction)
+
+    assert prune.active(at(5, None)) and not prune.active(at(9, None))  # 90 % of 10 steps
+    assert not prune.active(at(10, None))  # no budget: the run ends at its schedule's end
+    assert prune.active(at(40, 0.5)) and not prune.active(at(40, 0.95))
+    assert not prune.active(at(9, 0.5))  # the schedule's own last 10 % stays unpruned
+    kept = prune.on_step(at(40, 0.95))
+    assert kept.params["static.means"].shape[0] == n  # past 90 % of the budget: left alone
+    pruned = prune.on_step(at(40, 0.5))
+    assert pruned.params["static.means"].shape[0] < n
+    assert not np.any(np.all(pruned.params["static.log_scales"] == big[0], axis=1))
+
+
+def test_the_loop_tells_plugins_how_much_of_the_budget_is_spent(sharp_scene, tmp_path):
+    from d2gs_np.train.plugins import Plugin
+
+    class Spy(Plugin):
+        name = "spy"
+        timed = False
+
+        def __init__(self):
+            self.seen = []
+
+        def on_step(self, state):
+            self.seen.append((state.sched, state.budget_fraction))
+            return state
+
+    for budget in (None, 1.0):
+        tr = Trainer(sharp_scene, _config(iters=4, time_budget=budget), tmp_path / f"b{budget}")
+        spy = Spy()
+        tr.plugins = [*tr.plugins, spy]
+        tr.run()
+        fractions = [f for _, f in spy.seen]
+        if budget is None:
+            assert fractions == [None] * 4
+        else:  # rises with the clock, and the last step spent the budget
+            assert len(fractions) > 4 and all(b >= a > 0 for a, b in zip(fractions, fractions[1:]))
+            assert fractions[-1] >= 1.0 and fractions[-2] < 1.0
+            assert max(s for s, _ in spy.seen) > 4  # the stretched phase: schedule steps past iters
+
+
 def test_position_rates_take_the_scene_size_as_their_unit(dynamic_scene, tmp_path):
     from d2gs_np.train.learning_rates import scene_extent, size_extent
 
