@@ -7,6 +7,9 @@ draws the same figure as ``OUT/<experiment>_error_vs_time.png`` when it ends; th
 the cell folders (an experiment still running, or cells gathered from several).
 
     python examples/plot_suite_curves.py OUT/runs/EXPERIMENT --out curves.png [--title TITLE]
+    python examples/plot_suite_curves.py "1 thread=OUT1/runs/EXP" "2 threads=OUT2/runs/EXP" --out c.png
+
+Several folders go on the same panels; ``LABEL=FOLDER`` tags each of its lines "variant (LABEL)".
 
 Cell folders are ``<scene>_s<seed>_<variant>[...]`` with ``cell.json`` (``d2gs experiment``).
 """
@@ -18,8 +21,9 @@ import sys
 from pathlib import Path
 
 
-def cells(folder):
-    """[(scene, variant, seed, seconds (R,), held-out PSNR (R,), input PSNR or None)] of the cells."""
+def cells(folder, label=None):
+    """[(scene, variant, seed, seconds (R,), held-out PSNR (R,), input PSNR or None)] of the cells;
+    ``label`` appended to each variant as "variant (label)"."""
     from d2gs_np.reporting.plots import heldout_curve
 
     out = []
@@ -28,26 +32,33 @@ def cells(folder):
             continue
         c = json.loads((d / "cell.json").read_text())
         m = json.loads((d / "metrics.json").read_text()) if (d / "metrics.json").is_file() else {}
-        out.append((c["scene"], c["variant"], int(c["seed"]), *heldout_curve(d), (m.get("input_blur") or {}).get("psnr")))
+        variant = c["variant"] if label is None else f"{c['variant']} ({label})"
+        out.append((c["scene"], variant, int(c["seed"]), *heldout_curve(d), (m.get("input_blur") or {}).get("psnr")))
     if not out:
         raise FileNotFoundError(f"{folder} holds no experiment cells (folders with cell.json and log.csv)")
     return out
 
 
-def plot(folder, out_png, title=None):
+def plot(folders, out_png, title=None):
+    """``folders``: one folder, or several, each a path or ``LABEL=PATH``."""
     from d2gs_np.reporting.plots import plot_curves_by_scene
 
-    return plot_curves_by_scene(cells(folder), out_png,
-                                title or f"{Path(folder).name}: held-out PSNR against training time")
+    folders = [folders] if isinstance(folders, (str, Path)) else list(folders)
+    rows = []
+    for f in folders:
+        label, _, path = str(f).rpartition("=") if "=" in str(f) else (None, "", str(f))
+        rows += cells(path, label or None)
+    name = Path(str(folders[0]).rpartition("=")[2]).name
+    return plot_curves_by_scene(rows, out_png, title or f"{name}: held-out PSNR against training time")
 
 
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
-    ap.add_argument("folder", help="OUT/runs/<experiment> of `d2gs experiment`")
+    ap.add_argument("folders", nargs="+", help="OUT/runs/<experiment> of `d2gs experiment`, or LABEL=FOLDER")
     ap.add_argument("--out", required=True, help="PNG to write")
     ap.add_argument("--title")
     args = ap.parse_args(argv)
-    print(f"wrote {plot(args.folder, args.out, args.title)}")
+    print(f"wrote {plot(args.folders, args.out, args.title)}")
     return 0
 
 

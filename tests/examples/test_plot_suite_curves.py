@@ -38,3 +38,15 @@ def test_a_folder_without_cells_is_refused(tmp_path):
     mod = load_example("plot_suite_curves.py")
     with pytest.raises(FileNotFoundError, match="holds no experiment cells"):
         mod.cells(tmp_path)
+
+
+def test_labelled_folders_share_the_panels(tmp_path):
+    mod = load_example("plot_suite_curves.py")
+    (tmp_path / "a").mkdir(), (tmp_path / "b").mkdir()
+    _cell(tmp_path / "a", "wall_disk", "geodesic", [(0.0, 20.0), (10.0, 25.0)], input_psnr=24.0)
+    _cell(tmp_path / "b", "wall_disk", "geodesic", [(0.0, 20.0), (10.0, 26.0)], input_psnr=24.0)
+    rows = mod.cells(tmp_path / "b", "2 threads")
+    assert rows[0][1] == "geodesic (2 threads)"
+    out = mod.plot([f"1 thread={tmp_path / 'a'}", f"2 threads={tmp_path / 'b'}"], tmp_path / "c.png")
+    assert out.read_bytes()[:8] == b"\x89PNG\r\n\x1a\n"
+    assert mod.cells(tmp_path / "a")[0][1] == "geodesic"  # unlabelled: the variant alone
