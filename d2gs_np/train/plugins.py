@@ -181,11 +181,12 @@ class GradientStatistics(Plugin):
 
 
 class Prune(Plugin):
-    """Every ``train.prune_every`` steps until 90 % of the schedule, and past the schedule's end (a
-    run that trains on to spend its budget, ``TrainConfig.stretch_to_budget``) again until 90 % of
-    the budget: remove transparent and oversized Gaussians, and dynamic ones that escaped their
-    motion masks (``train/prune.py``). Without pruning past the schedule's end a sharp-input run
-    grew frame-wide translucent veils in front of the wall (docs/method.md §10, "Veils")."""
+    """Every ``train.prune_every`` steps until 90 % of the schedule, and with
+    ``PruneConfig.past_schedule`` also past the schedule's end (a run that trains on to spend its
+    budget, ``TrainConfig.stretch_to_budget``) until 90 % of the budget: remove transparent and
+    oversized Gaussians, and dynamic ones that escaped their motion masks (``train/prune.py``).
+    Without pruning past the schedule's end a sharp-input run grew frame-wide translucent veils in
+    front of the wall (docs/method.md §10, "Veils")."""
 
     name = "prune"
 
@@ -216,7 +217,8 @@ class Prune(Plugin):
         iters = self.config.train.iters
         if state.sched < int(0.9 * iters):
             return True
-        return state.sched >= iters and state.budget_fraction is not None and state.budget_fraction < 0.9
+        return (self.config.prune.past_schedule and state.sched >= iters and state.budget_fraction is not None
+                and state.budget_fraction < 0.9)
 
     def prune(self, state):
         """(state, number removed) with the rules applied once."""

@@ -88,7 +88,8 @@ def test_escaped_removes_a_dynamic_gaussian_that_lives_on_static_pixels():
 
 
 @pytest.mark.parametrize("bad", [dict(max_scale_fraction=-1.0), dict(max_outside_share=1.5),
-                                 dict(mask_dilation_px=-1), dict(max_scale_fraction=float("nan"))])
+                                 dict(mask_dilation_px=-1), dict(max_scale_fraction=float("nan")),
+                                 dict(past_schedule="yes")])
 def test_bad_prune_config_is_rejected(bad):
     with pytest.raises(ValueError, match="PruneConfig"):
         PruneConfig(**bad)

@@ -12,7 +12,7 @@ from d2gs_np.blur.render import _blur_render_fwd
 from d2gs_np.blur.views import views_at_scale, views_for_length
 from d2gs_np.data.synthetic import make_scene
 from d2gs_np.scene import deformation
-from d2gs_np.train.config import ExperimentConfig, LearningRates, TrainConfig
+from d2gs_np.train.config import ExperimentConfig, LearningRates, PruneConfig, TrainConfig
 from d2gs_np.render import RenderConfig
 from d2gs_np.train.trainer import Trainer
 from run_fixtures import copy_run_for_resume
@@ -501,13 +501,16 @@ def test_prune_removes_oversized_and_escaped_gaussians_and_keeps_state_in_step(d
 
 
 def test_prune_runs_past_the_schedule_end_until_90_percent_of_the_budget(dynamic_scene, tmp_path):
-    """A run that trains on past its schedule to spend its budget keeps pruning (an oversized
+    """With PruneConfig.past_schedule a run that trains on past its schedule keeps pruning (an oversized
     Gaussian grown there is removed) until 90 % of the budget; inside the schedule the window is
     90 % of the steps, as before, and without a budget there is no stretched phase."""
     from d2gs_np.train.plugins import Prune
 
     tr = Trainer(dynamic_scene, _config(iters=10, prune_every=5), tmp_path / "run")
-    prune = Prune(tr.config, tr.extent, [f.mask for f in tr.frames])
+    off = Prune(tr.config, tr.extent, [f.mask for f in tr.frames])  # the default: the schedule's window only
+    assert off.active(tr.state.replace(sched=5, budget_fraction=None))
+    assert not off.active(tr.state.replace(sched=40, budget_fraction=0.5))
+    prune = Prune(tr.config.replace(prune=PruneConfig(past_schedule=True)), tr.extent, [f.mask for f in tr.frames])
     prune.on_init(tr.model)
     big = np.array(tr.params["static.log_scales"])
     big[0] = np.log(0.5 * prune.extent)  # over the 0.1 x extent rule
