@@ -186,7 +186,7 @@ class Prune(Plugin):
     budget, ``TrainConfig.stretch_to_budget``) until 90 % of the budget: remove transparent and
     oversized Gaussians, and dynamic ones that escaped their motion masks (``train/prune.py``).
     Without pruning past the schedule's end a sharp-input run grew frame-wide translucent veils in
-    front of the wall (docs/method.md §10, "Veils")."""
+    front of the wall (docs/method.md §10, the veils)."""
 
     name = "prune"
 
