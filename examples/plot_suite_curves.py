@@ -43,13 +43,16 @@ def plot(folders, out_png, title=None):
     """``folders``: one folder, or several, each a path or ``LABEL=PATH``."""
     from d2gs_np.reporting.plots import plot_curves_by_scene
 
-    folders = [folders] if isinstance(folders, (str, Path)) else list(folders)
-    rows = []
-    for f in folders:
-        label, _, path = str(f).rpartition("=") if "=" in str(f) else (None, "", str(f))
-        rows += cells(path, label or None)
-    name = Path(str(folders[0]).rpartition("=")[2]).name
-    return plot_curves_by_scene(rows, out_png, title or f"{name}: held-out PSNR against training time")
+    folders = [_labelled(f) for f in ([folders] if isinstance(folders, (str, Path)) else folders)]
+    rows = [row for label, path in folders for row in cells(path, label)]
+    return plot_curves_by_scene(rows, out_png,
+                                title or f"{Path(folders[0][1]).name}: held-out PSNR against training time")
+
+
+def _labelled(arg):
+    """(label or None, folder) of a ``LABEL=FOLDER`` or ``FOLDER`` argument."""
+    label, _, path = str(arg).rpartition("=")
+    return label or None, path
 
 
 def main(argv=None):

@@ -220,7 +220,7 @@ def _novel_views(run: LoadedRun, scene, mids, reference, test_pose_steps=0) -> d
     if all(f.depth is not None for f in scene.test_frames):
         out["nvs"]["depth"] = _depth_metrics(depths, [f.depth for f in scene.test_frames],
                                              [f.mask for f in scene.test_frames], 1.0 / s)
-        if scene.has_depth and scene.has_gt_poses:
+        if _has_seen_split(scene):
             split = _seen_split(pairs, scene)
             out["nvs"].update(_seen_psnr(pairs, scene, split))
     out["nvs"]["views"] = _view_metrics(pairs, scene, split)
@@ -260,6 +260,12 @@ def seen_by_training(view_pose, view, frames):
     return out
 
 
+def _has_seen_split(scene) -> bool:
+    """Whether the test views can be split into seen and unseen pixels: true depth for every view
+    and true poses for every frame."""
+    return scene.has_depth and scene.has_gt_poses and all(f.depth is not None for f in scene.test_frames)
+
+
 def _seen_split(pairs, scene) -> list:
     """Per test view: the squared error summed over its seen and its unseen pixels
     (``seen_by_training``), and their value counts, as ((2,), (2,)) arrays."""
@@ -292,8 +298,7 @@ def _view_metrics(pairs, scene, split=None) -> list:
     already computed). A test view beside the path's end sees a strip no training frame saw, so
     its PSNR is capped whatever the model does elsewhere: at ``unseen_psnr - 10
     log10(unseen_share)`` with its unseen pixels as rendered (docs/method.md §10)."""
-    if split is None and scene.has_depth and scene.has_gt_poses and all(f.depth is not None
-                                                                        for f in scene.test_frames):
+    if split is None and _has_seen_split(scene):
         split = _seen_split(pairs, scene)
     views = []
     for k, ((a, b), f) in enumerate(zip(pairs, scene.test_frames)):

@@ -397,8 +397,8 @@ def _check_scenes(scenes):
 
 def default_threads(jobs: int, cores: Optional[int] = None) -> int:
     """Numba threads per cell that spend this machine's cores: ``cores // jobs``, at least 1. With a
-    time budget the steps a cell buys follow its threads (a 600 s suite cell: 1.6x the steps on 2
-    threads against 1, docs/results.md §4), so one cell at a time should not leave cores idle."""
+    time budget the steps a cell buys follow its threads, so one cell at a time should not leave
+    cores idle (docs/results.md §4 measures it)."""
     cores = (os.cpu_count() or 1) if cores is None else int(cores)
     return max(1, cores // max(1, int(jobs)))
 

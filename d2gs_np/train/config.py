@@ -294,8 +294,8 @@ class PruneConfig:
     max_outside_share: float = 0.5  # of the frames where a dynamic centre is in view
     mask_dilation_px: int = 3  # masks are grown this much before the escaped test (blur, init slack)
     # Prune also past the schedule's end, while a budgeted run trains on (TrainConfig.stretch_to_budget),
-    # until 90 % of the budget. Off: it cut a sharp-input run's veils (static depth AbsRel 0.234 ->
-    # 0.099) but cost 0.15-0.17 dB of its deblurred views on both scenes tried (docs/method.md §10).
+    # until 90 % of the budget. Off: it fixed the depth of a sharp-input run's veils, not its images
+    # (docs/method.md §10).
     past_schedule: bool = False
 
     def __post_init__(self):

@@ -185,8 +185,8 @@ class Prune(Plugin):
     ``PruneConfig.past_schedule`` also past the schedule's end (a run that trains on to spend its
     budget, ``TrainConfig.stretch_to_budget``) until 90 % of the budget: remove transparent and
     oversized Gaussians, and dynamic ones that escaped their motion masks (``train/prune.py``).
-    Without pruning past the schedule's end a sharp-input run grew frame-wide translucent veils in
-    front of the wall (docs/method.md §10, the veils)."""
+    Past the schedule's end without it, long runs grow frame-wide translucent veils (docs/method.md
+    §10, the veils)."""
 
     name = "prune"
 
