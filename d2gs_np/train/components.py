@@ -37,6 +37,7 @@ class Components:
     learn_exposure: bool
     exposure_fraction: float  # used when not learned
     centred: bool = False  # the exposure stays centred on the reference pose (TrajectoryConfig.centre)
+    poses_held: bool = False  # the bundle adjustment's poses are held as exact (PoseInitConfig.hold)
 
     def left_out(self, terms=(), plugins=()) -> list:
         """Names of the parts of the method this run does not have: the sets and models the scene
@@ -71,8 +72,11 @@ def composition_notes(terms=(), plugins=()) -> list:
     return notes
 
 
-def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Callable] = None) -> Components:
-    """Apply docs/method.md §9: leave out what the scene does not need, and say why (``note``)."""
+def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Callable] = None,
+                      poses_held: bool = False) -> Components:
+    """Apply docs/method.md §9: leave out what the scene does not need, and say why (``note``).
+    ``poses_held``: the run starts from a kept bundle adjustment that ``pose_init.hold`` holds as
+    exact (``held_poses``); its exposure is then centred as a trusted scene's is."""
     tc = config.train
     say = note if note is not None else (lambda m: None)
     if tc.dynamic == "off":
@@ -131,11 +135,13 @@ def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Cal
     if blur:
         traj = config.trajectory
         trusted = bool(getattr(scene, "poses_trusted", None))
-        centred = traj.centre == "on" or (traj.centre == "auto" and trusted and traj.kind == "direct")
+        centred = traj.centre == "on" or (traj.centre == "auto" and (trusted or poses_held) and traj.kind == "direct")
         if centred:
-            why = "config trajectory.centre = on" if traj.centre == "on" else "the scene flags its poses as exact"
-            say(f"exposure endpoints: centred on the given poses, only their spread learned ({why})")
+            why = "config trajectory.centre = on" if traj.centre == "on" else \
+                "the scene flags its poses as exact" if trusted else "the adjusted poses are held: pose_init.hold = on"
+            which = "adjusted" if poses_held else "given"
+            say(f"exposure endpoints: centred on the {which} poses, only their spread learned ({why})")
         else:
             say("exposure endpoints: both free (start and end learned; the mid pose moves with them)")
     return Components(dynamic=dynamic, blur=blur, learn_exposure=learn, exposure_fraction=float(ef or 0.0),
-                      centred=centred)
+                      centred=centred, poses_held=bool(poses_held))

@@ -65,8 +65,9 @@ __all__ = ["PoseSolver", "use_pose_solver", "static_depth", "write_mid_poses", "
 HISTORY_FILE = "pose_solver.json"
 
 
-def use_pose_solver(scene, config: ExperimentConfig, note=None) -> bool:
-    """Whether a run has the pose solver (``PoseSolverConfig.mode``), saying why in the log."""
+def use_pose_solver(scene, config: ExperimentConfig, note=None, poses_held: bool = False) -> bool:
+    """Whether a run has the pose solver (``PoseSolverConfig.mode``), saying why in the log.
+    ``poses_held``: the run holds its bundle-adjusted poses as exact (``PoseInitConfig.hold``)."""
     say = note if note is not None else (lambda m: None)
     pc = config.pose_solver
     if pc.mode == "off":
@@ -77,6 +78,9 @@ def use_pose_solver(scene, config: ExperimentConfig, note=None) -> bool:
         return True
     if getattr(scene, "poses_trusted", None):
         say("pose solver: left out (the scene flags its poses as exact: poses_trusted)")
+        return False
+    if poses_held:
+        say("pose solver: left out (the bundle adjustment's poses are held as exact: pose_init.hold = on)")
         return False
     if config.train.iters <= max(pc.every, pc.min_steps):
         say(f"pose solver: left out (a run of {config.train.iters} steps ends before its first call at step "

@@ -6,13 +6,14 @@
 2. log         the run log (``train/log.py``), which every decision below goes to, and the run's
                ``RunContext`` (``train/plugins.py``): what a plugin may use of the run;
 3. components  what the run models (``train/components.py``, docs/method.md §9): decided from
-               the scene and the config, or the resumed run's;
+               the scene, the config and, for a fresh run, its start poses: the given poses'
+               bundle adjustment (``pose.given.initial_poses``), which ``pose_init.hold`` may hold
+               as exact; or the resumed run's;
 4. terms and plugins  the loss terms (``train/terms.py``), then the step plugins in their order:
                the default ones (``default_plugins``), the loss terms' (``term.plugins``), those
                passed in (a plugin as it is, or a builder, a class or function of the context);
-5. model       a fresh run: the given poses' bundle adjustment (``pose.given.initial_poses``),
-               the initial model (``Model.from_scene``), each plugin's ``on_init``, Adam's
-               state; a resumed run: the checkpoint's model, Adam state, statistics, step, time
+5. model       a fresh run: the initial model from the start poses (``Model.from_scene``),
+               each plugin's ``on_init``, Adam's state; a resumed run: the checkpoint's model, Adam state, statistics, step, time
                and each plugin's state;
 6. schedule    the stages and the step planner (``train/stages.py``), the learning rate of every
                block (``train/learning_rates.py``), the cache of targets (``train/schedule.py``).
@@ -99,14 +100,22 @@ def set_up_run(scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resu
     extent = scene_extent(np.stack([f.cam_T_world for f in scene.frames]).astype(np.float64), scene.scene_scale)
     context = RunContext(scene=scene, config=config, run_dir=run_dir, note=log.note, extent=extent)
 
-    # 3. what the run models
-    components = Components(**saved[1]["components"]) if resume else decide_components(scene, config, log.note)
+    # 3. what the run models; a fresh run's start poses first, since holding them decides some of it
+    if resume:
+        components = Components(**saved[1]["components"])
+    else:
+        start_poses = initial_poses(scene, config, log.note)
+        held = start_poses is not None and config.pose_init.hold == "on"
+        if held:
+            log.note("pose initialisation: the adjusted poses are held as exact for the run (pose_init.hold = on)")
+        components = decide_components(scene, config, log.note, poses_held=held)
 
     # 4. loss terms (the log has a column per term) and step plugins, in order
     terms = loss_terms(config.loss, components, log.note, scene=scene, run_dir=run_dir,
                        pose_solver=config.pose_solver)
     log.add_columns([f"loss_{t.name}" for t in terms])
-    plugins = (default_plugins(context) + [p for t in terms for p in getattr(t, "plugins", ())]
+    plugins = (default_plugins(context, components.poses_held)
+               + [p for t in terms for p in getattr(t, "plugins", ())]
                + [_built(p, context) for p in plugins])
 
     # 5. the model: initial, or the checkpoint's
@@ -122,7 +131,7 @@ def set_up_run(scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resu
     else:
         for line in composition_notes([t.name for t in terms], [p.name for p in plugins]):
             log.note(line)
-        model = Model.from_scene(scene, config, components, log.note, poses=initial_poses(scene, config, log.note))
+        model = Model.from_scene(scene, config, components, log.note, poses=start_poses)
         for p in plugins:
             p.on_init(model)
         state = TrainState(model, adam.adam_init(model.params), _plugin_rows(plugins, model.params))
@@ -205,9 +214,10 @@ def check_resume(meta: dict, config: ExperimentConfig, scene: Scene, path, scene
                               "to replace this one)", scene_record)
 
 
-def default_plugins(context: RunContext) -> list:
+def default_plugins(context: RunContext, poses_held: bool = False) -> list:
     """The plugins a run has by its config, in order (``train/plugins.py``); the pose solver last,
-    when ``use_pose_solver`` says so (its correspondence cache goes to the run folder)."""
+    when ``use_pose_solver`` says so (its correspondence cache goes to the run folder; none for a
+    run that holds its adjusted poses, ``poses_held``)."""
     scene, config = context.scene, context.config
     tc = config.train
     plugins = []
@@ -219,7 +229,7 @@ def default_plugins(context: RunContext) -> list:
         plugins.append(Prune(config, context.extent, [f.mask for f in scene.frames]))
     if config.densify.enabled:
         plugins.append(Densify(config, context.extent, max(f.width for f in scene.frames), context.note))
-    if use_pose_solver(scene, config, context.note):
+    if use_pose_solver(scene, config, context.note, poses_held):
         plugins.append(PoseSolver(scene, config, context.run_dir, context.note))
     return plugins
 

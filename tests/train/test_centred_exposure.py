@@ -1,6 +1,8 @@
 """A centred exposure (docs/method.md §4, ``TrajectoryConfig.centre``): with trusted poses only the
 spread of the exposure is learned, xi_start = -xi_end holds to the last bit through training, and
 the mid-exposure pose stays the given one; with untrusted poses both endpoints stay free."""
+import dataclasses
+
 import numpy as np
 import pytest
 
@@ -120,3 +122,52 @@ def test_a_centred_three_knot_path_bends_through_the_trusted_pose(trusted_scene,
     np.testing.assert_array_equal(m.poses_ref, np.stack([f.cam_T_world for f in trusted_scene.frames]))
     for k in range(m.num_frames):
         np.testing.assert_allclose(m.mid_pose(k), m.poses_ref[k], atol=1e-15)
+
+
+@pytest.fixture(scope="module")
+def room_160():
+    """A noisy-pose suite scene whose bundle adjustment is kept (tests/pose/test_given.py)."""
+    from d2gs_np.data.suite import make_suite_scene
+
+    return make_suite_scene("photo_room", seed=0, width=160, height=90, num_frames=12, num_test_views=0)
+
+
+def test_held_adjusted_poses_train_as_trusted_ones(room_160, tmp_path):
+    """pose_init.hold = on: the kept adjustment's poses are the run's, held as a trusted scene's are
+    (a centred exposure, no pose solver), through a resume too; without it they are a start."""
+    from d2gs_np.pose.config import PoseInitConfig
+    from d2gs_np.pose.given import initial_poses
+    from d2gs_np.train.pose_solver import use_pose_solver
+
+    adjusted = initial_poses(room_160, ExperimentConfig())
+    assert adjusted is not None  # kept: the premise
+    cfg = _config(iters=4).replace(pose_init=PoseInitConfig(hold="on"))
+    tr = Trainer(room_160, cfg, tmp_path / "run")
+    assert tr.components.centred and tr.components.poses_held
+    assert any("held as exact" in n for n in tr.log.notes)
+    np.testing.assert_array_equal(tr.model.poses_ref, adjusted)  # the adjustment is deterministic
+    tr.run()
+    m = tr.model
+    np.testing.assert_array_equal(tr.params[XI_START], -tr.params[XI_END])
+    for k in range(m.num_frames):
+        np.testing.assert_allclose(m.mid_pose(k), adjusted[k], atol=1e-12)  # as in the trusted test above
+    resumed = Trainer(room_160, cfg.replace(train=dataclasses.replace(cfg.train, iters=6)), tmp_path / "run", resume=True)
+    assert resumed.components.poses_held and resumed.components.centred
+    assert "pose_solver" not in [p.name for p in resumed.plugins]
+    # The pose solver's decision for a run long enough to call it: out only when held.
+    long = cfg.replace(train=dataclasses.replace(cfg.train, iters=5000))
+    assert not use_pose_solver(room_160, long, poses_held=True)
+    assert use_pose_solver(room_160, long, poses_held=False)
+    assert not decide_components(room_160, long, poses_held=False).centred
+
+
+def test_hold_leaves_an_adjustment_that_was_not_kept_to_the_solver(room_160, tmp_path):
+    from d2gs_np.pose.config import PoseInitConfig
+
+    cfg = _config(iters=2).replace(pose_init=PoseInitConfig(hold="on", min_points=10 ** 6))
+    tr = Trainer(room_160, cfg, tmp_path / "run")
+    assert not tr.components.poses_held and not tr.components.centred
+    assert any("given poses kept" in n for n in tr.log.notes)
+    np.testing.assert_array_equal(tr.model.poses_ref, np.stack([f.cam_T_world for f in room_160.frames]))
+    with pytest.raises(ValueError, match="hold must be"):
+        PoseInitConfig(hold="yes")
