@@ -104,6 +104,11 @@ class InitConfig:
     fill_depth_percentiles: tuple = (5.0, 95.0)  # of triangulated depths -> fill depth range
     fill_depth_margin: float = 0.2  # near = (1 - m) p_lo, far = (1 + m) p_hi
     fallback_depth_range: tuple = (0.25, 2.0)  # x scene_scale, when nothing was triangulated
+    # Fewer triangulated points than this whose median depth lies outside the fallback range are
+    # dropped, as if none were triangulated (``few_points_disagree``): with noisy poses and a
+    # short clip, a handful of two-view points can all sit at a fraction of the true depth
+    # (docs/method.md §8, the demo setting), and their percentiles are not a range.
+    min_range_points: int = 20
     # Robust depth range (scene/initialize.py's docstring, step 4): the percentiles are clipped to the median depth
     # times exp(+-k sigma), sigma = 1.4826 MAD of the log depths (k = depth_range_mad; 0: no clip).
     # Against two-view mismatches that stretch the sweep far below the true depths (cube_sign with
@@ -128,7 +133,7 @@ class InitConfig:
                 or not all(isinstance(s, numbers.Integral) and not isinstance(s, bool) and s >= 1 for s in skips)):
             raise ValueError(f"InitConfig.frame_skips must be a non-empty tuple of ints >= 1; got {skips!r}")
         check_number(self.depth_range_mad, "InitConfig.depth_range_mad", 0.0, hint="0 = no clip")
-        for name in ("max_static_points", "random_fill_points", "dynamic_points", "dense_frames"):
+        for name in ("max_static_points", "random_fill_points", "dynamic_points", "dense_frames", "min_range_points"):
             check_int(getattr(self, name), f"InitConfig.{name}", 0)
         check_int(self.dense_stride, "InitConfig.dense_stride", 1)
         check_number(self.dense_outlier_rel, "InitConfig.dense_outlier_rel", 0.0, lo_open=True)

@@ -35,7 +35,9 @@ Static points
    range bounds the plane sweep of step 3. Colour: the image colour at that pixel.
    Untextured regions thereby get Gaussians; wrong ones fade or are pruned during training.
    If nothing could be triangulated, near / far fall back to ``fallback_depth_range`` times
-   ``scene.scene_scale`` (an error if the scene has no scale).
+   ``scene.scene_scale`` (an error if the scene has no scale); so do they when fewer than
+   ``min_range_points`` points were triangulated and their median depth lies outside that range
+   (``few_points_disagree``): the points are then dropped.
 
 Why the stereo was nearly empty on the suite's cube_sign, and the fix (docs/method.md §8; the
 figures: docs/results.md §9, measured by ``python examples/init_diagnostics.py SCENE...``):
@@ -87,7 +89,7 @@ from d2gs_np.scene.config import InitConfig
 from d2gs_np.scene.stereo import plane_sweep_depth
 
 __all__ = ["initialize_points", "triangulate_matches", "sample_image_bilinear", "pixel_scale_cap",
-           "robust_depth_range"]
+           "robust_depth_range", "few_points_disagree"]
 
 # Homogeneous triangulation results with |w| below this (relative to the largest coordinate)
 # are points at infinity: dividing by w would give meaningless, huge positions.
@@ -147,6 +149,21 @@ def triangulate_matches(pts0, pts1, cam_T_world0, cam_T_world1, K0, K1):
     for a in (z0, z1, err, parallax):
         a[~finite] = np.nan
     return X, z0, z1, err, parallax, finite
+
+
+def few_points_disagree(depths, scene_scale, config) -> str:
+    """Why the triangulated points (their depths (M,)) are to be dropped, or "" to keep them: fewer
+    than ``min_range_points`` whose median depth lies outside ``fallback_depth_range`` x
+    ``scene_scale`` (kept when there are none, enough, or no scale to check against)."""
+    z = np.asarray(depths, dtype=np.float64)
+    if z.size == 0 or z.size >= config.min_range_points or scene_scale is None:
+        return ""
+    lo, hi = (v * float(scene_scale) for v in config.fallback_depth_range)
+    med = float(np.median(z))
+    if lo <= med <= hi:
+        return ""
+    return (f"{z.size} triangulated point(s) at median depth {med:.3g}, outside the scene scale's range "
+            f"[{lo:.3g}, {hi:.3g}]: dropped (InitConfig.min_range_points = {config.min_range_points})")
 
 
 def robust_depth_range(depths, config):
@@ -388,12 +405,15 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
             a[sel] for a in (tri_pts, tri_cols, tri_src, tri_depth, tri_err))
 
     # ---- 2. depth range for the random fill
+    dropped_note = few_points_disagree(tri_depth, scene.scene_scale, config)
+    if dropped_note:
+        tri_pts, tri_cols, tri_src, tri_depth, tri_err = (a[:0] for a in (tri_pts, tri_cols, tri_src, tri_depth, tri_err))
     if tri_depth.size > 0:
         p_lo, p_hi, depth_source = robust_depth_range(tri_depth, config)
         near, far = (1.0 - config.fill_depth_margin) * p_lo, (1.0 + config.fill_depth_margin) * p_hi
     elif scene.scene_scale is not None:
         near, far = (v * float(scene.scene_scale) for v in config.fallback_depth_range)
-        depth_source = "fallback (nothing triangulated)"
+        depth_source = f"fallback ({dropped_note or 'nothing triangulated'})"
     else:
         raise ValueError(
             "no static point could be triangulated and the scene has no scene_scale to guess depths from; "

@@ -427,3 +427,30 @@ def test_one_triangulated_point_gives_a_band_around_its_depth(scene):
     assert info["fill_depth_near"] == pytest.approx((1 - m) * z0 / f)
     assert info["fill_depth_far"] == pytest.approx((1 + m) * z0 * f)
     assert len(s) > 21 and np.all(np.isfinite(s))  # the point, stereo seeds of the keyframe, the fill
+
+
+def test_a_few_points_outside_the_scene_scale_are_dropped(scene):
+    # The demo setting's failure (docs/method.md §8): 2 two-view points at a fifth of the true depth
+    # made the whole sweep and fill range sit in front of the scene. A few points whose median
+    # lies outside fallback_depth_range x scene_scale are dropped; inside it, or with enough of
+    # them, or without a scale to check against, they stand.
+    from d2gs_np.scene.initialize import few_points_disagree
+
+    cfg = InitConfig(random_fill_points=20, dynamic_points=5, dense_frames=1)
+    lo, hi = (v * scene.scene_scale for v in cfg.fallback_depth_range)
+    assert "dropped" in few_points_disagree(np.array([0.5, 0.6]) * lo, scene.scene_scale, cfg)
+    assert "dropped" in few_points_disagree(np.array([2.0]) * hi, scene.scene_scale, cfg)
+    assert few_points_disagree(np.array([1.1, 0.1]) * lo * 2, scene.scene_scale, cfg) == ""  # median inside
+    assert few_points_disagree(np.full(cfg.min_range_points, 0.5 * lo), scene.scene_scale, cfg) == ""
+    assert few_points_disagree(np.array([0.5 * lo]), None, cfg) == ""
+    assert few_points_disagree(np.zeros(0), scene.scene_scale, cfg) == ""
+    f0 = scene.frames[0]
+    z0 = 0.2 * lo  # one point on frame 0's central ray, far in front of the scale's range
+    X = unproject_points(np.array([[f0.width / 2, f0.height / 2]]), np.array([z0]), f0.cam_T_world, f0.K)
+    s, _, d, _, info = initialize_points(dataclasses.replace(scene, points3d=X, points3d_colors=None), cfg,
+                                         np.random.default_rng(0))
+    assert info["num_static_triangulated"] == 0 and "dropped" in info["fill_depth_source"]
+    assert info["fill_depth_near"] == pytest.approx(lo) and info["fill_depth_far"] == pytest.approx(hi)
+    assert np.all(np.isfinite(s)) and np.all(np.isfinite(d))
+    with pytest.raises(ValueError, match="min_range_points"):
+        InitConfig(min_range_points=-1)
