@@ -33,6 +33,7 @@ ROBUST_LOSSES = ("none", "huber", "cauchy")
 # The bundle adjustment's solvers (pose/bundle.py ``bundle_adjust(solver=...)``).
 BUNDLE_SOLVERS = ("scipy", "schur")
 _MODES = ("auto", "on", "off")  # PoseInitConfig.mode
+ADJUSTED_POSES_THEN = ("solver", "adam", "hold")  # PoseInitConfig.then
 
 
 @dataclass(frozen=True)
@@ -135,14 +136,15 @@ class PoseInitConfig:
     """Bundle adjustment of the given poses before training (``pose/given.py``).
 
     mode: "auto" runs it when the pose solver runs (poses not trusted); "on" / "off" force it.
-    hold: what a kept adjustment is to the run. "off": the start the exposure endpoints and the
-        pose solver refine from; "on": the run's poses, held as exact ones are (the exposure
-        centred on them, only its spread learned; no pose solver). A run whose adjustment is not
-        kept (too few points, a bad fit) refines the given poses either way. Why: docs/method.md §4.
+    then: what refines a kept adjustment's poses during training. "solver": Adam on the exposure
+        endpoints and the pose solver's calls (``pose_solver``); "adam": Adam alone, no pose
+        solver; "hold": nothing, the poses held as exact ones are (the exposure centred on them,
+        only its spread learned). A run whose adjustment is not kept (too few points, a bad fit)
+        refines the given poses with both either way. Why: docs/method.md §4.
     """
 
     mode: str = "auto"
-    hold: str = "off"
+    then: str = "solver"
     # The tracker without its retry window (TrackConfig.retry_window_px): the retry keeps
     # more tracks through streaked frames, which the importer needs to connect a video, but they
     # are less precise, and this adjustment starts from poses that already connect the frames:
@@ -174,7 +176,7 @@ class PoseInitConfig:
 
     def __post_init__(self):
         check_choice(self.mode, "PoseInitConfig.mode", _MODES)
-        check_choice(self.hold, "PoseInitConfig.hold", ("on", "off"))
+        check_choice(self.then, "PoseInitConfig.then", ADJUSTED_POSES_THEN)
         check_choice(self.solver, "PoseInitConfig.solver", BUNDLE_SOLVERS)
         if not isinstance(self.tracks, TrackConfig):
             raise TypeError(f"PoseInitConfig.tracks must be a TrackConfig; got {type(self.tracks).__name__}")

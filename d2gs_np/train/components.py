@@ -37,7 +37,19 @@ class Components:
     learn_exposure: bool
     exposure_fraction: float  # used when not learned
     centred: bool = False  # the exposure stays centred on the reference pose (TrajectoryConfig.centre)
-    poses_held: bool = False  # the bundle adjustment's poses are held as exact (PoseInitConfig.hold)
+    # What refines the start poses when they are a kept bundle adjustment (PoseInitConfig.then):
+    # "solver", "adam" or "hold"; "" when they are the given poses.
+    adjusted_then: str = ""
+
+    @property
+    def poses_held(self) -> bool:
+        """The start poses are held as exact: the scene's trusted ones, or a held adjustment."""
+        return self.adjusted_then == "hold"
+
+    @property
+    def solver_left_out(self) -> bool:
+        """The pose solver is left out because a kept adjustment is refined otherwise."""
+        return self.adjusted_then in ("adam", "hold")
 
     def left_out(self, terms=(), plugins=()) -> list:
         """Names of the parts of the method this run does not have: the sets and models the scene
@@ -73,10 +85,12 @@ def composition_notes(terms=(), plugins=()) -> list:
 
 
 def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Callable] = None,
-                      poses_held: bool = False) -> Components:
+                      adjusted: bool = False) -> Components:
     """Apply docs/method.md §9: leave out what the scene does not need, and say why (``note``).
-    ``poses_held``: the run starts from a kept bundle adjustment that ``pose_init.hold`` holds as
-    exact (``held_poses``); its exposure is then centred as a trusted scene's is."""
+    ``adjusted``: the run starts from a kept bundle adjustment, refined as ``pose_init.then``
+    says; held ("hold"), its exposure is centred as a trusted scene's is."""
+    adjusted_then = config.pose_init.then if adjusted else ""
+    poses_held = adjusted_then == "hold"
     tc = config.train
     say = note if note is not None else (lambda m: None)
     if tc.dynamic == "off":
@@ -138,10 +152,10 @@ def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Cal
         centred = traj.centre == "on" or (traj.centre == "auto" and (trusted or poses_held) and traj.kind == "direct")
         if centred:
             why = "config trajectory.centre = on" if traj.centre == "on" else \
-                "the scene flags its poses as exact" if trusted else "the adjusted poses are held: pose_init.hold = on"
+                "the scene flags its poses as exact" if trusted else "the adjusted poses are held: pose_init.then = hold"
             which = "adjusted" if poses_held else "given"
             say(f"exposure endpoints: centred on the {which} poses, only their spread learned ({why})")
         else:
             say("exposure endpoints: both free (start and end learned; the mid pose moves with them)")
     return Components(dynamic=dynamic, blur=blur, learn_exposure=learn, exposure_fraction=float(ef or 0.0),
-                      centred=centred, poses_held=bool(poses_held))
+                      centred=centred, adjusted_then=adjusted_then)

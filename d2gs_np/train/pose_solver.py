@@ -65,9 +65,10 @@ __all__ = ["PoseSolver", "use_pose_solver", "static_depth", "write_mid_poses", "
 HISTORY_FILE = "pose_solver.json"
 
 
-def use_pose_solver(scene, config: ExperimentConfig, note=None, poses_held: bool = False) -> bool:
+def use_pose_solver(scene, config: ExperimentConfig, note=None, adjusted_then: str = "") -> bool:
     """Whether a run has the pose solver (``PoseSolverConfig.mode``), saying why in the log.
-    ``poses_held``: the run holds its bundle-adjusted poses as exact (``PoseInitConfig.hold``)."""
+    ``adjusted_then``: what refines the run's start poses when they are a kept bundle adjustment
+    (``PoseInitConfig.then``; "" when they are the given poses)."""
     say = note if note is not None else (lambda m: None)
     pc = config.pose_solver
     if pc.mode == "off":
@@ -79,8 +80,10 @@ def use_pose_solver(scene, config: ExperimentConfig, note=None, poses_held: bool
     if getattr(scene, "poses_trusted", None):
         say("pose solver: left out (the scene flags its poses as exact: poses_trusted)")
         return False
-    if poses_held:
-        say("pose solver: left out (the bundle adjustment's poses are held as exact: pose_init.hold = on)")
+    if adjusted_then in ("adam", "hold"):
+        how = "held as exact" if adjusted_then == "hold" else "refined by Adam alone"
+        say(f"pose solver: left out (the bundle adjustment was kept and its poses are {how}: "
+            f"pose_init.then = {adjusted_then})")
         return False
     if config.train.iters <= max(pc.every, pc.min_steps):
         say(f"pose solver: left out (a run of {config.train.iters} steps ends before its first call at step "

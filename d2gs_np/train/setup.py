@@ -7,8 +7,8 @@
                ``RunContext`` (``train/plugins.py``): what a plugin may use of the run;
 3. components  what the run models (``train/components.py``, docs/method.md §9): decided from
                the scene, the config and, for a fresh run, its start poses: the given poses'
-               bundle adjustment (``pose.given.initial_poses``), which ``pose_init.hold`` may hold
-               as exact; or the resumed run's;
+               bundle adjustment (``pose.given.initial_poses``), which ``pose_init.then`` says
+               what refines; or the resumed run's;
 4. terms and plugins  the loss terms (``train/terms.py``), then the step plugins in their order:
                the default ones (``default_plugins``), the loss terms' (``term.plugins``), those
                passed in (a plugin as it is, or a builder, a class or function of the context);
@@ -105,16 +105,13 @@ def set_up_run(scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resu
         components = Components(**saved[1]["components"])
     else:
         start_poses = initial_poses(scene, config, log.note)
-        held = start_poses is not None and config.pose_init.hold == "on"
-        if held:
-            log.note("pose initialisation: the adjusted poses are held as exact for the run (pose_init.hold = on)")
-        components = decide_components(scene, config, log.note, poses_held=held)
+        components = decide_components(scene, config, log.note, adjusted=start_poses is not None)
 
     # 4. loss terms (the log has a column per term) and step plugins, in order
     terms = loss_terms(config.loss, components, log.note, scene=scene, run_dir=run_dir,
                        pose_solver=config.pose_solver)
     log.add_columns([f"loss_{t.name}" for t in terms])
-    plugins = (default_plugins(context, components.poses_held)
+    plugins = (default_plugins(context, components.adjusted_then)
                + [p for t in terms for p in getattr(t, "plugins", ())]
                + [_built(p, context) for p in plugins])
 
@@ -214,10 +211,10 @@ def check_resume(meta: dict, config: ExperimentConfig, scene: Scene, path, scene
                               "to replace this one)", scene_record)
 
 
-def default_plugins(context: RunContext, poses_held: bool = False) -> list:
+def default_plugins(context: RunContext, adjusted_then: str = "") -> list:
     """The plugins a run has by its config, in order (``train/plugins.py``); the pose solver last,
-    when ``use_pose_solver`` says so (its correspondence cache goes to the run folder; none for a
-    run that holds its adjusted poses, ``poses_held``)."""
+    when ``use_pose_solver`` says so (its correspondence cache goes to the run folder); what
+    refines a kept bundle adjustment (``adjusted_then``, ``Components.adjusted_then``) decides too."""
     scene, config = context.scene, context.config
     tc = config.train
     plugins = []
@@ -229,7 +226,7 @@ def default_plugins(context: RunContext, poses_held: bool = False) -> list:
         plugins.append(Prune(config, context.extent, [f.mask for f in scene.frames]))
     if config.densify.enabled:
         plugins.append(Densify(config, context.extent, max(f.width for f in scene.frames), context.note))
-    if use_pose_solver(scene, config, context.note, poses_held):
+    if use_pose_solver(scene, config, context.note, adjusted_then):
         plugins.append(PoseSolver(scene, config, context.run_dir, context.note))
     return plugins
 

@@ -133,17 +133,16 @@ def room_160():
 
 
 def test_held_adjusted_poses_train_as_trusted_ones(room_160, tmp_path):
-    """pose_init.hold = on: the kept adjustment's poses are the run's, held as a trusted scene's are
-    (a centred exposure, no pose solver), through a resume too; without it they are a start."""
+    """pose_init.then = hold: the kept adjustment's poses are the run's, held as a trusted scene's
+    are (a centred exposure, no pose solver), through a resume too."""
     from d2gs_np.pose.config import PoseInitConfig
     from d2gs_np.pose.given import initial_poses
-    from d2gs_np.train.pose_solver import use_pose_solver
 
     adjusted = initial_poses(room_160, ExperimentConfig())
     assert adjusted is not None  # kept: the premise
-    cfg = _config(iters=4).replace(pose_init=PoseInitConfig(hold="on"))
+    cfg = _config(iters=4).replace(pose_init=PoseInitConfig(then="hold"))
     tr = Trainer(room_160, cfg, tmp_path / "run")
-    assert tr.components.centred and tr.components.poses_held
+    assert tr.components.centred and tr.components.poses_held and tr.components.adjusted_then == "hold"
     assert any("held as exact" in n for n in tr.log.notes)
     np.testing.assert_array_equal(tr.model.poses_ref, adjusted)  # the adjustment is deterministic
     tr.run()
@@ -151,23 +150,39 @@ def test_held_adjusted_poses_train_as_trusted_ones(room_160, tmp_path):
     np.testing.assert_array_equal(tr.params[XI_START], -tr.params[XI_END])
     for k in range(m.num_frames):
         np.testing.assert_allclose(m.mid_pose(k), adjusted[k], atol=1e-12)  # as in the trusted test above
-    resumed = Trainer(room_160, cfg.replace(train=dataclasses.replace(cfg.train, iters=6)), tmp_path / "run", resume=True)
+    resumed = Trainer(room_160, cfg.replace(train=dataclasses.replace(cfg.train, iters=6)), tmp_path / "run",
+                      resume=True)
     assert resumed.components.poses_held and resumed.components.centred
     assert "pose_solver" not in [p.name for p in resumed.plugins]
-    # The pose solver's decision for a run long enough to call it: out only when held.
+
+
+def test_adjusted_poses_refined_by_adam_alone(room_160, tmp_path):
+    """pose_init.then = adam: free endpoints from the adjusted poses, no pose solver; "solver" keeps
+    it (for a run long enough to call it)."""
+    from d2gs_np.pose.config import PoseInitConfig
+    from d2gs_np.train.pose_solver import use_pose_solver
+
+    cfg = _config(iters=4).replace(pose_init=PoseInitConfig(then="adam"))
+    tr = Trainer(room_160, cfg, tmp_path / "run")
+    assert tr.components.adjusted_then == "adam" and tr.components.solver_left_out
+    assert not tr.components.centred and not tr.components.poses_held
+    assert any("refined by Adam alone" in n for n in tr.log.notes)
+    tr.run()
+    assert not np.array_equal(tr.params[XI_START], -tr.params[XI_END])  # free endpoints
     long = cfg.replace(train=dataclasses.replace(cfg.train, iters=5000))
-    assert not use_pose_solver(room_160, long, poses_held=True)
-    assert use_pose_solver(room_160, long, poses_held=False)
-    assert not decide_components(room_160, long, poses_held=False).centred
+    for then, runs in (("solver", True), ("adam", False), ("hold", False), ("", True)):
+        assert use_pose_solver(room_160, long, adjusted_then=then) is runs, then
+    assert not decide_components(room_160, long, adjusted=False).centred
+    assert decide_components(room_160, long, adjusted=False).adjusted_then == ""
 
 
-def test_hold_leaves_an_adjustment_that_was_not_kept_to_the_solver(room_160, tmp_path):
+def test_an_adjustment_that_was_not_kept_is_left_to_the_solver(room_160, tmp_path):
     from d2gs_np.pose.config import PoseInitConfig
 
-    cfg = _config(iters=2).replace(pose_init=PoseInitConfig(hold="on", min_points=10 ** 6))
+    cfg = _config(iters=2).replace(pose_init=PoseInitConfig(then="hold", min_points=10 ** 6))
     tr = Trainer(room_160, cfg, tmp_path / "run")
-    assert not tr.components.poses_held and not tr.components.centred
+    assert tr.components.adjusted_then == "" and not tr.components.centred
     assert any("given poses kept" in n for n in tr.log.notes)
     np.testing.assert_array_equal(tr.model.poses_ref, np.stack([f.cam_T_world for f in room_160.frames]))
-    with pytest.raises(ValueError, match="hold must be"):
-        PoseInitConfig(hold="yes")
+    with pytest.raises(ValueError, match="then must be"):
+        PoseInitConfig(then="yes")
