@@ -10,7 +10,8 @@ Learning-rate policy (3DGS's, docs/method.md §8), decided per block from its na
 - camera endpoints (``camera.xi_*``) and PoseNet weights: exponential decay; the per-frame
   endpoint rows are visited once per epoch, so they decay over the visits a row gets. A centred
   exposure (trusted poses, ``Components.centred``) trains only its spread h, xi_end = h =
-  -xi_start, at ``camera_spread`` (``centre_endpoint_grads``);
+  -xi_start, at ``camera_spread`` (``centre_endpoint_grads``); free endpoints from a kept bundle
+  adjustment that Adam alone refines (``PoseInitConfig.then = "adam"``) at ``camera_adjusted``;
 - the exposure logit: a constant.
 
 A block no rule covers is an error naming the block and where to add its rate.
@@ -65,17 +66,20 @@ def size_extent(poses, points, camera_extent) -> float:
 
 
 def block_learning_rate(name: str, lr: LearningRates, extent: float, iters: int, num_frames: int,
-                        centred: bool = False):
+                        centred: bool = False, adjusted: bool = False):
     """The learning rate (a number or an ``adam`` schedule) of block ``name`` (module docstring);
     ``extent``: the length the position rates are scaled by (``lr.means_unit``: the camera extent
     or the scene's size, ``position_extent``); ``centred``: the endpoints are a centred exposure
-    (only the spread is trained)."""
+    (only the spread is trained); ``adjusted``: free endpoints from a kept bundle adjustment that
+    Adam alone refines (``camera_adjusted``)."""
     kind = name.split(".", 1)[1] if "." in name else name
     if name.startswith((f"{CAMERA}.xi", f"{POSENET}.")):
         # Per-frame rows are visited once per epoch: decay over the visits a row gets.
         visits = iters // num_frames + 1 if name.startswith(f"{CAMERA}.xi") else iters
         if centred and name.startswith(f"{CAMERA}.xi"):
             return adam.exponential_decay(lr.camera_spread, lr.camera_spread_final, visits)
+        if adjusted and name.startswith(f"{CAMERA}.xi"):
+            return adam.exponential_decay(lr.camera_adjusted, lr.camera_adjusted_final, visits)
         return adam.exponential_decay(lr.camera, lr.camera_final, visits)
     if name == EXPOSURE_BLOCK:
         return lr.exposure
@@ -107,9 +111,9 @@ def position_extent(lr: LearningRates, camera_extent: float, poses, points) -> f
 
 
 def learning_rates(block_names, lr: LearningRates, extent: float, iters: int, num_frames: int,
-                   centred: bool = False) -> adam.AdamConfig:
+                   centred: bool = False, adjusted: bool = False) -> adam.AdamConfig:
     """AdamConfig with the rate of every block in ``block_names``."""
-    return adam.AdamConfig(lrs={n: block_learning_rate(n, lr, extent, iters, num_frames, centred)
+    return adam.AdamConfig(lrs={n: block_learning_rate(n, lr, extent, iters, num_frames, centred, adjusted)
                                 for n in block_names})
 
 

@@ -144,7 +144,7 @@ def set_up_run(scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resu
     planner = Planner(config, [(f.width, f.height) for f in scene.frames],
                       make_stages(config.train, components.dynamic))
     rates = learning_rates(state.params, config.train.lr, pos_extent, config.train.iters, len(scene.frames),
-                           centred=components.centred)
+                           centred=components.centred, adjusted=components.adjusted_then == "adam")
     cache = TargetCache.from_scene(scene, mask_threshold=config.schedule.mask_threshold)
     return RunSetup(context=context, log=log, scene_record=scene_record, terms=terms, plugins=plugins, state=state,
                     step=step, seconds=seconds, position_extent=pos_extent, planner=planner, adam_config=rates,

@@ -105,6 +105,10 @@ def test_centred_endpoints_learn_at_the_spread_rate():
     tied = block_learning_rate(XI_END, lr, 1.0, 100, 5, centred=True)
     assert free.lr_init == 1e-3 and free.lr_final == 1e-5
     assert tied.lr_init == 2e-4 and tied.lr_final == 2e-6
+    lr = LearningRates(camera_adjusted=3e-4, camera_adjusted_final=3e-6)
+    adjusted = block_learning_rate(XI_END, lr, 1.0, 100, 5, adjusted=True)
+    assert adjusted.lr_init == 3e-4 and adjusted.lr_final == 3e-6
+    assert block_learning_rate(XI_END, lr, 1.0, 100, 5, centred=True, adjusted=True).lr_init == lr.camera_spread
 
 
 def test_a_centred_three_knot_path_bends_through_the_trusted_pose(trusted_scene, tmp_path):
@@ -167,6 +171,9 @@ def test_adjusted_poses_refined_by_adam_alone(room_160, tmp_path):
     assert tr.components.adjusted_then == "adam" and tr.components.solver_left_out
     assert not tr.components.centred and not tr.components.poses_held
     assert any("refined by Adam alone" in n for n in tr.log.notes)
+    lr = cfg.train.lr
+    rate = tr.adam_config.lrs[XI_END]
+    assert (rate.lr_init, rate.lr_final) == (lr.camera_adjusted, lr.camera_adjusted_final) != (lr.camera, lr.camera_final)
     tr.run()
     assert not np.array_equal(tr.params[XI_START], -tr.params[XI_END])  # free endpoints
     long = cfg.replace(train=dataclasses.replace(cfg.train, iters=5000))
