@@ -310,18 +310,20 @@ def _lr_step(count, scale):
     return count if scale == 1.0 else int(np.floor(count * scale))
 
 
-def adam_update_rows(grads, rows, state, params, config, lr_step_scale=1.0):
+def adam_update_rows(grads, rows, state, params, config, lr_step_scale=1.0, lr_factor=1.0):
     """Row-sparse Adam (as torch.optim.SparseAdam): only the rows ``rows[name]`` of each block in
     ``grads`` are updated: their moments, their parameters, and their own step counts (kept in
     ``state["row_step"][name]``, (N,) ints) for the bias correction. Rows outside the list keep
     their parameters AND moments, so per-frame blocks (camera endpoints) of frames not in the
     batch do not drift on stale momentum. Each row's learning rate is the block's schedule at
     that row's own step count (a schedule counts the visits of a row), read as in ``adam_update``
-    with ``lr_step_scale``. Returns (new params, new state); inputs are not modified.
+    with ``lr_step_scale``, times ``lr_factor``. Returns (new params, new state); inputs are not
+    modified.
     """
     if not isinstance(config, AdamConfig):
         raise TypeError(f"config must be an AdamConfig; got {type(config).__name__}")
     _check_lr_step_scale(lr_step_scale)
+    check_number(lr_factor, "lr_factor", 0.0)
     b1, b2 = config.betas
     new_params = dict(params)
     new_state = {slot: dict(blocks) for slot, blocks in state.items()}
@@ -348,7 +350,7 @@ def adam_update_rows(grads, rows, state, params, config, lr_step_scale=1.0):
         rs = np.zeros(p.shape[0], dtype=np.int64) if rs is None else np.array(rs, dtype=np.int64)
         step = int(state["step"].get(name, 0))
         bshape = (-1,) + (1,) * (p.ndim - 1)
-        lr = np.array([config.lr(name, _lr_step(int(c), lr_step_scale)) for c in rs[idx]],
+        lr = np.array([lr_factor * config.lr(name, _lr_step(int(c), lr_step_scale)) for c in rs[idx]],
                       dtype=p.dtype).reshape(bshape)
         k = (rs[idx] + 1).reshape(bshape)
         m[idx] = b1 * m[idx] + (1.0 - b1) * gi

@@ -40,7 +40,8 @@ from d2gs_np.pose.bundle import BundleProblem, bundle_adjust, params_to_poses, p
 from d2gs_np.pose.config import PoseInitConfig
 from d2gs_np.pose.tracks import klt_tracks
 
-__all__ = ["triangulate_tracks", "adjust_given_poses", "initial_poses", "track_reprojection_rms"]
+__all__ = ["triangulate_tracks", "adjust_given_poses", "initial_poses", "initial_poses_and_held",
+           "track_reprojection_rms"]
 
 def triangulate_tracks(cam_T_world, K, obs_frame, obs_track, obs_uv, num_tracks, min_views=3,
                        min_parallax_deg=1.0):
@@ -200,23 +201,29 @@ def initial_poses(scene, config, note=None):
     poses when ``config.pose_init`` runs (mode "on"; "auto": unless the scene flags its poses as
     exact or the config turns pose refinement off, ``pose_solver.mode = "off"``) and it is kept,
     else None (the given poses). Says in the log what it did and why."""
+    return initial_poses_and_held(scene, config, note)[0]
+
+
+def initial_poses_and_held(scene, config, note=None):
+    """(``initial_poses``, the frames a kept adjustment held at their given poses (a sorted tuple;
+    () when none, or when nothing was kept))."""
     say = note if note is not None else (lambda m: None)
     pc = config.pose_init
     if pc.mode == "off":
         say("pose initialisation (bundle adjustment of the given poses): off (config pose_init.mode = off)")
-        return None
+        return None, ()
     if pc.mode == "auto":
         if getattr(scene, "poses_trusted", None):
             say("pose initialisation (bundle adjustment): left out (the scene flags its poses as exact)")
-            return None
+            return None, ()
         if config.pose_solver.mode == "off":
             say("pose initialisation (bundle adjustment): left out (pose refinement is off: pose_solver.mode = off)")
-            return None
+            return None, ()
     frames = scene.frames
     K = np.asarray(frames[0].K, dtype=np.float64)
     if any(not np.allclose(f.K, K, rtol=1e-9, atol=0.0) or f.width != frames[0].width for f in frames):
         say("pose initialisation (bundle adjustment): left out (the frames do not share one camera)")
-        return None
+        return None, ()
     masks = [f.mask for f in frames] if all(f.mask is not None for f in frames) else None
     given = np.stack([f.cam_T_world for f in frames]).astype(np.float64)
     poses, info = adjust_given_poses([f.image for f in frames], masks, given, K, pc, seed=config.train.seed)
@@ -227,7 +234,7 @@ def initial_poses(scene, config, note=None):
                    f"{r[-1]['observations']} observations, {info['seconds']:.1f}s")
     if not info["kept"]:
         say(f"pose initialisation (bundle adjustment): given poses kept: {info['reason']} ({counts})")
-        return None
+        return None, ()
     held = info["held_frames"]
     if held:
         counts += (f"; {len(held)} frame(s) held at the given pose (fewer than {pc.min_frame_observations} "
@@ -235,7 +242,7 @@ def initial_poses(scene, config, note=None):
     say(f"pose initialisation (bundle adjustment): poses moved {info['change_deg_mean']:.3f} deg / "
         f"{info['change_rel_mean']:.4f} x depth on average (max {info['change_deg_max']:.3f} deg / "
         f"{info['change_rel_max']:.4f}); {counts}")
-    return poses
+    return poses, tuple(int(k) for k in held)
 
 
 def track_reprojection_rms(cam_T_world, K, tracks, min_views=3, min_parallax_deg=1.0, clip_px=3.0):

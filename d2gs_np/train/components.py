@@ -40,6 +40,7 @@ class Components:
     # What refines the start poses when they are a kept bundle adjustment (PoseInitConfig.then):
     # "solver", "adam" or "hold"; "" when they are the given poses.
     adjusted_then: str = ""
+    held_frames: tuple = ()  # frames that adjustment held at their given poses (too few observations)
 
     @property
     def poses_held(self) -> bool:
@@ -85,10 +86,11 @@ def composition_notes(terms=(), plugins=()) -> list:
 
 
 def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Callable] = None,
-                      adjusted: bool = False) -> Components:
+                      adjusted: bool = False, held_frames=()) -> Components:
     """Apply docs/method.md §9: leave out what the scene does not need, and say why (``note``).
     ``adjusted``: the run starts from a kept bundle adjustment, refined as ``pose_init.then``
-    says; held ("hold"), its exposure is centred as a trusted scene's is."""
+    says; held ("hold"), its exposure is centred as a trusted scene's is. ``held_frames``: the
+    frames that adjustment held at their given poses."""
     adjusted_then = config.pose_init.then if adjusted else ""
     poses_held = adjusted_then == "hold"
     tc = config.train
@@ -158,4 +160,5 @@ def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Cal
         else:
             say("exposure endpoints: both free (start and end learned; the mid pose moves with them)")
     return Components(dynamic=dynamic, blur=blur, learn_exposure=learn, exposure_fraction=float(ef or 0.0),
-                      centred=centred, adjusted_then=adjusted_then)
+                      centred=centred, adjusted_then=adjusted_then,
+                      held_frames=tuple(int(k) for k in held_frames) if adjusted else ())

@@ -10,8 +10,9 @@ Learning-rate policy (3DGS's, docs/method.md §8), decided per block from its na
 - camera endpoints (``camera.xi_*``) and PoseNet weights: exponential decay; the per-frame
   endpoint rows are visited once per epoch, so they decay over the visits a row gets. A centred
   exposure (trusted poses, ``Components.centred``) trains only its spread h, xi_end = h =
-  -xi_start, at ``camera_spread`` (``centre_endpoint_grads``); free endpoints from a kept bundle
-  adjustment that Adam alone refines (``PoseInitConfig.then = "adam"``) at ``camera_adjusted``;
+  -xi_start, at ``camera_spread`` (``centre_endpoint_grads``); the rows of frames a kept bundle
+  adjustment moved, when Adam alone refines them (``PoseInitConfig.then = "adam"``), at
+  ``camera_adjusted_scale`` times the camera rate (``camera_row_scales``);
 - the exposure logit: a constant.
 
 A block no rule covers is an error naming the block and where to add its rate.
@@ -32,7 +33,7 @@ from d2gs_np.blur.endpoints import CAMERA, POSENET, XI_END, XI_MID, XI_START
 from d2gs_np.train.config import LearningRates
 
 __all__ = ["PER_FRAME_BLOCKS", "scene_extent", "size_extent", "position_extent", "block_learning_rate",
-           "learning_rates", "centre_endpoint_grads", "optimiser_step"]
+           "learning_rates", "camera_row_scales", "centre_endpoint_grads", "optimiser_step"]
 
 PER_FRAME_BLOCKS = (XI_START, XI_END, XI_MID)  # one row per frame: row-sparse Adam
 _RATE_FIELDS = {f.name for f in dataclasses.fields(LearningRates)} - {"final_ratio", "means_unit"}
@@ -66,20 +67,17 @@ def size_extent(poses, points, camera_extent) -> float:
 
 
 def block_learning_rate(name: str, lr: LearningRates, extent: float, iters: int, num_frames: int,
-                        centred: bool = False, adjusted: bool = False):
+                        centred: bool = False):
     """The learning rate (a number or an ``adam`` schedule) of block ``name`` (module docstring);
     ``extent``: the length the position rates are scaled by (``lr.means_unit``: the camera extent
     or the scene's size, ``position_extent``); ``centred``: the endpoints are a centred exposure
-    (only the spread is trained); ``adjusted``: free endpoints from a kept bundle adjustment that
-    Adam alone refines (``camera_adjusted``)."""
+    (only the spread is trained)."""
     kind = name.split(".", 1)[1] if "." in name else name
     if name.startswith((f"{CAMERA}.xi", f"{POSENET}.")):
         # Per-frame rows are visited once per epoch: decay over the visits a row gets.
         visits = iters // num_frames + 1 if name.startswith(f"{CAMERA}.xi") else iters
         if centred and name.startswith(f"{CAMERA}.xi"):
             return adam.exponential_decay(lr.camera_spread, lr.camera_spread_final, visits)
-        if adjusted and name.startswith(f"{CAMERA}.xi"):
-            return adam.exponential_decay(lr.camera_adjusted, lr.camera_adjusted_final, visits)
         return adam.exponential_decay(lr.camera, lr.camera_final, visits)
     if name == EXPOSURE_BLOCK:
         return lr.exposure
@@ -111,10 +109,21 @@ def position_extent(lr: LearningRates, camera_extent: float, poses, points) -> f
 
 
 def learning_rates(block_names, lr: LearningRates, extent: float, iters: int, num_frames: int,
-                   centred: bool = False, adjusted: bool = False) -> adam.AdamConfig:
+                   centred: bool = False) -> adam.AdamConfig:
     """AdamConfig with the rate of every block in ``block_names``."""
-    return adam.AdamConfig(lrs={n: block_learning_rate(n, lr, extent, iters, num_frames, centred, adjusted)
+    return adam.AdamConfig(lrs={n: block_learning_rate(n, lr, extent, iters, num_frames, centred)
                                 for n in block_names})
+
+
+def camera_row_scales(components, lr: LearningRates, num_frames: int) -> np.ndarray:
+    """(num_frames,) factor on the rate of each frame's endpoint rows: ``lr.camera_adjusted_scale``
+    for the frames a kept bundle adjustment moved when Adam alone refines them
+    (``Components.adjusted_then == "adam"``), 1 elsewhere (module docstring)."""
+    scale = np.ones(num_frames)
+    if components.adjusted_then == "adam":
+        scale[:] = lr.camera_adjusted_scale
+        scale[list(components.held_frames)] = 1.0
+    return scale
 
 
 def centre_endpoint_grads(grads):
@@ -135,13 +144,15 @@ def centre_endpoint_grads(grads):
     return {**grads, XI_END: g, XI_START: -g}
 
 
-def optimiser_step(grads, adam_state, params, config: adam.AdamConfig, trainable, frame: int, lr_scale=1.0):
+def optimiser_step(grads, adam_state, params, config: adam.AdamConfig, trainable, frame: int, lr_scale=1.0,
+                   row_scale=1.0):
     """One Adam step on the blocks whose names start with one of ``trainable`` (the stage's);
-    per-frame blocks only in row ``frame``. Returns (params, adam_state), new dicts."""
+    per-frame blocks only in row ``frame``, at ``row_scale`` times their rate (the frame's
+    ``camera_row_scales``). Returns (params, adam_state), new dicts."""
     grads = {n: g for n, g in grads.items() if n.startswith(trainable) and n in params}
     sparse = {n: grads.pop(n) for n in list(grads) if n in PER_FRAME_BLOCKS}
     params, adam_state = adam.adam_update(grads, adam_state, params, config, lr_step_scale=lr_scale)
     if sparse:
         params, adam_state = adam.adam_update_rows(sparse, {n: [frame] for n in sparse}, adam_state, params, config,
-                                                   lr_step_scale=lr_scale)
+                                                   lr_step_scale=lr_scale, lr_factor=row_scale)
     return params, adam_state

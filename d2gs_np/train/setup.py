@@ -33,12 +33,12 @@ import numpy as np
 from d2gs_np.data import fingerprint
 from d2gs_np.data.scene import Scene
 from d2gs_np.optim import adam
-from d2gs_np.pose.given import initial_poses
+from d2gs_np.pose.given import initial_poses_and_held
 from d2gs_np.scene.gaussians import STATIC
 from d2gs_np.train.checkpoint import load_checkpoint
 from d2gs_np.train.components import Components, composition_notes, decide_components
 from d2gs_np.train.config import ExperimentConfig
-from d2gs_np.train.learning_rates import learning_rates, position_extent, scene_extent
+from d2gs_np.train.learning_rates import camera_row_scales, learning_rates, position_extent, scene_extent
 from d2gs_np.train.log import RunLog
 from d2gs_np.train.model import Model
 from d2gs_np.train.plugins import (Densify, GradientStatistics, HeldOutPSNR, Prune, RunContext,
@@ -69,6 +69,7 @@ class RunSetup:
     planner: Planner  # stage, frame and render scale of each step
     adam_config: adam.AdamConfig  # the learning rate of every parameter block
     cache: TargetCache  # the training targets at each render scale
+    camera_row_scales: np.ndarray  # (N,) factor on each frame's endpoint rate (camera_row_scales)
     resumed_from: Optional[Path] = None  # the checkpoint resumed; None for a fresh run
 
 
@@ -104,8 +105,8 @@ def set_up_run(scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resu
     if resume:
         components = Components(**saved[1]["components"])
     else:
-        start_poses = initial_poses(scene, config, log.note)
-        components = decide_components(scene, config, log.note, adjusted=start_poses is not None)
+        start_poses, held = initial_poses_and_held(scene, config, log.note)
+        components = decide_components(scene, config, log.note, adjusted=start_poses is not None, held_frames=held)
 
     # 4. loss terms (the log has a column per term) and step plugins, in order
     terms = loss_terms(config.loss, components, log.note, scene=scene, run_dir=run_dir,
@@ -144,11 +145,17 @@ def set_up_run(scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resu
     planner = Planner(config, [(f.width, f.height) for f in scene.frames],
                       make_stages(config.train, components.dynamic))
     rates = learning_rates(state.params, config.train.lr, pos_extent, config.train.iters, len(scene.frames),
-                           centred=components.centred, adjusted=components.adjusted_then == "adam")
+                           centred=components.centred)
+    row_scales = camera_row_scales(components, config.train.lr, len(scene.frames))
+    if components.adjusted_then == "adam":
+        log.note(f"exposure endpoints: the frames the adjustment moved learn at {config.train.lr.camera_adjusted_scale:g} "
+                 "x the camera rate (train.lr.camera_adjusted_scale)"
+                 + (f", the {len(components.held_frames)} it held at the given pose at the full rate"
+                    if components.held_frames else ""))
     cache = TargetCache.from_scene(scene, mask_threshold=config.schedule.mask_threshold)
     return RunSetup(context=context, log=log, scene_record=scene_record, terms=terms, plugins=plugins, state=state,
                     step=step, seconds=seconds, position_extent=pos_extent, planner=planner, adam_config=rates,
-                    cache=cache, resumed_from=resumed_from)
+                    cache=cache, camera_row_scales=row_scales, resumed_from=resumed_from)
 
 
 def validate_scene_for_training(scene: Scene):

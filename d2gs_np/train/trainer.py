@@ -133,6 +133,7 @@ class Trainer:
         self.state, self.step_index, self.stopwatch = run.state, run.step, Stopwatch(run.seconds)
         self.position_extent, self.planner, self.adam_config = run.position_extent, run.planner, run.adam_config
         self.cache, self.scene_record = run.cache, run.scene_record
+        self.camera_row_scales = run.camera_row_scales
         self._resumed_from = run.resumed_from
         self._opened = False  # whether the run has written into run_dir (_open_run_folder)
         # the latest checkpoint: its step and path (a resumed run's is the one it resumed)
@@ -211,7 +212,7 @@ class Trainer:
         if self.components.centred:
             grads = centre_endpoint_grads(grads)
         params, adam_state = optimiser_step(grads, state.adam, state.params, self.adam_config, plan.stage.trainable,
-                                            k, plan.lr_scale)
+                                            k, plan.lr_scale, self.camera_row_scales[k])
         sq = (out["image"] - tgt.image) ** 2
         mse = float(np.mean(sq)) if ignore is None else float(np.mean(sq[~ignore]))
         screen = ScreenGrads(v_means2d=v_means2d, v_means2d_abs=v_means2d_abs, radii=out["radii"],

@@ -105,10 +105,30 @@ def test_centred_endpoints_learn_at_the_spread_rate():
     tied = block_learning_rate(XI_END, lr, 1.0, 100, 5, centred=True)
     assert free.lr_init == 1e-3 and free.lr_final == 1e-5
     assert tied.lr_init == 2e-4 and tied.lr_final == 2e-6
-    lr = LearningRates(camera_adjusted=3e-4, camera_adjusted_final=3e-6)
-    adjusted = block_learning_rate(XI_END, lr, 1.0, 100, 5, adjusted=True)
-    assert adjusted.lr_init == 3e-4 and adjusted.lr_final == 3e-6
-    assert block_learning_rate(XI_END, lr, 1.0, 100, 5, centred=True, adjusted=True).lr_init == lr.camera_spread
+
+
+
+def test_the_rows_a_kept_adjustment_moved_learn_slower():
+    """camera_row_scales: Adam alone after a kept adjustment (then = adam) scales the rows of the
+    frames it moved by camera_adjusted_scale, and keeps the full rate for those it held; an Adam
+    step's size on a row follows the scale (Adam's first step is lr x sign(g), bias-corrected)."""
+    from d2gs_np.optim import adam
+    from d2gs_np.train.components import Components
+    from d2gs_np.train.learning_rates import camera_row_scales, optimiser_step
+
+    lr = LearningRates(camera_adjusted_scale=0.25)
+    base = dict(dynamic=False, blur=True, learn_exposure=False, exposure_fraction=0.5)
+    np.testing.assert_array_equal(camera_row_scales(Components(**base), lr, 4), 1.0)
+    np.testing.assert_array_equal(camera_row_scales(Components(**base, adjusted_then="solver", held_frames=(1,)), lr, 4), 1.0)
+    np.testing.assert_array_equal(camera_row_scales(Components(**base, adjusted_then="adam", held_frames=(1,)), lr, 4),
+                                  [0.25, 1.0, 0.25, 0.25])
+    params = {XI_START: np.zeros((4, 6)), XI_END: np.zeros((4, 6))}
+    cfg = adam.AdamConfig(lrs={XI_START: 1e-3, XI_END: 1e-3})
+    grads = {XI_START: np.ones((4, 6)), XI_END: -np.ones((4, 6))}
+    for frame, scale in ((0, 0.25), (1, 1.0)):
+        p, _ = optimiser_step(grads, adam.adam_init(params), params, cfg, ("camera",), frame, 1.0, scale)
+        np.testing.assert_allclose(p[XI_END][frame], 1e-3 * scale, rtol=1e-6)
+        assert not np.any(p[XI_END][np.arange(4) != frame])  # other rows untouched
 
 
 def test_a_centred_three_knot_path_bends_through_the_trusted_pose(trusted_scene, tmp_path):
@@ -171,9 +191,7 @@ def test_adjusted_poses_refined_by_adam_alone(room_160, tmp_path):
     assert tr.components.adjusted_then == "adam" and tr.components.solver_left_out
     assert not tr.components.centred and not tr.components.poses_held
     assert any("refined by Adam alone" in n for n in tr.log.notes)
-    lr = cfg.train.lr
-    rate = tr.adam_config.lrs[XI_END]
-    assert (rate.lr_init, rate.lr_final) == (lr.camera_adjusted, lr.camera_adjusted_final) != (lr.camera, lr.camera_final)
+    np.testing.assert_array_equal(tr.camera_row_scales, cfg.train.lr.camera_adjusted_scale)  # no frame held here
     tr.run()
     assert not np.array_equal(tr.params[XI_START], -tr.params[XI_END])  # free endpoints
     long = cfg.replace(train=dataclasses.replace(cfg.train, iters=5000))
