@@ -136,15 +136,18 @@ class PoseInitConfig:
     """Bundle adjustment of the given poses before training (``pose/given.py``).
 
     mode: "auto" runs it when the pose solver runs (poses not trusted); "on" / "off" force it.
-    then: what refines a kept adjustment's poses during training. "solver": Adam on the exposure
-        endpoints and the pose solver's calls (``pose_solver``); "adam": Adam alone, no pose
-        solver; "hold": nothing, the poses held as exact ones are (the exposure centred on them,
-        only its spread learned). A run whose adjustment is not kept (too few points, a bad fit)
-        refines the given poses with both either way. Why: docs/method.md §4.
+    then: what refines a kept adjustment's poses during training. "adam" (default): Adam alone on
+        the exposure endpoints, no pose solver, the frames the adjustment moved at
+        ``LearningRates.camera_adjusted_scale`` x the camera rate; "solver": Adam at the camera
+        rate and the pose solver's calls (``pose_solver``; the default until session 31);
+        "hold": nothing, the poses held as exact ones are (the exposure centred on them, only its
+        spread learned). A run whose adjustment is not kept (too few points, a bad fit) refines
+        the given poses with both either way. Why: docs/method.md §5, the solver after a kept
+        adjustment.
     """
 
     mode: str = "auto"
-    then: str = "solver"
+    then: str = "adam"
     # The tracker without its retry window (TrackConfig.retry_window_px): the retry keeps
     # more tracks through streaked frames, which the importer needs to connect a video, but they
     # are less precise, and this adjustment starts from poses that already connect the frames:

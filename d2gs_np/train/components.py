@@ -42,6 +42,10 @@ class Components:
     adjusted_then: str = ""
     held_frames: tuple = ()  # frames that adjustment held at their given poses (too few observations)
 
+    def __post_init__(self):
+        # a checkpoint's JSON gives a list; a tuple keeps Components equal to the one it saved
+        object.__setattr__(self, "held_frames", tuple(int(k) for k in self.held_frames))
+
     @property
     def poses_held(self) -> bool:
         """The start poses are held as exact: the scene's trusted ones, or a held adjustment."""

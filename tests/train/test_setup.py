@@ -21,7 +21,7 @@ from d2gs_np.train.trainer import Trainer
 
 TINY = dict(width=96, height=54, num_frames=6)  # SIFT finds matches at this size (L_reproj, the pose solver)
 FIELDS = ["context", "log", "scene_record", "terms", "plugins", "state", "step", "seconds", "position_extent",
-          "planner", "adam_config", "cache", "resumed_from"]
+          "planner", "adam_config", "cache", "camera_row_scales", "resumed_from"]
 
 
 def _config(iters=2, **train):
