@@ -75,7 +75,8 @@ def composition_notes(terms=(), plugins=()) -> list:
     notes = []
     if "pose_solver" not in plugins:
         notes.append("pose refinement (Gauss-Newton on reprojection residuals): not run (config pose_solver.mode, "
-                     "trusted poses or a run too short; see the pose solver line above)")
+                     "trusted poses, a kept bundle adjustment refined otherwise (pose_init.then) or a run too "
+                     "short; see the pose solver line above)")
     missing = [label for name, label in OPTIONAL_TERMS.items() if name not in terms]
     loss = " + ".join("L_render" if t == "photometric" else OPTIONAL_TERMS.get(t, t) for t in terms) or "L_render"
     off = [label for name, label in OPTIONAL_TERMS.items() if name not in terms and name in IMPLEMENTED_TERMS]
