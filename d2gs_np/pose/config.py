@@ -34,6 +34,7 @@ ROBUST_LOSSES = ("none", "huber", "cauchy")
 BUNDLE_SOLVERS = ("scipy", "schur")
 _MODES = ("auto", "on", "off")  # PoseInitConfig.mode
 ADJUSTED_POSES_THEN = ("solver", "adam", "hold")  # PoseInitConfig.then
+THEN_WITHOUT_SOLVER = ("adam", "hold")  # the values of PoseInitConfig.then that leave the pose solver out
 
 
 @dataclass(frozen=True)
@@ -139,7 +140,7 @@ class PoseInitConfig:
     then: what refines a kept adjustment's poses during training. "adam" (default): Adam alone on
         the exposure endpoints, no pose solver, the frames the adjustment moved at
         ``LearningRates.camera_adjusted_scale`` x the camera rate; "solver": Adam at the camera
-        rate and the pose solver's calls (``pose_solver``; the default until session 31);
+        rate and the pose solver's calls (``pose_solver``);
         "hold": nothing, the poses held as exact ones are (the exposure centred on them, only its
         spread learned). A run whose adjustment is not kept (too few points, a bad fit) refines
         the given poses with both either way. Why: docs/method.md §5, the solver after a kept

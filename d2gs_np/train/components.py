@@ -15,6 +15,7 @@ from dataclasses import dataclass
 from typing import Callable, Optional
 
 from d2gs_np.data.scene import Scene
+from d2gs_np.pose.config import THEN_WITHOUT_SOLVER
 from d2gs_np.train.config import ExperimentConfig
 
 __all__ = ["Components", "decide_components", "OPTIONAL_TERMS", "OPTIONAL_PLUGINS", "composition_notes"]
@@ -54,7 +55,7 @@ class Components:
     @property
     def solver_left_out(self) -> bool:
         """The pose solver is left out because a kept adjustment is refined otherwise."""
-        return self.adjusted_then in ("adam", "hold")
+        return self.adjusted_then in THEN_WITHOUT_SOLVER
 
     def left_out(self, terms=(), plugins=()) -> list:
         """Names of the parts of the method this run does not have: the sets and models the scene
@@ -166,4 +167,4 @@ def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Cal
             say("exposure endpoints: both free (start and end learned; the mid pose moves with them)")
     return Components(dynamic=dynamic, blur=blur, learn_exposure=learn, exposure_fraction=float(ef or 0.0),
                       centred=centred, adjusted_then=adjusted_then,
-                      held_frames=tuple(int(k) for k in held_frames) if adjusted else ())
+                      held_frames=held_frames if adjusted else ())

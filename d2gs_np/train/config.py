@@ -96,8 +96,8 @@ class LearningRates:
     camera_spread_final: float = 1e-6
     # The camera rate's factor for the endpoint rows of frames a kept bundle adjustment moved, when
     # Adam alone refines them (PoseInitConfig.then = "adam"); frames it held at their given poses
-    # keep the full rate. Within ~0.2 deg of the truth, the full rate's steps blurred the scene
-    # they were fitted with (docs/results.md §4).
+    # keep the full rate. Poses the adjustment brought close need small steps: at the full rate
+    # their jitter blurs the scene fitted to them (docs/results.md §4).
     camera_adjusted_scale: float = 0.1
     exposure: float = 1e-2
     # The constant-rate Gaussian blocks (log_scales, quats, opacity_logits, colors, deform_other)

@@ -49,6 +49,7 @@ from d2gs_np.pose.correspond import correspondences
 from d2gs_np.geometry.camera import camera_center, scale_intrinsics
 from d2gs_np.geometry.se3 import se3_exp, se3_interpolate, se3_inverse
 from d2gs_np.pose import gauss_newton as gn
+from d2gs_np.pose.config import THEN_WITHOUT_SOLVER
 from d2gs_np.pose.given import track_reprojection_rms
 from d2gs_np.render.api import _render_fwd
 from d2gs_np.scene.gaussians import STATIC
@@ -80,7 +81,7 @@ def use_pose_solver(scene, config: ExperimentConfig, note=None, adjusted_then: s
     if getattr(scene, "poses_trusted", None):
         say("pose solver: left out (the scene flags its poses as exact: poses_trusted)")
         return False
-    if adjusted_then in ("adam", "hold"):
+    if adjusted_then in THEN_WITHOUT_SOLVER:
         how = "held as exact" if adjusted_then == "hold" else "refined by Adam alone"
         say(f"pose solver: left out (the bundle adjustment was kept and its poses are {how}: "
             f"pose_init.then = {adjusted_then})")

@@ -13,8 +13,8 @@
                the default ones (``default_plugins``), the loss terms' (``term.plugins``), those
                passed in (a plugin as it is, or a builder, a class or function of the context);
 5. model       a fresh run: the initial model from the start poses (``Model.from_scene``),
-               each plugin's ``on_init``, Adam's state; a resumed run: the checkpoint's model, Adam state, statistics, step, time
-               and each plugin's state;
+               each plugin's ``on_init``, Adam's state; a resumed run: the checkpoint's model,
+               Adam state, statistics, step, time and each plugin's state;
 6. schedule    the stages and the step planner (``train/stages.py``), the learning rate of every
                block (``train/learning_rates.py``), the cache of targets (``train/schedule.py``).
 
