@@ -38,7 +38,7 @@ from d2gs_np.pose.lm import (LOSSES, Nielsen, accept_step, at_damping_limit, dam
                              robust_loss)
 
 __all__ = ["reprojection_fwd", "reprojection_bwd", "reprojection_jacobian", "pose_prior_fwd", "BundleProblem",
-           "bundle_adjust", "poses_to_params", "params_to_poses"]
+           "bundle_adjust", "camera_covariance", "relative_rotation_std", "poses_to_params", "params_to_poses"]
 
 # The Schur solver's first Levenberg-Marquardt lambda (relative to diag(H)). The robust problems of
 # pose_init have several local minima, and the first steps choose among them: this one chooses
@@ -503,3 +503,75 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
             "rms_px": float(np.sqrt(np.mean(err ** 2))) if err.size else 0.0, "residual_px": err,
             "cost_history": cost_hist, "seconds_history": sec_hist}
     return cams, pts, float(f), info
+
+
+def camera_covariance(problem: BundleProblem, cams, points, fixed_cams=(), loss="soft_l1", f_scale=1.0, prior=None):
+    """Covariance (6F, 6F) of the free cameras' (phi, t) at a solution (cams (C, 6), points (P, 3)),
+    from the Gauss-Newton approximation of the cost ``bundle_adjust`` minimises: H = J^T W J (+ the
+    prior's J^T W J), W the robust weights rho'(z) at the solution, the points eliminated (Schur
+    complement), Sigma = S^-1. A residual of 1 px counts as one standard deviation, as the cost
+    weighs it. Returns (Sigma, free (F,) camera indices).
+
+    A rank-deficient S (no prior and too few fixed cameras: the gauge is free) is inverted on its
+    range (eigenvalues below 1e-12 x the largest count as zero), so the free directions get zero
+    variance rather than an overflow; with a prior S is positive definite.
+    """
+    cams = np.asarray(cams, dtype=np.float64)
+    pts = np.asarray(points, dtype=np.float64)
+    C, P = cams.shape[0], pts.shape[0]
+    free = np.array([c for c in range(C) if c not in set(fixed_cams)], dtype=np.int64)
+    nc = 6 * len(free)
+    r, saved = reprojection_fwd(cams, pts, problem.focal, problem.cx, problem.cy, problem.cam_idx, problem.pt_idx,
+                                problem.uv)
+    J = reprojection_jacobian(saved, free, False)
+    w = robust_loss((r / f_scale) ** 2, loss)[1].ravel()
+    H = (J.T @ sp.diags(w) @ J).tocsr()
+    A = H[:nc, :nc].toarray()
+    if prior is not None:
+        rp, Jp = pose_prior_fwd(cams[free], np.asarray(prior[0], dtype=np.float64)[free], prior[1], prior[2])
+        wp = robust_loss((rp / f_scale) ** 2, loss)[1]
+        blk = np.einsum("fia,fi,fib->fab", Jp, wp, Jp)
+        idx = 6 * np.arange(len(free))[:, None] + np.arange(6)
+        A[idx[:, :, None], idx[:, None, :]] += blk
+    if P:
+        # the points' blocks are 3 x 3 and independent: invert each on its range (a point seen along
+        # one ray has a rank-2 block), as _schur_lm's damped step does
+        d_pt = _blocks(saved)[1]
+        wo = w.reshape(-1, 2)
+        Vb = np.zeros((P, 3, 3))
+        np.add.at(Vb, np.asarray(problem.pt_idx), np.einsum("oia,oi,oib->oab", d_pt, wo, d_pt))
+        ev, Q = np.linalg.eigh(Vb)
+        top = np.maximum(ev[:, -1:], 1e-300)
+        inv_ev = np.where(ev > BA_POINT_EIG_FLOOR * top, 1.0 / np.maximum(ev, 1e-300), 0.0)
+        Vinv = sp.bsr_matrix((np.einsum("pij,pj,pkj->pik", Q, inv_ev, Q), np.arange(P), np.arange(P + 1)),
+                             shape=(3 * P, 3 * P)).tocsr()
+        E = H[:nc, nc:]
+        A = A - (E @ Vinv @ E.T).toarray()
+    S = 0.5 * (A + A.T)
+    ev, Q = np.linalg.eigh(S)
+    keep = ev > 1e-12 * max(float(ev[-1]) if ev.size else 0.0, 1e-300)
+    Sigma = (Q[:, keep] / ev[keep]) @ Q[:, keep].T
+    return Sigma, free
+
+
+def relative_rotation_std(Sigma, free, num_cams):
+    """(num_cams,) standard deviation (radians, RMS over the three axes) of each free camera's
+    rotation relative to the free cameras' mean rotation, from ``camera_covariance``: the part of
+    its uncertainty that moves it against the others, with the common turn of the whole trajectory
+    (the gauge the prior holds, which no image shows) taken out. NaN for fixed cameras.
+
+    With delta_i the rotation block of camera i, the relative rotation is delta_i - mean_j delta_j
+    (exact to first order for a path whose orientations differ by a few degrees: the cameras'
+    left perturbations of a common world turn then agree)."""
+    F = len(free)
+    out = np.full(num_cams, np.nan)
+    if F == 0:
+        return out
+    rot = (6 * np.arange(F)[:, None] + np.arange(3)).ravel()
+    Sr = Sigma[np.ix_(rot, rot)].reshape(F, 3, F, 3)
+    mean_row = Sr.mean(axis=2)  # (F, 3, 3): Cov(delta_i, mean delta)
+    mean_all = Sr.mean(axis=(0, 2))  # (3, 3): Var(mean delta)
+    diag = np.einsum("iaib->iab", Sr)
+    rel = diag - mean_row - np.transpose(mean_row, (0, 2, 1)) + mean_all[None]
+    out[free] = np.sqrt(np.maximum(np.trace(rel, axis1=1, axis2=2), 0.0) / 3.0)
+    return out

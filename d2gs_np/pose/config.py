@@ -35,6 +35,7 @@ BUNDLE_SOLVERS = ("scipy", "schur")
 _MODES = ("auto", "on", "off")  # PoseInitConfig.mode
 ADJUSTED_POSES_THEN = ("solver", "adam", "hold")  # PoseInitConfig.then
 THEN_WITHOUT_SOLVER = ("adam", "hold")  # the values of PoseInitConfig.then that leave the pose solver out
+ADAM_ROW_RULES = ("constant", "uncertainty")  # PoseInitConfig.adam_rows
 
 
 @dataclass(frozen=True)
@@ -145,10 +146,16 @@ class PoseInitConfig:
         spread learned). A run whose adjustment is not kept (too few points, a bad fit) refines
         the given poses with both either way. Why: docs/method.md §5, the solver after a kept
         adjustment.
+    adam_rows: the rate factor of each moved frame's rows under then = "adam". "constant":
+        ``camera_adjusted_scale``; "uncertainty": the adjustment's own uncertainty of that frame's
+        rotation relative to the others (``pose.bundle.relative_rotation_std``) over
+        ``prior_rot_deg``, clipped to [``camera_adjusted_scale``, 1]: a frame the tracks pinned
+        down learns slowly, one they left near the prior's uncertainty at nearly the full rate.
     """
 
     mode: str = "auto"
     then: str = "adam"
+    adam_rows: str = "constant"
     # The tracker without its retry window (TrackConfig.retry_window_px): the retry keeps
     # more tracks through streaked frames, which the importer needs to connect a video, but they
     # are less precise, and this adjustment starts from poses that already connect the frames:
@@ -181,6 +188,7 @@ class PoseInitConfig:
     def __post_init__(self):
         check_choice(self.mode, "PoseInitConfig.mode", _MODES)
         check_choice(self.then, "PoseInitConfig.then", ADJUSTED_POSES_THEN)
+        check_choice(self.adam_rows, "PoseInitConfig.adam_rows", ADAM_ROW_RULES)
         check_choice(self.solver, "PoseInitConfig.solver", BUNDLE_SOLVERS)
         if not isinstance(self.tracks, TrackConfig):
             raise TypeError(f"PoseInitConfig.tracks must be a TrackConfig; got {type(self.tracks).__name__}")

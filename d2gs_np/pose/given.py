@@ -31,16 +31,19 @@ poses as the initial trajectory.
 from __future__ import annotations
 
 import time
+from dataclasses import dataclass
+from typing import Optional
 
 import numpy as np
 
 from d2gs_np.geometry.camera import camera_center
 from d2gs_np.geometry.so3 import so3_log
-from d2gs_np.pose.bundle import BundleProblem, bundle_adjust, params_to_poses, poses_to_params
+from d2gs_np.pose.bundle import (BundleProblem, bundle_adjust, camera_covariance, params_to_poses, poses_to_params,
+                                 relative_rotation_std)
 from d2gs_np.pose.config import PoseInitConfig
 from d2gs_np.pose.tracks import klt_tracks
 
-__all__ = ["triangulate_tracks", "adjust_given_poses", "initial_poses", "initial_poses_and_held",
+__all__ = ["triangulate_tracks", "adjust_given_poses", "initial_poses", "AdjustedStart", "adjusted_start",
            "track_reprojection_rms"]
 
 def triangulate_tracks(cam_T_world, K, obs_frame, obs_track, obs_uv, num_tracks, min_views=3,
@@ -175,8 +178,14 @@ def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = N
             inl = binfo["residual_px"] <= cfg.outlier_px
             o_cam, o_pt, o_uv = o_cam[inl], o_pt[inl], o_uv[inl]
     per_frame = np.bincount(o_cam, minlength=N)
+    # how well the tracks determine each frame's rotation against the others (the last round's
+    # problem at its solution); a held frame has the prior's uncertainty
+    Sigma, free = camera_covariance(BundleProblem(cams, pts, fx, cx, cy, o_cam, o_pt, o_uv), cams, pts,
+                                    tuple(np.flatnonzero(held).tolist()), "soft_l1", cfg.robust_px, prior)
+    rot_std = np.degrees(relative_rotation_std(Sigma, free, N))
+    rot_std[held] = cfg.prior_rot_deg
     info.update(rounds=rounds, observations_per_frame=per_frame.tolist(), held_frames=np.flatnonzero(held).tolist(),
-                seconds=time.perf_counter() - t0)
+                rot_std_rel_deg=rot_std.tolist(), seconds=time.perf_counter() - t0)
     T1 = params_to_poses(cams)
     turn = _rotation_deg(T1, T0)
     move = np.linalg.norm(camera_center(T1) - camera_center(T0), axis=1) / max(depth, 1e-300)
@@ -201,29 +210,40 @@ def initial_poses(scene, config, note=None):
     poses when ``config.pose_init`` runs (mode "on"; "auto": unless the scene flags its poses as
     exact or the config turns pose refinement off, ``pose_solver.mode = "off"``) and it is kept,
     else None (the given poses). Says in the log what it did and why."""
-    return initial_poses_and_held(scene, config, note)[0]
+    return adjusted_start(scene, config, note).poses
 
 
-def initial_poses_and_held(scene, config, note=None):
-    """(``initial_poses``, the frames a kept adjustment held at their given poses (a sorted tuple;
-    () when none, or when nothing was kept))."""
+@dataclass(frozen=True)
+class AdjustedStart:
+    """What the bundle adjustment before training hands to the run (``adjusted_start``)."""
+
+    poses: Optional[np.ndarray]  # (N, 4, 4) the kept adjustment's poses; None: the given poses
+    held_frames: tuple = ()  # frames it held at their given poses (sorted)
+    # per frame, its rotation's uncertainty relative to the others (``relative_rotation_std``)
+    # over the prior's (``prior_rot_deg``); 1 for a held frame; () when nothing was kept
+    rotation_uncertainty: tuple = ()
+
+
+def adjusted_start(scene, config, note=None) -> AdjustedStart:
+    """``initial_poses``, with the frames a kept adjustment held at their given poses and how well
+    it determined each frame's rotation (``AdjustedStart``)."""
     say = note if note is not None else (lambda m: None)
     pc = config.pose_init
     if pc.mode == "off":
         say("pose initialisation (bundle adjustment of the given poses): off (config pose_init.mode = off)")
-        return None, ()
+        return AdjustedStart(None)
     if pc.mode == "auto":
         if getattr(scene, "poses_trusted", None):
             say("pose initialisation (bundle adjustment): left out (the scene flags its poses as exact)")
-            return None, ()
+            return AdjustedStart(None)
         if config.pose_solver.mode == "off":
             say("pose initialisation (bundle adjustment): left out (pose refinement is off: pose_solver.mode = off)")
-            return None, ()
+            return AdjustedStart(None)
     frames = scene.frames
     K = np.asarray(frames[0].K, dtype=np.float64)
     if any(not np.allclose(f.K, K, rtol=1e-9, atol=0.0) or f.width != frames[0].width for f in frames):
         say("pose initialisation (bundle adjustment): left out (the frames do not share one camera)")
-        return None, ()
+        return AdjustedStart(None)
     masks = [f.mask for f in frames] if all(f.mask is not None for f in frames) else None
     given = np.stack([f.cam_T_world for f in frames]).astype(np.float64)
     poses, info = adjust_given_poses([f.image for f in frames], masks, given, K, pc, seed=config.train.seed)
@@ -234,15 +254,17 @@ def initial_poses_and_held(scene, config, note=None):
                    f"{r[-1]['observations']} observations, {info['seconds']:.1f}s")
     if not info["kept"]:
         say(f"pose initialisation (bundle adjustment): given poses kept: {info['reason']} ({counts})")
-        return None, ()
+        return AdjustedStart(None)
     held = info["held_frames"]
     if held:
         counts += (f"; {len(held)} frame(s) held at the given pose (fewer than {pc.min_frame_observations} "
                    f"observations): {held}")
+    rel = np.asarray(info["rot_std_rel_deg"])
     say(f"pose initialisation (bundle adjustment): poses moved {info['change_deg_mean']:.3f} deg / "
         f"{info['change_rel_mean']:.4f} x depth on average (max {info['change_deg_max']:.3f} deg / "
-        f"{info['change_rel_max']:.4f}); {counts}")
-    return poses, tuple(int(k) for k in held)
+        f"{info['change_rel_max']:.4f}); {counts}; rotation uncertainty against the other frames "
+        f"{np.median(rel):.3f} deg median (min {rel.min():.3f}, max {rel.max():.3f}; prior {pc.prior_rot_deg:g})")
+    return AdjustedStart(poses, tuple(int(k) for k in held), tuple(float(x) for x in rel / pc.prior_rot_deg))
 
 
 def track_reprojection_rms(cam_T_world, K, tracks, min_views=3, min_parallax_deg=1.0, clip_px=3.0):

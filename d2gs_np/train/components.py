@@ -42,10 +42,13 @@ class Components:
     # "solver", "adam" or "hold"; "" when they are the given poses.
     adjusted_then: str = ""
     held_frames: tuple = ()  # frames that adjustment held at their given poses (too few observations)
+    # per frame, how uncertain that adjustment left its rotation, over its prior's (AdjustedStart)
+    rotation_uncertainty: tuple = ()
 
     def __post_init__(self):
-        # a checkpoint's JSON gives a list; a tuple keeps Components equal to the one it saved
+        # a checkpoint's JSON gives lists; tuples keep Components equal to the one it saved
         object.__setattr__(self, "held_frames", tuple(int(k) for k in self.held_frames))
+        object.__setattr__(self, "rotation_uncertainty", tuple(float(u) for u in self.rotation_uncertainty))
 
     @property
     def poses_held(self) -> bool:
@@ -92,11 +95,11 @@ def composition_notes(terms=(), plugins=()) -> list:
 
 
 def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Callable] = None,
-                      adjusted: bool = False, held_frames=()) -> Components:
+                      adjusted: bool = False, held_frames=(), rotation_uncertainty=()) -> Components:
     """Apply docs/method.md §9: leave out what the scene does not need, and say why (``note``).
     ``adjusted``: the run starts from a kept bundle adjustment, refined as ``pose_init.then``
-    says; held ("hold"), its exposure is centred as a trusted scene's is. ``held_frames``: the
-    frames that adjustment held at their given poses."""
+    says; held ("hold"), its exposure is centred as a trusted scene's is. ``held_frames``,
+    ``rotation_uncertainty``: that adjustment's (``pose.given.AdjustedStart``)."""
     adjusted_then = config.pose_init.then if adjusted else ""
     poses_held = adjusted_then == "hold"
     tc = config.train
@@ -167,4 +170,5 @@ def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Cal
             say("exposure endpoints: both free (start and end learned; the mid pose moves with them)")
     return Components(dynamic=dynamic, blur=blur, learn_exposure=learn, exposure_fraction=float(ef or 0.0),
                       centred=centred, adjusted_then=adjusted_then,
-                      held_frames=held_frames if adjusted else ())
+                      held_frames=held_frames if adjusted else (),
+                      rotation_uncertainty=rotation_uncertainty if adjusted else ())

@@ -115,13 +115,19 @@ def learning_rates(block_names, lr: LearningRates, extent: float, iters: int, nu
                                 for n in block_names})
 
 
-def camera_row_scales(components, lr: LearningRates, num_frames: int) -> np.ndarray:
-    """(num_frames,) factor on the rate of each frame's endpoint rows: ``lr.camera_adjusted_scale``
-    for the frames a kept bundle adjustment moved when Adam alone refines them
-    (``Components.adjusted_then == "adam"``), 1 elsewhere (module docstring)."""
+def camera_row_scales(components, lr: LearningRates, num_frames: int, rule: str = "constant") -> np.ndarray:
+    """(num_frames,) factor on the rate of each frame's endpoint rows when Adam alone refines a kept
+    bundle adjustment (``Components.adjusted_then == "adam"``), 1 elsewhere (module docstring).
+    The frames it held at their given poses: 1. Those it moved: ``lr.camera_adjusted_scale``
+    (``rule`` "constant", ``PoseInitConfig.adam_rows``), or ("uncertainty") the frame's
+    ``Components.rotation_uncertainty`` clipped to [``lr.camera_adjusted_scale``, 1]."""
     scale = np.ones(num_frames)
     if components.adjusted_then == "adam":
-        scale[:] = lr.camera_adjusted_scale
+        u = components.rotation_uncertainty
+        if rule == "uncertainty" and len(u) == num_frames:
+            scale[:] = np.clip(np.asarray(u, dtype=np.float64), lr.camera_adjusted_scale, 1.0)
+        else:
+            scale[:] = lr.camera_adjusted_scale
         scale[list(components.held_frames)] = 1.0
     return scale
 

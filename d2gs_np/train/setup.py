@@ -33,7 +33,7 @@ import numpy as np
 from d2gs_np.data import fingerprint
 from d2gs_np.data.scene import Scene
 from d2gs_np.optim import adam
-from d2gs_np.pose.given import initial_poses_and_held
+from d2gs_np.pose.given import adjusted_start
 from d2gs_np.scene.gaussians import STATIC
 from d2gs_np.train.checkpoint import load_checkpoint
 from d2gs_np.train.components import Components, composition_notes, decide_components
@@ -105,8 +105,10 @@ def set_up_run(scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resu
     if resume:
         components = Components(**saved[1]["components"])
     else:
-        start_poses, held = initial_poses_and_held(scene, config, log.note)
-        components = decide_components(scene, config, log.note, adjusted=start_poses is not None, held_frames=held)
+        start = adjusted_start(scene, config, log.note)
+        start_poses = start.poses
+        components = decide_components(scene, config, log.note, adjusted=start_poses is not None,
+                                       held_frames=start.held_frames, rotation_uncertainty=start.rotation_uncertainty)
 
     # 4. loss terms (the log has a column per term) and step plugins, in order
     terms = loss_terms(config.loss, components, log.note, scene=scene, run_dir=run_dir,
@@ -146,12 +148,19 @@ def set_up_run(scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resu
                       make_stages(config.train, components.dynamic))
     rates = learning_rates(state.params, config.train.lr, pos_extent, config.train.iters, len(scene.frames),
                            centred=components.centred)
-    row_scales = camera_row_scales(components, config.train.lr, len(scene.frames))
+    row_scales = camera_row_scales(components, config.train.lr, len(scene.frames), config.pose_init.adam_rows)
     if components.adjusted_then == "adam":
-        log.note(f"exposure endpoints: the frames the adjustment moved learn at {config.train.lr.camera_adjusted_scale:g} "
-                 "x the camera rate (train.lr.camera_adjusted_scale)"
-                 + (f", the {len(components.held_frames)} it held at the given pose at the full rate"
-                    if components.held_frames else ""))
+        held = (f", the {len(components.held_frames)} it held at the given pose at the full rate"
+                if components.held_frames else "")
+        if config.pose_init.adam_rows == "uncertainty" and components.rotation_uncertainty:
+            moved = np.delete(row_scales, list(components.held_frames))
+            log.note(f"exposure endpoints: each frame the adjustment moved learns at its rotation's uncertainty over "
+                     f"the prior's x the camera rate, {moved.min():.3g} to {moved.max():.3g} (median "
+                     f"{np.median(moved):.3g}; at least train.lr.camera_adjusted_scale; pose_init.adam_rows)" + held)
+        else:
+            log.note(f"exposure endpoints: the frames the adjustment moved learn at "
+                     f"{config.train.lr.camera_adjusted_scale:g} x the camera rate (train.lr.camera_adjusted_scale)"
+                     + held)
     cache = TargetCache.from_scene(scene, mask_threshold=config.schedule.mask_threshold)
     return RunSetup(context=context, log=log, scene_record=scene_record, terms=terms, plugins=plugins, state=state,
                     step=step, seconds=seconds, position_extent=pos_extent, planner=planner, adam_config=rates,
