@@ -146,16 +146,17 @@ class PoseInitConfig:
         spread learned). A run whose adjustment is not kept (too few points, a bad fit) refines
         the given poses with both either way. Why: docs/method.md §5, the solver after a kept
         adjustment.
-    adam_rows: the rate factor of each moved frame's rows under then = "adam". "constant":
-        ``camera_adjusted_scale``; "uncertainty": the adjustment's own uncertainty of that frame's
-        rotation relative to the others (``pose.bundle.relative_rotation_std``) over
-        ``prior_rot_deg``, clipped to [``camera_adjusted_scale``, 1]: a frame the tracks pinned
-        down learns slowly, one they left near the prior's uncertainty at nearly the full rate.
+    adam_rows: the rate factor of each moved frame's rows under then = "adam". "uncertainty"
+        (default): the adjustment's own uncertainty of that frame's rotation relative to the others
+        (``pose.bundle.relative_rotation_std``) over ``prior_rot_deg``, clipped to
+        [``camera_adjusted_scale``, 1]: a frame the tracks pinned down learns slowly, one they left
+        near the prior's uncertainty at nearly the full rate; "constant": ``camera_adjusted_scale``.
+        Why: docs/method.md §5, the solver after a kept adjustment.
     """
 
     mode: str = "auto"
     then: str = "adam"
-    adam_rows: str = "constant"
+    adam_rows: str = "uncertainty"
     # The tracker without its retry window (TrackConfig.retry_window_px): the retry keeps
     # more tracks through streaked frames, which the importer needs to connect a video, but they
     # are less precise, and this adjustment starts from poses that already connect the frames:

@@ -8,7 +8,7 @@ from d2gs_np.data.suite import make_suite_scene
 from d2gs_np.geometry.camera import camera_center
 from d2gs_np.geometry.so3 import so3_exp, so3_log
 from d2gs_np.pose.config import PoseInitConfig
-from d2gs_np.pose.given import adjust_given_poses, initial_poses, triangulate_tracks
+from d2gs_np.pose.given import adjust_given_poses, adjusted_start, initial_poses, triangulate_tracks
 from d2gs_np.train.config import ExperimentConfig, PoseSolverConfig
 from d2gs_np.pose.bundle import BundleProblem, bundle_adjust, params_to_poses, pose_prior_fwd, poses_to_params
 
@@ -158,6 +158,9 @@ def test_a_weakly_observed_frame_is_held_at_its_given_pose():
     P, info = adjust_given_poses([None] * 6, None, given, K, tracks=tracks)
     assert info["kept"], info.get("reason")
     assert info["held_frames"] == [2] and info["observations_per_frame"][2] == 5
+    # a held frame has the prior's rotation uncertainty; the tracks pinned the others far below it
+    u = np.asarray(info["rot_std_rel_deg"])
+    assert u[2] == PoseInitConfig().prior_rot_deg and np.all(u[[0, 1, 3, 4, 5]] < 0.5 * u[2])
     np.testing.assert_allclose(P[2], given[2], rtol=0, atol=1e-12)
     others = [0, 1, 3, 4, 5]
     assert metrics.ate(P[others], poses[others]) < 0.5 * metrics.ate(given[others], poses[others])
@@ -227,6 +230,13 @@ def test_initial_poses_decides_and_says_why(noisy_room):
     assert initial_poses(trusted, ExperimentConfig(), notes.append) is None and "exact" in notes[-1]
     P = initial_poses(noisy_room, ExperimentConfig(), notes.append)
     assert P is not None and P.shape == (12, 4, 4) and "poses moved" in notes[-1]
+    # with it, per frame, the rotation uncertainty over the prior's: in (0, 1] (1: held), said in the log
+    start = adjusted_start(noisy_room, ExperimentConfig(), notes.append)
+    np.testing.assert_array_equal(start.poses, P)
+    u = np.asarray(start.rotation_uncertainty)
+    assert u.shape == (12,) and np.all((u > 0) & (u <= 1)) and "rotation uncertainty" in notes[-1]
+    assert np.all(u[list(start.held_frames)] == 1.0)
+    assert adjusted_start(noisy_room, ExperimentConfig(pose_init=PoseInitConfig(mode="off"))).rotation_uncertainty == ()
 
 
 def test_track_reprojection_rms_prefers_the_true_poses(noisy_room):

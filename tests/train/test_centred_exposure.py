@@ -122,6 +122,20 @@ def test_the_rows_a_kept_adjustment_moved_learn_slower():
     np.testing.assert_array_equal(camera_row_scales(Components(**base, adjusted_then="solver", held_frames=(1,)), lr, 4), 1.0)
     np.testing.assert_array_equal(camera_row_scales(Components(**base, adjusted_then="adam", held_frames=(1,)), lr, 4),
                                   [0.25, 1.0, 0.25, 0.25])
+    # the "uncertainty" rule: each moved row at its rotation uncertainty over the prior's, clipped to
+    # [camera_adjusted_scale, 1]; held rows at 1; without uncertainties (an old checkpoint) the constant
+    unc = Components(**base, adjusted_then="adam", held_frames=(1,), rotation_uncertainty=(0.05, 0.3, 0.5, 3.0))
+    np.testing.assert_array_equal(camera_row_scales(unc, lr, 4, "uncertainty"), [0.25, 1.0, 0.5, 1.0])
+    np.testing.assert_array_equal(camera_row_scales(unc, lr, 4, "constant"), [0.25, 1.0, 0.25, 0.25])
+    np.testing.assert_array_equal(camera_row_scales(Components(**base, adjusted_then="adam"), lr, 4, "uncertainty"),
+                                  0.25)
+    np.testing.assert_array_equal(camera_row_scales(Components(**base, adjusted_then="solver",
+                                                               rotation_uncertainty=(0.5,) * 4), lr, 4, "uncertainty"),
+                                  1.0)
+    # a checkpoint's JSON gives lists: the Components it builds equals the one saved
+    import dataclasses
+    import json
+    assert Components(**json.loads(json.dumps(dataclasses.asdict(unc)))) == unc
     params = {XI_START: np.zeros((4, 6)), XI_END: np.zeros((4, 6))}
     cfg = adam.AdamConfig(lrs={XI_START: 1e-3, XI_END: 1e-3})
     grads = {XI_START: np.ones((4, 6)), XI_END: -np.ones((4, 6))}
@@ -191,7 +205,13 @@ def test_adjusted_poses_refined_by_adam_alone(room_160, tmp_path):
     assert tr.components.adjusted_then == "adam" and tr.components.solver_left_out
     assert not tr.components.centred and not tr.components.poses_held
     assert any("refined by Adam alone" in n for n in tr.log.notes)
-    np.testing.assert_array_equal(tr.camera_row_scales, cfg.train.lr.camera_adjusted_scale)  # no frame held here
+    # no frame held here: every row at its rotation uncertainty over the prior's, at least the floor
+    u = np.asarray(tr.components.rotation_uncertainty)
+    assert u.shape == (len(room_160.frames),) and not tr.components.held_frames
+    np.testing.assert_array_equal(tr.camera_row_scales, np.clip(u, cfg.train.lr.camera_adjusted_scale, 1.0))
+    assert any("its rotation's uncertainty" in n for n in tr.log.notes)
+    tr_c = Trainer(room_160, cfg.replace(pose_init=PoseInitConfig(then="adam", adam_rows="constant")), tmp_path / "c")
+    np.testing.assert_array_equal(tr_c.camera_row_scales, cfg.train.lr.camera_adjusted_scale)
     tr.run()
     assert not np.array_equal(tr.params[XI_START], -tr.params[XI_END])  # free endpoints
     long = cfg.replace(train=dataclasses.replace(cfg.train, iters=5000))
