@@ -305,6 +305,12 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
     return cams, pts, float(f), info
 
 
+def _block_diagonal(blocks):
+    """(P, 3, 3) blocks -> the (3P, 3P) sparse block-diagonal matrix (CSR): the points' inverses."""
+    P = blocks.shape[0]
+    return sp.bsr_matrix((blocks, np.arange(P), np.arange(P + 1)), shape=(3 * P, 3 * P)).tocsr()
+
+
 def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev, tol, prior, t_start):
     """Levenberg-Marquardt with the points eliminated (Schur complement onto the camera side).
 
@@ -413,7 +419,7 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
         ev, Q = np.linalg.eigh(Vd)
         ev = np.maximum(ev, BA_POINT_EIG_FLOOR * np.maximum(ev[:, -1:], floor))
         Vinv = np.einsum("pij,pj,pkj->pik", Q, 1.0 / ev, Q)
-        Vinv_sp = sp.bsr_matrix((Vinv, np.arange(P), np.arange(P + 1)), shape=(3 * P, 3 * P)).tocsr()
+        Vinv_sp = _block_diagonal(Vinv)
         dp_rhs = Vinv_sp @ gp
         if ny:
             EV = E @ Vinv_sp
@@ -543,8 +549,7 @@ def camera_covariance(problem: BundleProblem, cams, points, fixed_cams=(), loss=
         ev, Q = np.linalg.eigh(Vb)
         top = np.maximum(ev[:, -1:], 1e-300)
         inv_ev = np.where(ev > BA_POINT_EIG_FLOOR * top, 1.0 / np.maximum(ev, 1e-300), 0.0)
-        Vinv = sp.bsr_matrix((np.einsum("pij,pj,pkj->pik", Q, inv_ev, Q), np.arange(P), np.arange(P + 1)),
-                             shape=(3 * P, 3 * P)).tocsr()
+        Vinv = _block_diagonal(np.einsum("pij,pj,pkj->pik", Q, inv_ev, Q))
         E = H[:nc, nc:]
         A = A - (E @ Vinv @ E.T).toarray()
     S = 0.5 * (A + A.T)
