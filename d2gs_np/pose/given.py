@@ -12,6 +12,8 @@ suite's trajectories from the blurry frames alone better than the given poses ar
 1. tracks through the blurry frames (KLT, ``pose/tracks.py``), none inside the motion masks;
 2. each track with ``min_views`` observations or more triangulated with the *given* poses (linear,
    all its views), kept if in front of every camera and seen under at least ``min_parallax_deg``;
+   fewer than ``min_points`` such tracks (a short or streaked clip): triangulated again at the
+   looser ``fallback_min_views`` / ``fallback_parallax_deg``, which must give ``fallback_min_points``;
 3. a robust bundle adjustment (``pose/bundle.py``: Levenberg-Marquardt with the points eliminated,
    or SciPy's trust region, ``solver``; soft-L1 loss) over every
    camera and every point, started at the given poses, with a prior that holds each camera near
@@ -141,9 +143,19 @@ def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = N
     Kx = np.array([[fx, 0.0, cx], [0.0, fx, cy], [0.0, 0.0, 1.0]])
     X, ok = triangulate_tracks(T0, Kx, of, ot, ouv, nt, cfg.min_views, cfg.min_parallax_deg)
     info.update(tracks=int(nt), points=int(ok.sum()))
+    need = cfg.min_points
+    if ok.sum() < cfg.min_points and cfg.fallback_min_points:
+        # too few for the first gates: the looser ones (PoseInitConfig.fallback_*)
+        X, ok = triangulate_tracks(T0, Kx, of, ot, ouv, nt, cfg.fallback_min_views, cfg.fallback_parallax_deg)
+        need = cfg.fallback_min_points
+        info.update(fallback=(f"{info['points']} tracks triangulated at {cfg.min_views} views / "
+                              f"{cfg.min_parallax_deg:g} deg, fewer than min_points {cfg.min_points}: "
+                              f"{int(ok.sum())} at {cfg.fallback_min_views} views / {cfg.fallback_parallax_deg:g} deg"),
+                    points=int(ok.sum()))
     sel = ok[ot]
-    if ok.sum() < cfg.min_points:
-        info["reason"] = f"too few triangulated tracks ({int(ok.sum())} of {nt}; min_points {cfg.min_points})"
+    if ok.sum() < need:
+        info["reason"] = (f"too few triangulated tracks ({int(ok.sum())} of {nt}; min_points {cfg.min_points}"
+                          + (f", fallback_min_points {need} at the looser gates)" if "fallback" in info else ")"))
         return T0.copy(), info
     given = poses_to_params(T0)
     cams = given.copy()
@@ -248,6 +260,8 @@ def adjusted_start(scene, config, note=None) -> AdjustedStart:
     given = np.stack([f.cam_T_world for f in frames]).astype(np.float64)
     poses, info = adjust_given_poses([f.image for f in frames], masks, given, K, pc, seed=config.train.seed)
     counts = (f"{info.get('points', 0)} points from {info.get('tracks', 0)} tracks")
+    if "fallback" in info:
+        counts += f" ({info['fallback']})"
     if "rounds" in info:
         r = info["rounds"]
         counts += (f", reprojection rms {r[0]['rms_px_start']:.2f} -> {r[-1]['rms_px']:.2f} px over "
