@@ -267,7 +267,11 @@ class Trainer:
         tc = self.config.train
         total, budget, stretch = tc.iters, tc.time_budget, tc.stretch_to_budget
         last_stage = None
-        while not self._schedule_done(self.step_index, self.stopwatch.seconds()):
+        first = self.step_index
+        # The clock ends a run only before its first step (a resumed run already out of time); after
+        # that, the step whose own time spends the budget is marked last and ends the loop, so a
+        # timed plugin that runs past the budget does not end the run behind its step's back.
+        while not self._schedule_done(self.step_index, self.stopwatch.seconds() if self.step_index == first else None):
             step = self.step_index
             # The step the schedules are read at: the step itself, or further along when a time
             # budget binds, so a budgeted run finishes its schedule (schedule.training_progress);
@@ -309,10 +313,10 @@ class Trainer:
         return self.state.record
 
     def _schedule_done(self, step, seconds) -> bool:
-        """Whether the run has ended: its budget spent, or (unless stretched over a budget) its
-        schedule's steps done."""
+        """Whether the run has ended: its budget spent (``seconds``; None: not asked), or (unless
+        stretched over a budget) its schedule's steps done."""
         tc = self.config.train
-        if tc.time_budget is not None and seconds >= tc.time_budget:
+        if tc.time_budget is not None and seconds is not None and seconds >= tc.time_budget:
             return True
         return step >= tc.iters and not (tc.time_budget is not None and tc.stretch_to_budget)
 

@@ -224,7 +224,7 @@ def test_adjusted_poses_refined_by_adam_alone(room_160, tmp_path):
 def test_an_adjustment_that_was_not_kept_is_left_to_the_solver(room_160, tmp_path):
     from d2gs_np.pose.config import PoseInitConfig
 
-    cfg = _config(iters=2).replace(pose_init=PoseInitConfig(then="hold", min_points=10 ** 6))
+    cfg = _config(iters=2).replace(pose_init=PoseInitConfig(then="hold", min_points=10 ** 6, fallback_min_points=0))
     tr = Trainer(room_160, cfg, tmp_path / "run")
     assert tr.components.adjusted_then == "" and not tr.components.centred
     assert any("given poses kept" in n for n in tr.log.notes)

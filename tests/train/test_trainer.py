@@ -559,6 +559,35 @@ def test_the_loop_tells_plugins_how_much_of_the_budget_is_spent(sharp_scene, tmp
             assert max(s for s, _ in spy.seen) > 4  # the stretched phase: schedule steps past iters
 
 
+def test_a_timed_plugin_that_spends_the_budget_does_not_end_the_run_unmarked(sharp_scene, tmp_path):
+    # The clock passes the 1 s budget inside a timed plugin of step 0. The run must go on to a step
+    # that sees the budget spent and is marked last (plugins finalise on it); it used to stop at
+    # the top of the loop with no step marked last (a race the test above met now and then).
+    import time
+
+    from d2gs_np.train.plugins import Plugin
+
+    class Slow(Plugin):
+        name = "slow"
+        timed = True
+
+        def __init__(self):
+            self.seen = []
+
+        def on_step(self, state):
+            self.seen.append((state.step, state.last, state.budget_fraction))
+            if state.step == 0:
+                time.sleep(1.2)
+            return state
+
+    tr = Trainer(sharp_scene, _config(iters=4, time_budget=1.0), tmp_path / "run")
+    slow = Slow()
+    tr.plugins = [*tr.plugins, slow]
+    tr.run()
+    assert slow.seen[0][1] is False and slow.seen[0][2] < 1.0  # step 0 itself was within the budget
+    assert len(slow.seen) == 2 and slow.seen[-1][1] is True and slow.seen[-1][2] >= 1.0
+
+
 def test_position_rates_take_the_scene_size_as_their_unit(dynamic_scene, tmp_path):
     from d2gs_np.train.learning_rates import scene_extent, size_extent
 
