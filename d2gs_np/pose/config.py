@@ -167,12 +167,10 @@ class PoseInitConfig:
     min_parallax_deg: float = 1.0  # how far its rays open (triangulate_tracks)
     min_points: int = 50  # fewer triangulated tracks: the given poses are kept
     # Fewer than min_points: the tracks are triangulated again with these looser gates, and the
-    # adjustment runs if that gives fallback_min_points (0: no second try). A short or streaked
-    # clip (12 frames of 160x90: 28-48 points of the 50) else keeps its given poses, and training
-    # then refines them with the pose solver and Adam at the full rate, which scored 0.5-0.9 dB
-    # below the adjustment from the looser gates on the three such clips of the suite
-    # (docs/results.md §4, the demo setting). The first try stays: where it finds enough points,
-    # 2-view tracks and smaller angles made the adjusted poses no better (the same section).
+    # adjustment runs if that gives fallback_min_points (0: no second try). Why: a short or
+    # streaked clip else keeps its given poses, which training refines less well than it refines
+    # this adjustment's; only as a second try, since where the first gates find enough points the
+    # looser ones made the poses no better (figures: docs/results.md §4, the demo setting).
     fallback_min_views: int = 2
     fallback_parallax_deg: float = 0.5
     fallback_min_points: int = 20
