@@ -66,7 +66,7 @@ class BlurConfig:
 
 
 TRAJECTORY_KINDS = ("direct", "posenet")
-EXPOSURE_PATHS = ("geodesic", "three_knot")  # TrajectoryConfig.path (d2gs_np.blur.virtual_poses)
+EXPOSURE_PATHS = ("auto", "geodesic", "three_knot")  # TrajectoryConfig.path (d2gs_np.blur.virtual_poses)
 ACTIVATIONS = ("tanh", "softplus")  # PoseNet hidden layers
 
 
@@ -100,7 +100,16 @@ class TrajectoryConfig:
         ``camera.xi_mid``, starting at 0), for a shake that bends within an exposure, where the
         geodesic's midpoint, the deblurred view, is off the true mid-exposure pose
         (``examples/blur_ceiling.py``); the deblurred view is then exp(xi_mid) T̂. Needs kind
-        "direct"; a centred exposure keeps xi_mid at 0.
+        "direct"; a centred exposure keeps xi_mid at 0. "auto" (default): chosen once per run by
+        measured need (``train.components.decide_exposure_path``, docs/method.md §4): the three-knot
+        path where the start poses are reliable (a kept bundle adjustment, or trusted poses) and
+        the median frame's exposure bends by more than ``bend_px`` (``exposure_bend_px`` of those
+        poses), else the geodesic. Until a run decides, "auto" renders as the geodesic.
+    bend_px: the bend, in full-resolution pixels, beyond which "auto" takes the three-knot path:
+        how far the quadratic through a frame's neighbouring poses leaves the chord of its
+        exposure at mid-exposure. The best geodesic fit to a bent blur puts the deblurred view
+        about a third of the bend off the true mid pose, so the default 1 px keeps that error
+        under a third of a pixel (docs/results.md §4).
     """
 
     kind: str = "direct"
@@ -112,7 +121,8 @@ class TrajectoryConfig:
     init: str = "velocity"
     velocity_window: int = 1
     centre: str = "auto"
-    path: str = "geodesic"
+    path: str = "auto"
+    bend_px: float = 1.0
 
     def __post_init__(self):
         check_choice(self.centre, "TrajectoryConfig.centre", ("auto", "on", "off"))
@@ -120,6 +130,7 @@ class TrajectoryConfig:
             raise ValueError("TrajectoryConfig.centre = 'on' needs kind 'direct' (a PoseNet's endpoints cannot be "
                              "tied row by row); use centre 'auto' or 'off'")
         check_choice(self.path, "TrajectoryConfig.path", EXPOSURE_PATHS)
+        check_number(self.bend_px, "TrajectoryConfig.bend_px", 0.0, lo_open=True, hint="full-resolution pixels")
         if self.path == "three_knot" and self.kind != "direct":
             raise ValueError("TrajectoryConfig.path = 'three_knot' needs kind 'direct' (per-frame knot blocks); "
                              "use kind 'direct' or path 'geodesic'")

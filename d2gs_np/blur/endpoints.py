@@ -59,6 +59,8 @@ __all__ = [
     "mid_knots",
     "check_trajectory",
     "init_trajectory",
+    "exposure_bend",
+    "exposure_bend_px",
     "endpoints_fwd",
     "endpoints_bwd",
     "posenet_inputs",
@@ -148,6 +150,41 @@ def velocity_endpoints(poses_est, times, exposure_fraction, window=1):
     interval = dt / np.maximum(hi - lo, 1)  # local frame interval
     half = 0.5 * float(exposure_fraction) * interval[:, None]
     return -v * half, v * half
+
+
+def exposure_bend(poses_est, times, exposure_fraction):
+    """How far each frame's exposure bends (N, 6): the tangent from the chord's midpoint to the
+    path's at mid-exposure, with the path the quadratic c(d) = a d + b d^2 in T̂_k's tangent space
+    through the neighbouring poses (d = t_j - t_k, c(-d_-) = log(T_{k-1} T_k^{-1}),
+    c(d_+) = log(T_{k+1} T_k^{-1})). Over an exposure of tau = exposure_fraction x the local
+    frame interval the chord's midpoint lies b tau^2 / 4 from c(0) = 0 (a sagitta); equal
+    intervals give exposure_fraction^2 / 8 x the second difference. The end frames take their
+    neighbour's b. Zero for fewer than 3 frames (no second difference) and for a straight,
+    constant-velocity path."""
+    P = np.asarray(poses_est, dtype=np.float64)
+    t = np.asarray(times, dtype=np.float64)
+    N = P.shape[0]
+    if N < 3:
+        return np.zeros((N, 6))
+    k = np.arange(1, N - 1)
+    inv = se3_inverse(P[k])
+    x_lo = se3_log(np.einsum("nij,njk->nik", P[k - 1], inv))
+    x_hi = se3_log(np.einsum("nij,njk->nik", P[k + 1], inv))
+    d_lo, d_hi = t[k] - t[k - 1], t[k + 1] - t[k]
+    if not (np.all(d_lo > 0) and np.all(d_hi > 0)):
+        raise ValueError("exposure_bend: times must increase strictly from frame to frame")
+    b = (x_hi / d_hi[:, None] + x_lo / d_lo[:, None]) / (d_lo + d_hi)[:, None]
+    b = np.concatenate([b[:1], b, b[-1:]])
+    interval = np.concatenate([d_lo[:1], 0.5 * (d_lo + d_hi), d_hi[-1:]])
+    tau = float(exposure_fraction) * interval
+    return b * (tau ** 2 / 4.0)[:, None]
+
+
+def exposure_bend_px(poses_est, times, exposure_fraction, focal, depth=np.inf):
+    """``exposure_bend`` in pixels (N,): its rotation turns a view by focal x angle, its translation
+    shifts a point at ``depth`` by focal x length / depth (the two added, an upper bound)."""
+    x = exposure_bend(poses_est, times, exposure_fraction)
+    return float(focal) * (np.linalg.norm(x[:, 3:], axis=1) + np.linalg.norm(x[:, :3], axis=1) / float(depth))
 
 
 def init_trajectory(config, poses_est, times, rng, exposure_fraction=None):

@@ -142,12 +142,15 @@ EXPERIMENTS = {
     ),
     # The defaults before and after issue #39's measurements, spelled out so the cells do not move
     # when the defaults do: the geodesic from the velocity start with the camera trained from the
-    # first step, against the three-knot path after a fifth of the schedule on the Gaussians alone.
+    # first step, against the three-knot path after a fifth of the schedule on the Gaussians alone,
+    # and the path each clip's bend chooses.
     "exposure-defaults": (
         Variant("geodesic", config={"trajectory": {"path": "geodesic"}, "train": {"camera_from_fraction": 0.0}}),
         Variant("three_knot_gfirst", config={"trajectory": {"path": "three_knot"},
                                              "train": {"camera_from_fraction": 0.2}}),
         Variant("noblur", config={"train": {"blur": "off"}, "pose_solver": {"mode": "off"}}),
+        # the path chosen per clip by its measured bend (TrajectoryConfig.path = "auto")
+        Variant("auto_path", config={"trajectory": {"path": "auto"}, "train": {"camera_from_fraction": 0.0}}),
     ),
     # Is the dynamic set's depth what tears movers in novel views (issues #40, #44, docs/method.md §8)?
     # The seeds at 0.8 x the frame's median static depth (the rule) against seeds at the scene's true

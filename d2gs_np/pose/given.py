@@ -234,6 +234,7 @@ class AdjustedStart:
     # per frame, its rotation's uncertainty relative to the others (``relative_rotation_std``)
     # over the prior's (``prior_rot_deg``); 1 for a held frame; () when nothing was kept
     rotation_uncertainty: tuple = ()
+    depth: Optional[float] = None  # the median depth of its triangulated points in the given cameras
 
 
 def adjusted_start(scene, config, note=None) -> AdjustedStart:
@@ -278,7 +279,8 @@ def adjusted_start(scene, config, note=None) -> AdjustedStart:
         f"{info['change_rel_mean']:.4f} x depth on average (max {info['change_deg_max']:.3f} deg / "
         f"{info['change_rel_max']:.4f}); {counts}; rotation uncertainty against the other frames "
         f"{np.median(rel):.3f} deg median (min {rel.min():.3f}, max {rel.max():.3f}; prior {pc.prior_rot_deg:g})")
-    return AdjustedStart(poses, tuple(int(k) for k in held), tuple(float(x) for x in rel / pc.prior_rot_deg))
+    return AdjustedStart(poses, tuple(int(k) for k in held), tuple(float(x) for x in rel / pc.prior_rot_deg),
+                         float(info["depth"]))
 
 
 def track_reprojection_rms(cam_T_world, K, tracks, min_views=3, min_parallax_deg=1.0, clip_px=3.0):

@@ -11,14 +11,18 @@ dropped from the list without touching this module's callers).
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from typing import Callable, Optional
+
+import numpy as np
 
 from d2gs_np.data.scene import Scene
 from d2gs_np.pose.config import THEN_WITHOUT_SOLVER
 from d2gs_np.train.config import ExperimentConfig
 
-__all__ = ["Components", "decide_components", "OPTIONAL_TERMS", "OPTIONAL_PLUGINS", "composition_notes"]
+__all__ = ["Components", "decide_components", "decide_exposure_path", "resolved_config", "OPTIONAL_TERMS",
+           "OPTIONAL_PLUGINS", "composition_notes"]
 
 # Regularisers of docs/method.md §6, by loss-term name: left out unless a term of that name is in the loss.
 OPTIONAL_TERMS = {"ts": "L_ts", "gs": "L_gs", "reproj": "L_reproj", "freq": "L_freq"}
@@ -44,6 +48,9 @@ class Components:
     held_frames: tuple = ()  # frames that adjustment held at their given poses (too few observations)
     # per frame, how uncertain that adjustment left its rotation, over its prior's (AdjustedStart)
     rotation_uncertainty: tuple = ()
+    # the exposure path "auto" chose (TrajectoryConfig.path, decide_exposure_path); "" when the
+    # config names the path itself
+    exposure_path: str = ""
 
     def __post_init__(self):
         # a checkpoint's JSON gives lists; tuples keep Components equal to the one it saved
@@ -94,12 +101,62 @@ def composition_notes(terms=(), plugins=()) -> list:
     return notes
 
 
+def resolved_config(config: ExperimentConfig, components: Components) -> ExperimentConfig:
+    """``config`` with the exposure path the run decided in place of "auto" (what the model and
+    its checkpoints carry); ``config`` itself when it names the path."""
+    if config.trajectory.path != "auto":
+        return config
+    path = components.exposure_path or "geodesic"
+    return config.replace(trajectory=dataclasses.replace(config.trajectory, path=path))
+
+
+def decide_exposure_path(scene: Scene, config: ExperimentConfig, blur: bool, start_poses=None, depth=None,
+                         note: Optional[Callable] = None) -> str:
+    """The exposure path of a run whose config says ``trajectory.path = "auto"`` (docs/method.md §4):
+    "three_knot" where the start poses can be trusted to show the camera's path (``start_poses``, a
+    kept bundle adjustment; or the given poses of a scene that flags them as exact) and the median
+    frame's exposure bends by more than ``trajectory.bend_px`` full-resolution pixels
+    (``blur.endpoints.exposure_bend_px``; translation at ``depth``, the adjustment's median point
+    depth, else the scene's scale); else "geodesic". Given poses that are neither adjusted nor
+    trusted are too noisy to show a bend (their pose error alone reads as one). Says why (``note``)."""
+    from d2gs_np.blur.endpoints import exposure_bend_px
+
+    say = note if note is not None else (lambda m: None)
+    traj = config.trajectory
+    if not blur:
+        return ""
+    if traj.kind != "direct":
+        say("exposure path: geodesic (trajectory.path = auto; the three-knot path needs trajectory.kind = direct)")
+        return "geodesic"
+    trusted = bool(getattr(scene, "poses_trusted", None))
+    if start_poses is None and not trusted:
+        say("exposure path: geodesic (trajectory.path = auto; the given poses were not adjusted, and their error "
+            "would read as a bend)")
+        return "geodesic"
+    poses = np.stack([f.cam_T_world for f in scene.frames]) if start_poses is None else np.asarray(start_poses)
+    times = np.array([f.time for f in scene.frames], dtype=np.float64)
+    if scene.num_frames < 3 or not scene.exposure_fraction:
+        say("exposure path: geodesic (trajectory.path = auto; the bend needs 3 frames and a known exposure_fraction)")
+        return "geodesic"
+    depth = depth if depth else (scene.scene_scale or np.inf)
+    bend = float(np.median(exposure_bend_px(poses, times, scene.exposure_fraction, scene.frames[0].K[0, 0], depth)))
+    which = "adjusted" if start_poses is not None else "trusted"
+    path = "three_knot" if bend > traj.bend_px else "geodesic"
+    say(f"exposure path: {path.replace('_', '-')} (trajectory.path = auto; the median exposure bends "
+        f"{bend:.2f} px on the {which} poses, {'over' if path == 'three_knot' else 'within'} trajectory.bend_px "
+        f"= {traj.bend_px:g})")
+    return path
+
+
 def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Callable] = None,
-                      adjusted: bool = False, held_frames=(), rotation_uncertainty=()) -> Components:
+                      adjusted: bool = False, held_frames=(), rotation_uncertainty=(), start_poses=None,
+                      depth=None) -> Components:
     """Apply docs/method.md §9: leave out what the scene does not need, and say why (``note``).
     ``adjusted``: the run starts from a kept bundle adjustment, refined as ``pose_init.then``
     says; held ("hold"), its exposure is centred as a trusted scene's is. ``held_frames``,
-    ``rotation_uncertainty``: that adjustment's (``pose.given.AdjustedStart``)."""
+    ``rotation_uncertainty``, ``start_poses`` (N, 4, 4), ``depth``: that adjustment's
+    (``pose.given.AdjustedStart``); the last two decide an "auto" exposure path
+    (``decide_exposure_path``)."""
     adjusted_then = config.pose_init.then if adjusted else ""
     poses_held = adjusted_then == "hold"
     tc = config.train
@@ -168,7 +225,10 @@ def decide_components(scene: Scene, config: ExperimentConfig, note: Optional[Cal
             say(f"exposure endpoints: centred on the {which} poses, only their spread learned ({why})")
         else:
             say("exposure endpoints: both free (start and end learned; the mid pose moves with them)")
+    path = ""
+    if config.trajectory.path == "auto":
+        path = decide_exposure_path(scene, config, blur, start_poses if adjusted else None, depth, say)
     return Components(dynamic=dynamic, blur=blur, learn_exposure=learn, exposure_fraction=float(ef or 0.0),
                       centred=centred, adjusted_then=adjusted_then,
                       held_frames=held_frames if adjusted else (),
-                      rotation_uncertainty=rotation_uncertainty if adjusted else ())
+                      rotation_uncertainty=rotation_uncertainty if adjusted else (), exposure_path=path)

@@ -24,6 +24,7 @@ set-up that fails or is interrupted leaves the folder as it was.
 """
 from __future__ import annotations
 
+import dataclasses
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Optional
@@ -36,7 +37,7 @@ from d2gs_np.optim import adam
 from d2gs_np.pose.given import adjusted_start
 from d2gs_np.scene.gaussians import STATIC
 from d2gs_np.train.checkpoint import load_checkpoint
-from d2gs_np.train.components import Components, composition_notes, decide_components
+from d2gs_np.train.components import Components, composition_notes, decide_components, resolved_config
 from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.learning_rates import camera_row_scales, learning_rates, position_extent, scene_extent
 from d2gs_np.train.log import RunLog
@@ -91,6 +92,8 @@ def set_up_run(scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resu
     if resume:
         resumed_from = latest_checkpoint(run_dir)
         saved = load_checkpoint(resumed_from)  # (arrays, meta), read once
+        # an "auto" exposure path resumes as the run decided it (the checkpoint's config names it)
+        config = resolved_config(config, Components(**saved[1]["components"]))
         resume_notes = check_resume(saved[1], config, scene, resumed_from, scene_record)
 
     # 2. the log and the run context
@@ -108,7 +111,11 @@ def set_up_run(scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resu
         start = adjusted_start(scene, config, log.note)
         start_poses = start.poses
         components = decide_components(scene, config, log.note, adjusted=start_poses is not None,
-                                       held_frames=start.held_frames, rotation_uncertainty=start.rotation_uncertainty)
+                                       held_frames=start.held_frames, rotation_uncertainty=start.rotation_uncertainty,
+                                       start_poses=start_poses, depth=start.depth)
+        # from here on the config names the exposure path the run decided (the model carries it)
+        config = resolved_config(config, components)
+        context = dataclasses.replace(context, config=config)
 
     # 4. loss terms (the log has a column per term) and step plugins, in order
     terms = loss_terms(config.loss, components, log.note, scene=scene, run_dir=run_dir,

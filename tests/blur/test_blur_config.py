@@ -49,7 +49,9 @@ def test_the_exposure_path_is_checked():
     from d2gs_np.blur.config import TrajectoryConfig
     from d2gs_np.blur.endpoints import XI_MID, init_trajectory, trajectory_block_names
 
-    assert TrajectoryConfig().path == "geodesic" and XI_MID not in trajectory_block_names(TrajectoryConfig())
+    # "auto" (the default) renders as the geodesic until a run decides (train.components)
+    assert TrajectoryConfig().path == "auto" and XI_MID not in trajectory_block_names(TrajectoryConfig())
+    assert XI_MID not in trajectory_block_names(TrajectoryConfig(path="geodesic"))
     cfg = TrajectoryConfig(path="three_knot")
     assert trajectory_block_names(cfg)[-1] == XI_MID
     poses = np.stack([np.eye(4)] * 3)

@@ -270,3 +270,50 @@ def test_velocity_window_validation_and_default_is_the_central_difference():
     np.testing.assert_array_equal(p1["camera.xi_start"], xs)
     p3 = init_trajectory(TrajectoryConfig(velocity_window=3), poses, times, rng, exposure_fraction=0.5)
     assert not np.array_equal(p3["camera.xi_end"], p1["camera.xi_end"])  # the curved path: the fit differs
+
+
+# ---------------------------------------------------------------------------------------------
+# exposure_bend: how far an exposure bends (TrajectoryConfig.path = "auto", docs/method.md §4)
+# ---------------------------------------------------------------------------------------------
+
+
+@pytest.mark.parametrize("angle", [0.3, np.pi - 1e-6])  # the world pose's rotation, up to a half turn
+def test_exposure_bend_is_exact_on_a_quadratic_path_with_unequal_intervals(angle):
+    """T(t) = exp(a d + b d^2) T_1 (d = t - t_1) is the quadratic the bend assumes, so the middle
+    frame's bend is b tau^2 / 4 exactly (to round-off), tau = exposure_fraction x the mean of the
+    two intervals; the end frames take its b with their own interval. The base pose near a half
+    turn shows only relative poses enter."""
+    from d2gs_np.blur.endpoints import exposure_bend, exposure_bend_px
+
+    a = np.array([0.4, -0.2, 0.1, 0.3, 0.2, -0.1])
+    b = np.array([-0.05, 0.08, 0.02, 0.06, -0.04, 0.03])
+    T1 = se3_exp(np.array([0.2, -0.1, 2.5, angle, 0.0, 0.0]))
+    times = np.array([0.0, 0.3, 1.0])
+    poses = np.stack([se3_exp(a * d + b * d * d) @ T1 for d in times - times[1]])
+    x = exposure_bend(poses, times, exposure_fraction=0.8)
+    tau = 0.8 * np.array([0.3, 0.5 * (0.3 + 0.7), 0.7])
+    np.testing.assert_allclose(x, b * (tau ** 2 / 4)[:, None], rtol=1e-9, atol=1e-14)
+    px = exposure_bend_px(poses, times, 0.8, focal=200.0, depth=4.0)
+    expect = 200.0 * (np.linalg.norm(b[3:]) + np.linalg.norm(b[:3]) / 4.0) * tau ** 2 / 4
+    np.testing.assert_allclose(px, expect, rtol=1e-9)
+    assert np.all(np.isfinite(px))
+
+
+def test_exposure_bend_is_the_second_difference_on_equal_intervals_and_zero_on_a_geodesic():
+    from d2gs_np.blur.endpoints import exposure_bend
+
+    rng = np.random.default_rng(3)
+    poses, times = _trajectory(rng)  # equal intervals, an arbitrary (not quadratic) path
+    x = exposure_bend(poses, times, exposure_fraction=0.6)
+    for k in range(1, N - 1):
+        inv = np.linalg.inv(poses[k])
+        second = se3_log(poses[k - 1] @ inv) + se3_log(poses[k + 1] @ inv)
+        np.testing.assert_allclose(x[k], 0.6 ** 2 / 8 * second, rtol=1e-10, atol=1e-13)
+    np.testing.assert_allclose(x[0], x[1], rtol=1e-12)  # equal intervals: the same tau at the ends
+    np.testing.assert_allclose(x[-1], x[-2], rtol=1e-12)
+    v = np.array([0.3, -0.1, 0.2, 0.05, -0.4, 0.2])  # constant velocity: no bend
+    line = np.stack([se3_exp(t * v) @ poses[0] for t in times])
+    np.testing.assert_allclose(exposure_bend(line, times, 0.6), 0.0, atol=1e-13)
+    np.testing.assert_array_equal(exposure_bend(line[:2], times[:2], 0.6), np.zeros((2, 6)))  # no second difference
+    with pytest.raises(ValueError, match="times must increase"):
+        exposure_bend(line, times[::-1], 0.6)
