@@ -44,6 +44,9 @@ _SUITE_IMPORT = "imports the 24-frame 240x135 suite clip end to end"
 # "file::name" (parameters left out; name is a test, or a fixture of that file): why it is slow.
 SLOW_TESTS = {
     "test_notebooks.py::test_notebook_runs": "executes a notebook",
+    "examples/test_exposure_bend.py::crossing": "ray-casts a suite clip and bundle-adjusts its poses (about 4 s)",
+    "examples/test_exposure_bend.py::test_a_straight_exposure_has_no_true_bend_and_a_scene_without_exposures_is_refused":
+        "ray-casts a suite clip and bundle-adjusts its poses (about 4 s)",
     "examples/test_suite_runner.py::test_suite_runner_writes_the_table_and_resumes":
         "runs examples/suite.py end to end (three training cells)",
     "examples/test_suite_runner.py::test_ablation_writes_its_table":
