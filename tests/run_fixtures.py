@@ -12,3 +12,17 @@ def copy_run_for_resume(src, dst):
     for name in RESUME_FILES:
         shutil.copy(src / name, dst / name)
     return dst
+
+
+TINY = dict(width=48, height=27, num_frames=6)  # a tiny clip of the "dynamic" preset: seconds to train
+
+
+def tiny_dynamic_scene(trusted: bool, seed=0):
+    """The "dynamic" preset at ``TINY`` size: true poses flagged as exact (``trusted``), or the
+    preset's noisy ones."""
+    from d2gs_np.data.synthetic import make_scene
+
+    exact = dict(rot_noise_deg=0.0, trans_noise_fraction=0.0) if trusted else {}
+    scene = make_scene("dynamic", seed, **exact, **TINY)
+    assert bool(scene.poses_trusted) == trusted
+    return scene

@@ -6,7 +6,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from d2gs_np.data.synthetic import make_scene
 from d2gs_np.geometry.se3 import se3_exp, se3_interpolate, se3_log
 from d2gs_np.train.components import decide_components
 from d2gs_np.train.config import ExperimentConfig, LearningRates, TrainConfig
@@ -15,27 +14,12 @@ from d2gs_np.train.trainer import Trainer
 from d2gs_np.blur.config import TrajectoryConfig
 from d2gs_np.blur.endpoints import XI_END, XI_START
 
-TINY = dict(width=48, height=27, num_frames=6)
 
 
 def _config(iters=16, centre="auto"):
     return ExperimentConfig(train=TrainConfig(iters=iters, quiet=True, eval_every=0, log_every=1, checkpoint_every=0,
                                               prune_every=0, warmup_fraction=0.0, deform_fraction=0.0),
                             trajectory=TrajectoryConfig(centre=centre))
-
-
-@pytest.fixture(scope="module")
-def trusted_scene():
-    scene = make_scene("dynamic", 0, rot_noise_deg=0.0, trans_noise_fraction=0.0, **TINY)
-    assert scene.poses_trusted is True
-    return scene
-
-
-@pytest.fixture(scope="module")
-def noisy_scene():
-    scene = make_scene("dynamic", 0, **TINY)
-    assert not scene.poses_trusted
-    return scene
 
 
 def test_components_centre_the_exposure_for_trusted_poses_only(trusted_scene, noisy_scene):

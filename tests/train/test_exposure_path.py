@@ -9,32 +9,17 @@ import pytest
 
 from d2gs_np.blur.config import TrajectoryConfig
 from d2gs_np.blur.endpoints import XI_MID, exposure_bend_px
-from d2gs_np.data.synthetic import make_scene
 from d2gs_np.train.components import decide_components, resolved_config
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 from d2gs_np.train.trainer import Trainer
+from run_fixtures import tiny_dynamic_scene
 
-TINY = dict(width=48, height=27, num_frames=6)
 
 
 def _config(iters=4, **trajectory):
     return ExperimentConfig(train=TrainConfig(iters=iters, quiet=True, eval_every=0, log_every=1, checkpoint_every=0,
                                               prune_every=0, warmup_fraction=0.0, deform_fraction=0.0),
                             trajectory=TrajectoryConfig(**trajectory))
-
-
-@pytest.fixture(scope="module")
-def trusted_scene():
-    scene = make_scene("dynamic", 0, rot_noise_deg=0.0, trans_noise_fraction=0.0, **TINY)
-    assert scene.poses_trusted is True
-    return scene
-
-
-@pytest.fixture(scope="module")
-def noisy_scene():
-    scene = make_scene("dynamic", 0, **TINY)
-    assert not scene.poses_trusted
-    return scene
 
 
 def _median_bend(scene, poses=None, depth=None):
@@ -80,8 +65,8 @@ def test_adjusted_start_poses_and_their_depth_decide(noisy_scene, trusted_scene)
 
 def test_resolved_config_names_the_decided_path():
     cfg = _config()
-    c = dataclasses.replace(decide_components(make_scene("dynamic", 1, rot_noise_deg=0.0, trans_noise_fraction=0.0,
-                                                         **TINY), cfg), exposure_path="three_knot")
+    c = dataclasses.replace(decide_components(tiny_dynamic_scene(trusted=True, seed=1), cfg),
+                            exposure_path="three_knot")
     assert resolved_config(cfg, c).trajectory.path == "three_knot"
     assert resolved_config(cfg, dataclasses.replace(c, exposure_path="")).trajectory.path == "geodesic"
     named = _config(path="geodesic")
