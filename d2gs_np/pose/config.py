@@ -169,8 +169,8 @@ class PoseInitConfig:
     # Fewer than min_points: the tracks are triangulated again with these looser gates, and the
     # adjustment runs if that gives fallback_min_points (0: no second try). Why: a short or
     # streaked clip else keeps its given poses, which training refines less well than it refines
-    # this adjustment's; only as a second try, since where the first gates find enough points the
-    # looser ones made the poses no better (figures: docs/results.md §4, the demo setting).
+    # this adjustment's; only as a second try, since where the first gates find enough points
+    # their tracks are the better ones (docs/results.md §4, the demo setting).
     fallback_min_views: int = 2
     fallback_parallax_deg: float = 0.5
     fallback_min_points: int = 20

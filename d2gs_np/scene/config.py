@@ -111,8 +111,8 @@ class InitConfig:
     min_range_points: int = 20
     # Robust depth range (scene/initialize.py's docstring, step 4): the percentiles are clipped to the median depth
     # times exp(+-k sigma), sigma = 1.4826 MAD of the log depths (k = depth_range_mad; 0: no clip).
-    # Against two-view mismatches that stretch the sweep far below the true depths (cube_sign with
-    # noisy poses, docs/results.md §9).
+    # Against two-view mismatches that stretch the sweep far below the true depths (noisy poses;
+    # docs/results.md §9).
     depth_range_mad: float = 0.0  # 0: the plain percentiles (default; 3 with distinct_px = 1: docs/method.md §8)
     dynamic_depth_factor: float = 0.8  # dynamic depth = factor x frame's median static depth
     dynamic_depth_jitter: float = 0.05  # relative half-width of the uniform depth jitter

@@ -80,8 +80,7 @@ class LearningRates:
     # 1.6e-4 in the scene's units: the rate that scored best on the suite (docs/results.md §7).
     means: float = 3.2e-4
     means_final: float = 3.2e-6
-    # Twice 3DGS's 5e-3: better on all five suite scenes; colors at twice their rate were not
-    # (docs/results.md §7).
+    # Twice 3DGS's 5e-3, the suite's choice (docs/results.md §7).
     log_scales: float = 1e-2
     quats: float = 1e-3
     opacity_logits: float = 5e-2
@@ -219,11 +218,11 @@ class PoseSolverConfig:
     # The pose prior of pose/gauss_newton.py: every call holds the mid poses near the GIVEN poses
     # (sigma_r = prior_rot_deg, sigma_t = prior_trans_rel x the median rendered depth of the
     # matches); 0 turns that part off. The data's residuals are not independent (the scene is
-    # fitted to the poses they test), so the prior is set tighter than the poses' true error: at
-    # their own error level photo_room still drifted (docs/results.md §11). hold_scale: after each
+    # fitted to the poses they test), so the prior is set tighter than the poses' true error, which
+    # alone lets the calls drift (docs/results.md §11). hold_scale: after each
     # call the refined camera centres are rescaled about frame 0's so the trajectory keeps the size
     # it had before the call (the scale is a gauge the rendered depths fix only softly, and biased).
-    # Without both the calls shrank and turned the trajectory (docs/results.md §11).
+    # Both keep the calls from shrinking and turning the trajectory (docs/results.md §11).
     # Real (not schedule) steps a call needs since the previous call, or since the start: the
     # depths a call reads come from the scene Adam fitted since. The cadence ``every`` runs on the
     # schedule's clock, so on a loaded machine the calls came every few real steps and the scene
