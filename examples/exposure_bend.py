@@ -20,17 +20,12 @@ import argparse
 
 import numpy as np
 
-from d2gs_np.blur.endpoints import exposure_bend_px
+from d2gs_np.blur.endpoints import exposure_bend_px, tangent_px
 from d2gs_np.data.io import load_scene
 from d2gs_np.geometry.se3 import se3_interpolate, se3_inverse, se3_log
 from d2gs_np.pose.given import adjusted_start
 from d2gs_np.train.components import decide_components
 from d2gs_np.train.config import ExperimentConfig
-
-
-def tangent_px(xi, focal, depth):
-    """The pixel measure of ``exposure_bend_px`` for tangents xi (..., 6)."""
-    return focal * (np.linalg.norm(xi[..., 3:], axis=-1) + np.linalg.norm(xi[..., :3], axis=-1) / depth)
 
 
 def bend_table(folder, config=None) -> dict:

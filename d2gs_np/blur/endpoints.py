@@ -61,6 +61,7 @@ __all__ = [
     "init_trajectory",
     "exposure_bend",
     "exposure_bend_px",
+    "tangent_px",
     "endpoints_fwd",
     "endpoints_bwd",
     "posenet_inputs",
@@ -180,11 +181,17 @@ def exposure_bend(poses_est, times, exposure_fraction):
     return b * (tau ** 2 / 4.0)[:, None]
 
 
+def tangent_px(xi, focal, depth=np.inf):
+    """How far a camera motion xi (..., 6) moves the image, in pixels: its rotation turns the view
+    by focal x angle, its translation shifts a point at ``depth`` by focal x length / depth (the
+    two added, an upper bound)."""
+    xi = np.asarray(xi, dtype=np.float64)
+    return float(focal) * (np.linalg.norm(xi[..., 3:], axis=-1) + np.linalg.norm(xi[..., :3], axis=-1) / float(depth))
+
+
 def exposure_bend_px(poses_est, times, exposure_fraction, focal, depth=np.inf):
-    """``exposure_bend`` in pixels (N,): its rotation turns a view by focal x angle, its translation
-    shifts a point at ``depth`` by focal x length / depth (the two added, an upper bound)."""
-    x = exposure_bend(poses_est, times, exposure_fraction)
-    return float(focal) * (np.linalg.norm(x[:, 3:], axis=1) + np.linalg.norm(x[:, :3], axis=1) / float(depth))
+    """``exposure_bend`` in pixels (N,) (``tangent_px``)."""
+    return tangent_px(exposure_bend(poses_est, times, exposure_fraction), focal, depth)
 
 
 def init_trajectory(config, poses_est, times, rng, exposure_fraction=None):
