@@ -311,6 +311,7 @@ def test_exposure_bend_is_the_second_difference_on_equal_intervals_and_zero_on_a
         np.testing.assert_allclose(x[k], 0.6 ** 2 / 8 * second, rtol=1e-10, atol=1e-13)
     np.testing.assert_allclose(x[0], x[1], rtol=1e-12)  # equal intervals: the same tau at the ends
     np.testing.assert_allclose(x[-1], x[-2], rtol=1e-12)
+    np.testing.assert_array_equal(exposure_bend(poses, times, 0.0), 0.0)  # a zero-length exposure cannot bend
     v = np.array([0.3, -0.1, 0.2, 0.05, -0.4, 0.2])  # constant velocity: no bend
     line = np.stack([se3_exp(t * v) @ poses[0] for t in times])
     np.testing.assert_allclose(exposure_bend(line, times, 0.6), 0.0, atol=1e-13)
