@@ -271,7 +271,10 @@ class DensifyConfig:
     grad_threshold_ndc: float = 2e-4  # 3DGS default
     percent_dense: float = 0.01  # clone below this share of the scene extent, split above
     split_factor: float = 1.6
-    max_gaussians: int = 40000
+    max_gaussians: int = 40000  # the cap's upper bound
+    # The cap follows the clip: one Gaussian per this many observed pixels (frames x height x width),
+    # at most max_gaussians; 0 keeps max_gaussians alone (densify.gaussian_cap, docs/method.md §8).
+    pixels_per_gaussian: float = 17.0
     absgrad: bool = False  # densify on the absolute-sum statistic (module docstring)
     grad_threshold_abs_ndc: float = 8e-4  # its threshold (gsplat's advice for absgrad)
 
@@ -285,6 +288,8 @@ class DensifyConfig:
             check_int(getattr(self, name), f"DensifyConfig.{name}", 1)
         for name in ("grad_threshold_ndc", "grad_threshold_abs_ndc", "percent_dense"):
             check_number(getattr(self, name), f"DensifyConfig.{name}", 0.0, lo_open=True)
+        check_number(self.pixels_per_gaussian, "DensifyConfig.pixels_per_gaussian", 0.0,
+                     hint="observed pixels per Gaussian, or 0 for the fixed max_gaussians")
         check_number(self.split_factor, "DensifyConfig.split_factor", 1.0, lo_open=True)
         check_bool(self.enabled, "DensifyConfig.enabled")
         check_bool(self.absgrad, "DensifyConfig.absgrad")

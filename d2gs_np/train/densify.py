@@ -36,6 +36,18 @@ GRAD_SUM = "densify/sum"  # per-row statistics (train/rows.py), checkpointed as 
 GRAD_COUNT = "densify/count"
 
 
+def gaussian_cap(config: DensifyConfig, pixels: int) -> int:
+    """The most Gaussians densification may reach on a clip of ``pixels`` observed pixels (frames x
+    height x width at full resolution): one per ``pixels_per_gaussian`` of them, at most
+    ``max_gaussians``; ``max_gaussians`` alone when ``pixels_per_gaussian`` is 0. On a short, small
+    clip a fixed cap lets the model fit what its few frames leave open (docs/method.md §8)."""
+    if config.pixels_per_gaussian <= 0:
+        return int(config.max_gaussians)
+    if pixels < 1:
+        raise ValueError(f"gaussian_cap needs the clip's observed pixel count (>= 1); got {pixels}")
+    return int(min(config.max_gaussians, max(1, int(np.ceil(pixels / config.pixels_per_gaussian)))))
+
+
 def init_grad_stats(params) -> dict:
     """Zero statistics for every row of both sets: {GRAD_SUM: {set: (N_set,)}, GRAD_COUNT: ...}."""
     return {name: {p: np.zeros(num_rows(params, p)) for p in SETS} for name in (GRAD_SUM, GRAD_COUNT)}

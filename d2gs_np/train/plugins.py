@@ -35,6 +35,8 @@ before those passed to the trainer.
 """
 from __future__ import annotations
 
+import dataclasses
+
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -49,7 +51,7 @@ from d2gs_np.scene import gaussians
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
 from d2gs_np.train import prune as prune_rules
 from d2gs_np.train.config import ExperimentConfig
-from d2gs_np.train.densify import add_grad_stats, densify, init_grad_stats
+from d2gs_np.train.densify import add_grad_stats, densify, gaussian_cap, init_grad_stats
 from d2gs_np.train.log import psnr_from_mse
 from d2gs_np.train.learning_rates import size_extent
 from d2gs_np.train.rows import SETS, num_rows
@@ -242,17 +244,24 @@ class Prune(Plugin):
 
 class Densify(Plugin):
     """Every ``densify.every`` steps inside [start, stop) of the run: clone and split
-    (``train/densify.py``), with a generator seeded by (seed, step) so a resumed run draws the same
-    children; notes what it did."""
+    (``train/densify.py``) up to the clip's cap (``gaussian_cap`` of its ``pixels``, observed
+    pixels at full resolution), with a generator seeded by (seed, step) so a resumed run draws the
+    same children; notes the cap once and what each densification did."""
 
     name = "densify"
 
-    def __init__(self, config: ExperimentConfig, extent: float, width: int, note=None):
+    def __init__(self, config: ExperimentConfig, extent: float, width: int, pixels: int, note=None):
         self.config, self.extent, self.width = config, extent, width
         self.note = note if note is not None else (lambda m: None)
+        dc = config.densify
+        self.cap = gaussian_cap(dc, pixels)
+        why = (f"{pixels} observed pixels / densify.pixels_per_gaussian = {dc.pixels_per_gaussian:g}, at most "
+               f"densify.max_gaussians = {dc.max_gaussians}" if dc.pixels_per_gaussian > 0
+               else "densify.max_gaussians; densify.pixels_per_gaussian = 0")
+        self.note(f"densification: up to {self.cap} Gaussians ({why})")
 
     def on_step(self, state):
-        dc, total = self.config.densify, self.config.train.iters
+        dc, total = dataclasses.replace(self.config.densify, max_gaussians=self.cap), self.config.train.iters
         if not (entered_period(state, dc.every) and dc.start_fraction * total <= state.sched < dc.stop_fraction * total):
             return state
         rng = np.random.default_rng((self.config.train.seed, state.step, 7))

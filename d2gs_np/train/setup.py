@@ -248,7 +248,9 @@ def default_plugins(context: RunContext, adjusted_then: str = "") -> list:
     if tc.prune_every:
         plugins.append(Prune(config, context.extent, [f.mask for f in scene.frames]))
     if config.densify.enabled:
-        plugins.append(Densify(config, context.extent, max(f.width for f in scene.frames), context.note))
+        pixels = sum(f.width * f.height for f in scene.frames)
+        plugins.append(Densify(config, context.extent, max(f.width for f in scene.frames), pixels,
+                                context.note))
     if use_pose_solver(scene, config, context.note, adjusted_then):
         plugins.append(PoseSolver(scene, config, context.run_dir, context.note))
     return plugins
