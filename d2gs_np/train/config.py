@@ -271,10 +271,11 @@ class DensifyConfig:
     grad_threshold_ndc: float = 2e-4  # 3DGS default
     percent_dense: float = 0.01  # clone below this share of the scene extent, split above
     split_factor: float = 1.6
-    max_gaussians: int = 40000  # the cap's upper bound
-    # The cap follows the clip: one Gaussian per this many observed pixels (frames x height x width),
-    # at most max_gaussians; 0 keeps max_gaussians alone (densify.gaussian_cap, docs/method.md §8).
-    pixels_per_gaussian: float = 17.0
+    max_gaussians: int = 40000
+    # > 0: the cap follows the clip, one Gaussian per this many observed pixels (frames x height x
+    # width), at most max_gaussians (densify.gaussian_cap). Off: it traded static texture for moving
+    # pixels, not a gain on the whole suite (docs/method.md §8).
+    pixels_per_gaussian: float = 0.0
     absgrad: bool = False  # densify on the absolute-sum statistic (module docstring)
     grad_threshold_abs_ndc: float = 8e-4  # its threshold (gsplat's advice for absgrad)
 

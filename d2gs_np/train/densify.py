@@ -39,8 +39,8 @@ GRAD_COUNT = "densify/count"
 def gaussian_cap(config: DensifyConfig, pixels: int) -> int:
     """The most Gaussians densification may reach on a clip of ``pixels`` observed pixels (frames x
     height x width at full resolution): one per ``pixels_per_gaussian`` of them, at most
-    ``max_gaussians``; ``max_gaussians`` alone when ``pixels_per_gaussian`` is 0. On a short, small
-    clip a fixed cap lets the model fit what its few frames leave open (docs/method.md §8)."""
+    ``max_gaussians``; ``max_gaussians`` alone when ``pixels_per_gaussian`` is 0 (the default:
+    docs/method.md §8 has what the rule gained and lost)."""
     if config.pixels_per_gaussian <= 0:
         return int(config.max_gaussians)
     if pixels < 1:

@@ -6,7 +6,7 @@ import pytest
 from d2gs_np.optim import adam
 from d2gs_np.scene.gaussians import init_params
 from d2gs_np.train.config import DensifyConfig
-from d2gs_np.train.densify import GRAD_COUNT, GRAD_SUM, add_grad_stats, densify, init_grad_stats
+from d2gs_np.train.densify import GRAD_COUNT, GRAD_SUM, add_grad_stats, densify, gaussian_cap, init_grad_stats
 
 
 def _params(rng):
@@ -91,6 +91,28 @@ def test_config_validation():
         DensifyConfig(start_fraction=0.8, stop_fraction=0.5)
     with pytest.raises(ValueError, match="split_factor"):
         DensifyConfig(split_factor=1.0)
+    for bad in (-1.0, float("nan"), float("inf"), True):
+        with pytest.raises(ValueError, match="pixels_per_gaussian"):
+            DensifyConfig(pixels_per_gaussian=bad)
+
+
+@pytest.mark.parametrize("frames, height, width, expected", [
+    (12, 90, 160, 10165),  # the demo setting at 17 pixels: ceil(172 800 / 17)
+    (24, 90, 160, 20330),  # the demo at 17 pixels: ceil(345 600 / 17)
+    (24, 135, 240, 40000),  # the suite: 45 742 by the rule, held at max_gaussians
+    (1, 1, 1, 1),  # one pixel still allows one Gaussian
+])
+def test_the_cap_follows_the_clip_up_to_max_gaussians(frames, height, width, expected):
+    assert gaussian_cap(DensifyConfig(pixels_per_gaussian=17.0), frames * height * width) == expected
+    assert gaussian_cap(DensifyConfig(), frames * height * width) == 40000  # the default: the fixed cap
+
+
+def test_the_cap_rule_off_and_its_bad_input():
+    assert gaussian_cap(DensifyConfig(pixels_per_gaussian=0.0, max_gaussians=123), 10**9) == 123
+    assert gaussian_cap(DensifyConfig(pixels_per_gaussian=0.0, max_gaussians=123), 0) == 123  # unused then
+    assert gaussian_cap(DensifyConfig(pixels_per_gaussian=2.5, max_gaussians=10**6), 10) == 4  # ceil(10 / 2.5)
+    with pytest.raises(ValueError, match="observed pixel count"):
+        gaussian_cap(DensifyConfig(pixels_per_gaussian=17.0), 0)
 
 
 def test_statistics_accumulate_per_set_and_a_static_only_render_leaves_the_dynamic_rows():

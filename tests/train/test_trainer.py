@@ -293,6 +293,24 @@ def test_densification_adds_gaussians_and_keeps_state_consistent(dynamic_scene, 
             assert tr.state.rows[name][prefix].shape[0] == tr.params[f"{prefix}.means"].shape[0], (name, prefix)
 
 
+def test_the_clips_pixel_count_caps_densification_and_the_log_says_so(dynamic_scene, tmp_path):
+    from d2gs_np.train.config import DensifyConfig
+
+    pixels = sum(f.width * f.height for f in dynamic_scene.frames)
+    probe = Trainer(dynamic_scene, _config(iters=1), tmp_path / "probe")
+    n0 = probe.num_gaussians()
+    # room for 6 more Gaussians by the clip's pixels (ceil of n0 + 5.5), far more by max_gaussians:
+    # the pixels bind (the tiny threshold below would otherwise double the model)
+    ppg = pixels / (n0 + 5.5)
+    cfg = _config(iters=12).replace(densify=DensifyConfig(enabled=True, every=4, start_fraction=0.0, stop_fraction=1.0,
+                                                          grad_threshold_ndc=1e-9, pixels_per_gaussian=ppg))
+    tr = Trainer(dynamic_scene, cfg, tmp_path / "run")
+    tr.run()
+    assert any("densified" in n for n in tr.log.notes)
+    assert tr.num_gaussians() <= n0 + 6
+    assert any(f"densification: up to {n0 + 6} Gaussians ({pixels} observed pixels" in n for n in tr.log.notes)
+
+
 def test_resume_is_exact_with_densification(dynamic_scene, tmp_path):
     from d2gs_np.train.config import DensifyConfig
 
