@@ -77,10 +77,10 @@ class LearningRates:
     """Adam learning rates per block kind (3DGS's, the positions' scaled to the scene's size)."""
 
     # Positions: times the length of ``means_unit``; decays exponentially to means_final. 2x 3DGS's
-    # 1.6e-4 in the scene's units: the rate that scored best on the suite (docs/results.md §7).
+    # 1.6e-4 in the scene's units (the choice: docs/results.md §7).
     means: float = 3.2e-4
     means_final: float = 3.2e-6
-    # Twice 3DGS's 5e-3, the suite's choice (docs/results.md §7).
+    # Twice 3DGS's 5e-3 (the choice: docs/results.md §7).
     log_scales: float = 1e-2
     quats: float = 1e-3
     opacity_logits: float = 5e-2
@@ -262,8 +262,7 @@ class DensifyConfig:
     """Densification: clone / split where the screen-space gradient is large (train/densify.py's
     module docstring)."""
 
-    # On by default: much sharper renders on the sharp preset for under twice the training time
-    # (docs/results.md §10).
+    # On by default: fine texture needs more Gaussians than the seeds give (docs/results.md §10).
     enabled: bool = True
     start_fraction: float = 0.1
     stop_fraction: float = 0.6
@@ -273,8 +272,8 @@ class DensifyConfig:
     split_factor: float = 1.6
     max_gaussians: int = 40000
     # > 0: the cap follows the clip, one Gaussian per this many observed pixels (frames x height x
-    # width), at most max_gaussians (densify.gaussian_cap). Off: it traded static texture for moving
-    # pixels, not a gain on the whole suite (docs/method.md §8).
+    # width), at most max_gaussians (densify.gaussian_cap); 0, the default: max_gaussians alone
+    # (why: docs/method.md §8).
     pixels_per_gaussian: float = 0.0
     absgrad: bool = False  # densify on the absolute-sum statistic (module docstring)
     grad_threshold_abs_ndc: float = 8e-4  # its threshold (gsplat's advice for absgrad)

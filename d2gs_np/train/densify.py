@@ -24,6 +24,8 @@ reset by the ``Densify`` plugin (``train/plugins.py``).
 """
 from __future__ import annotations
 
+import math
+
 import numpy as np
 
 from d2gs_np.geometry.quaternion import quat_to_rotmat
@@ -45,7 +47,7 @@ def gaussian_cap(config: DensifyConfig, pixels: int) -> int:
         return int(config.max_gaussians)
     if pixels < 1:
         raise ValueError(f"gaussian_cap needs the clip's observed pixel count (>= 1); got {pixels}")
-    return int(min(config.max_gaussians, max(1, int(np.ceil(pixels / config.pixels_per_gaussian)))))
+    return min(config.max_gaussians, max(1, math.ceil(pixels / config.pixels_per_gaussian)))
 
 
 def init_grad_stats(params) -> dict:
@@ -79,9 +81,8 @@ def densify(params, adam_state, rows, config: DensifyConfig, extent, width, rng)
     and, per set, {"<set>_cloned": int, "<set>_split": int}.
 
     When the candidates exceed what ``max_gaussians`` leaves, the static set takes the room first
-    (its highest gradients), the dynamic set what is left. Giving the room to the highest
-    gradients of both sets together gave the dynamic set more rows but did not gain: the moving
-    pixels are not short of Gaussians (docs/results.md §10)."""
+    (its highest gradients), the dynamic set what is left: the moving pixels are not short of
+    Gaussians, so a joint ranking would only move rows to the dynamic set (docs/results.md §10)."""
     threshold = (config.grad_threshold_abs_ndc if config.absgrad else config.grad_threshold_ndc) * 2.0 / float(width)
     info = {"cloned": 0, "split": 0}
     info.update({f"{p}_{kind}": 0 for p in SETS for kind in ("cloned", "split")})

@@ -36,7 +36,6 @@ before those passed to the trainer.
 from __future__ import annotations
 
 import dataclasses
-
 from dataclasses import dataclass
 from pathlib import Path
 from typing import Callable
@@ -254,14 +253,15 @@ class Densify(Plugin):
         self.config, self.extent, self.width = config, extent, width
         self.note = note if note is not None else (lambda m: None)
         dc = config.densify
-        self.cap = gaussian_cap(dc, pixels)
+        cap = gaussian_cap(dc, pixels)
         why = (f"{pixels} observed pixels / densify.pixels_per_gaussian = {dc.pixels_per_gaussian:g}, at most "
                f"densify.max_gaussians = {dc.max_gaussians}" if dc.pixels_per_gaussian > 0
                else "densify.max_gaussians; densify.pixels_per_gaussian = 0")
-        self.note(f"densification: up to {self.cap} Gaussians ({why})")
+        self.note(f"densification: up to {cap} Gaussians ({why})")
+        self.densify_config = dataclasses.replace(dc, max_gaussians=cap)  # the clip's cap, built once
 
     def on_step(self, state):
-        dc, total = dataclasses.replace(self.config.densify, max_gaussians=self.cap), self.config.train.iters
+        dc, total = self.densify_config, self.config.train.iters
         if not (entered_period(state, dc.every) and dc.start_fraction * total <= state.sched < dc.stop_fraction * total):
             return state
         rng = np.random.default_rng((self.config.train.seed, state.step, 7))

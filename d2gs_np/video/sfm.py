@@ -66,8 +66,7 @@ class SfmConfig:
     # SIFT at a low contrast threshold: blurry frames lose DoG contrast (as in InitConfig)
     features: FeatureConfig = field(default_factory=lambda: FeatureConfig(contrast_threshold=0.01))
     # "klt": Lucas-Kanade tracks (d2gs_np.pose.tracks: why); "sift": SIFT matches of each frame with the
-    # next match_window frames joined into tracks. KLT registers the blurry suite better on every
-    # scene (docs/results.md §13)
+    # next match_window frames joined into tracks (the comparison: docs/results.md §13)
     tracker: str = "klt"
     tracks: TrackConfig = field(default_factory=TrackConfig)
     match_window: int = 4  # match frame k with k+1 .. k+window (longer tracks: more parallax per track)
