@@ -226,7 +226,8 @@ def _top_level_optional(data, where):
 class _Spec:
     """Validated metadata of one frame plus where its files are."""
 
-    __slots__ = ("label", "short", "fields", "image_file", "mask_file", "sharp_file", "depth_file", "rounding")
+    __slots__ = ("label", "short", "fields", "image_file", "mask_file", "sharp_file", "depth_file", "prior_file",
+                 "rounding")
 
 
 def _resolve_path(root, rel, label, field):
@@ -297,9 +298,12 @@ def _parse_frame(root, source, index, frame, defaults):
                 f"image (more than {_PRINCIPAL_POINT_MAX_OUTSIDE:g} is refused): give cx, cy in pixels of this "
                 "image (the image centre is w/2, h/2)")
     f["K"] = make_intrinsics(fx, fy, cx, cy)
-    spec.mask_file = spec.sharp_file = spec.depth_file = None
+    spec.mask_file = spec.sharp_file = spec.depth_file = spec.prior_file = None
     if frame.get("depth_file_path") is not None:
         f["depth_file_path"], spec.depth_file = _resolve_path(root, frame["depth_file_path"], label, "depth_file_path")
+    if frame.get("depth_prior_file_path") is not None:
+        f["depth_prior_file_path"], spec.prior_file = _resolve_path(root, frame["depth_prior_file_path"], label,
+                                                                    "depth_prior_file_path")
     if frame.get("mask_path") is not None:
         f["mask_path"], spec.mask_file = _resolve_path(root, frame["mask_path"], label, "mask_path")
     if frame.get("sharp_file_path") is not None:
@@ -452,12 +456,14 @@ def _check_png(path, label, what, width, height, gray):
 
 
 # ------------------------------------------------------------------ depth maps
-def _check_npy(path, label, width, height):
-    """Existence and .npy header check of a depth map: a 2-D float array of the frame's size."""
+def _check_npy(path, label, width, height, field="depth_file_path"):
+    """Existence and .npy header check of a depth map (or of a depth prior, ``field``): a 2-D
+    float array of the frame's size."""
+    what = "depth" if field == "depth_file_path" else "depth prior"
     if path.is_dir():
-        raise ValueError(f"{label}: depth path {path} is a folder, not a .npy file; fix 'depth_file_path' in the JSON")
+        raise ValueError(f"{label}: {what} path {path} is a folder, not a .npy file; fix '{field}' in the JSON")
     if not path.is_file():
-        raise FileNotFoundError(f"{label}: depth file {path} does not exist; fix 'depth_file_path' in the JSON or "
+        raise FileNotFoundError(f"{label}: {what} file {path} does not exist; fix '{field}' in the JSON or "
                                 "add the file")
     try:
         with open(path, "rb") as fh:
@@ -465,10 +471,11 @@ def _check_npy(path, label, width, height):
             read = np.lib.format.read_array_header_1_0 if major == 1 else np.lib.format.read_array_header_2_0
             shape, _, dtype = read(fh)
     except (ValueError, OSError) as e:
-        raise ValueError(f"{label}: depth file {path} is not a valid .npy array ({e}); save it with numpy.save") from e
+        raise ValueError(f"{label}: {what} file {path} is not a valid .npy array ({e}); save it with numpy.save") from e
     if shape != (height, width) or not np.issubdtype(dtype, np.floating):
-        raise ValueError(f"{label}: depth file {path} holds a {dtype} array of shape {shape}; the format needs a float "
-                         f"array of shape (h, w) = ({height}, {width}): camera z per pixel")
+        raise ValueError(f"{label}: {what} file {path} holds a {dtype} array of shape {shape}; the format needs a float "
+                         f"array of shape (h, w) = ({height}, {width}): "
+                         + ("camera z per pixel" if what == "depth" else "an estimated depth or disparity per pixel"))
 
 
 def _bad_depth(d):
@@ -482,6 +489,24 @@ def _decode_depth(path, label):
     if np.any(bad):
         raise ValueError(f"{label}: depth file {path} has {int(bad.sum())} pixel(s) that are NaN or not positive; depth "
                          "is the camera z of the first surface (> 0), +inf where the ray hits nothing")
+    return d
+
+
+def _bad_prior(d):
+    """Pixels of a depth prior that are neither an estimate (finite, > 0) nor NaN (no estimate)."""
+    return ~np.isnan(d) & ~(np.isfinite(d) & (d > 0))
+
+
+def _decode_prior(path, label):
+    d = np.load(path, allow_pickle=False).astype(np.float64)
+    bad = _bad_prior(d)
+    if np.any(bad):
+        raise ValueError(f"{label}: depth prior file {path} has {int(bad.sum())} pixel(s) that are infinite, zero or "
+                         "negative; a prior holds an estimated depth or disparity (> 0) per pixel, NaN where there "
+                         "is none")
+    if not np.any(~np.isnan(d)):
+        raise ValueError(f"{label}: depth prior file {path} is NaN everywhere; drop 'depth_prior_file_path' for this "
+                         "frame or give it an estimate")
     return d
 
 
@@ -593,6 +618,8 @@ def load_scene(path, load_images=True) -> Scene:
             _check_png(spec.sharp_file, spec.label, "sharp image", w, h, gray=False)
         if spec.depth_file is not None:
             _check_npy(spec.depth_file, spec.label, w, h)
+        if spec.prior_file is not None:
+            _check_npy(spec.prior_file, spec.label, w, h, "depth_prior_file_path")
 
     # 3. pixels
     def build(spec):
@@ -605,6 +632,8 @@ def load_scene(path, load_images=True) -> Scene:
                 fr.sharp = _decode(spec.sharp_file, spec.label, "sharp image", gray=False)
             if spec.depth_file is not None:
                 fr.depth = _decode_depth(spec.depth_file, spec.label)
+            if spec.prior_file is not None:
+                fr.depth_prior = _decode_prior(spec.prior_file, spec.label)
         return fr
 
     frames, test_frames = [build(s) for s in train], [build(s) for s in test]
@@ -709,6 +738,22 @@ def _plan_frame(fr, where, used):
         drel = _check_out_path(fr.depth_file_path or default.as_posix(), where, "depth_file_path", ".npy")
         d["depth_file_path"] = drel
         writes.append((drel, "depth", dep))
+    if fr.depth_prior is not None or fr.depth_prior_file_path is not None:
+        if fr.depth_prior is None:
+            raise ValueError(f"{where}: depth_prior_file_path is set but depth_prior is None; load with "
+                             "load_images=True first")
+        pri = np.asarray(fr.depth_prior)
+        if pri.shape != (h, w) or not np.issubdtype(pri.dtype, np.floating):
+            raise ValueError(f"{where}: depth_prior must be a float array of shape ({h}, {w}); got {pri.dtype} "
+                             f"{pri.shape}")
+        if np.any(_bad_prior(pri)) or not np.any(~np.isnan(pri)):
+            raise ValueError(f"{where}: depth_prior has infinite, zero or negative values, or no estimate at all; "
+                             "it is an estimated depth or disparity (> 0), NaN where there is none")
+        parent = Path(rel).parent
+        default = (parent.parent if parent.name == "images" else parent) / "depth_prior" / f"{stem}.npy"
+        prel = _check_out_path(fr.depth_prior_file_path or default.as_posix(), where, "depth_prior_file_path", ".npy")
+        d["depth_prior_file_path"] = prel
+        writes.append((prel, "depth", pri))
     for r, _, _ in writes:
         if r in used:
             raise ValueError(f"{where}: output path {r!r} is also used by {used[r]}; give each file its own path")

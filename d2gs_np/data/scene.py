@@ -32,6 +32,11 @@ class Frame:
     # frame's time and true pose; +inf where the ray hits nothing (geometry evaluation)
     depth: Optional[np.ndarray] = None
     depth_file_path: Optional[str] = None
+    # (H, W) float64 estimated depth or disparity, known up to a scale and shift (e.g. a monocular
+    # depth network's); NaN where there is no estimate. Seeds the dynamic set's depth
+    # (InitConfig.dynamic_depth = "prior"); never used to score.
+    depth_prior: Optional[np.ndarray] = None
+    depth_prior_file_path: Optional[str] = None
     gt_cam_T_world: Optional[np.ndarray] = None  # (4, 4) true mid-exposure pose
     gt_exposure_start: Optional[np.ndarray] = None  # (4, 4) true cam_T_world at exposure start
     gt_exposure_end: Optional[np.ndarray] = None  # (4, 4) true cam_T_world at exposure end
@@ -72,6 +77,10 @@ class Scene:
     @property
     def has_depth(self) -> bool:
         return bool(self.frames) and all(f.depth is not None for f in self.frames)
+
+    @property
+    def has_depth_prior(self) -> bool:
+        return bool(self.frames) and all(f.depth_prior is not None for f in self.frames)
 
     @property
     def has_sharp(self) -> bool:

@@ -41,6 +41,16 @@ normalised Gaussian random walk over the frames; ``drift`` is the share of
 the error variance that drifts). ``rot_noise_deg`` is the RMS rotation angle
 |phi| over frames, ``trans_noise`` the RMS translation error |rho| as a
 fraction of the scene depth (the camera's distance to the back wall).
+
+Depth prior (``depth_prior``): each training frame also gets what a depth network would give
+for it, modelled, not run: the true depth with its edges blurred (a Gaussian of
+``prior_edge_px`` on the disparity; networks smooth depth boundaries, and blur widens them),
+times a smooth relative error (exp of ``prior_rel_error`` times a unit-variance random field
+smooth over an eighth of the width, drawn anew for each frame). "video": a depth up to one
+unknown scale for the clip, as video depth models give it (Align3R, which the paper uses);
+"monocular": a disparity up to an unknown scale and shift per frame, as single-image networks
+give it. Drawn from its own random stream: the images, poses and masks are those of the scene
+without it.
 """
 from __future__ import annotations
 
@@ -196,6 +206,9 @@ def _room(lo, hi, textures, repeats):
 
 
 # ============================================================================ config
+DEPTH_PRIORS = ("none", "video", "monocular")  # SuiteConfig.depth_prior
+
+
 @dataclass(frozen=True)
 class SuiteConfig:
     """One suite scene. ``family`` picks the world (FAMILIES); the rest describe the video."""
@@ -223,6 +236,9 @@ class SuiteConfig:
     num_test_views: int = 4
     test_offset_fraction: float = 0.05  # test camera offset along its x axis / scene depth
     fov_x_deg: float = 60.0
+    depth_prior: str = "none"  # "video" / "monocular": a modelled network's depth per frame (module docstring)
+    prior_edge_px: float = 2.0  # its edge blur (Gaussian sigma, px at 240 px width; scaled with the width)
+    prior_rel_error: float = 0.1  # its smooth relative error (standard deviation of the log)
     seed: int = 0
 
     def __post_init__(self):
@@ -249,6 +265,9 @@ class SuiteConfig:
         check_number(self.fov_x_deg, "SuiteConfig.fov_x_deg", 10.0, 120.0, hint="degrees")
         for name in ("pan", "yaw_deg"):
             check_number(getattr(self, name), f"SuiteConfig.{name}")
+        check_choice(self.depth_prior, "SuiteConfig.depth_prior", DEPTH_PRIORS)
+        check_number(self.prior_edge_px, "SuiteConfig.prior_edge_px", 0.0)
+        check_number(self.prior_rel_error, "SuiteConfig.prior_rel_error", 0.0)
 
 
 # ============================================================================ worlds
@@ -609,7 +628,40 @@ def generate_suite(config: SuiteConfig) -> Scene:
         exposure_fraction=config.exposure_fraction, scene_scale=world.depth)
     if exact:
         scene.poses_trusted = True  # the given poses are the true ones (docs/dataset_format.md §4)
+    if config.depth_prior != "none":
+        rng = np.random.default_rng(np.random.SeedSequence([config.seed, 31]))
+        clip_scale = np.exp(rng.uniform(-1.0, 1.0))
+        for f in scene.frames:
+            f.depth_prior = modelled_depth_prior(f.depth, rng, config.prior_edge_px * config.width / 240.0,
+                                                 config.prior_rel_error, config.depth_prior, clip_scale)
     return scene
+
+
+def modelled_depth_prior(depth, rng, edge_px: float, rel_error: float, kind: str = "video", clip_scale=1.0):
+    """A modelled depth network's output for a true depth map (H, W; inf = nothing hit): the
+    module docstring's model; ``kind`` "video" (depth times ``clip_scale``) or "monocular"
+    (disparity up to a scale and shift drawn here). NaN where nothing is hit; positive elsewhere."""
+    import cv2
+
+    depth = np.asarray(depth, dtype=np.float64)
+    H, W = depth.shape
+    hit = np.isfinite(depth) & (depth > 0)
+    if not hit.any():
+        raise ValueError("monocular_depth_prior: the depth map hits nothing")
+    disp = np.where(hit, 1.0 / np.where(hit, depth, 1.0), 0.0)
+    if edge_px > 0:
+        # normalised convolution: the blur mixes neighbouring surfaces, not the empty background
+        w = cv2.GaussianBlur(hit.astype(np.float64), (0, 0), edge_px, borderType=cv2.BORDER_REFLECT)
+        disp = cv2.GaussianBlur(disp, (0, 0), edge_px, borderType=cv2.BORDER_REFLECT) / np.maximum(w, 1e-12)
+    if rel_error > 0:
+        field = cv2.GaussianBlur(rng.normal(size=(H, W)), (0, 0), W / 8.0, borderType=cv2.BORDER_REFLECT)
+        field /= max(float(field.std()), 1e-300)
+        disp = disp * np.exp(rel_error * field)
+    if kind == "video":
+        return np.where(hit, clip_scale / np.where(hit, disp, 1.0), np.nan)
+    scale = np.exp(rng.uniform(-1.0, 1.0)) / float(np.median(disp[hit]))
+    shift = rng.uniform(0.0, 0.3)
+    return np.where(hit, scale * disp + shift, np.nan)
 
 
 def make_suite_scene(preset="cube_sign", seed=None, **overrides) -> Scene:

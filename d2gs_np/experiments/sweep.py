@@ -25,7 +25,8 @@ Variants (``EXPERIMENTS``):
   regularisers with true poses (``examples/suite.py --variants render_only ...``).
 - ``exposure-start``, ``exposure-path``, ``exposure-defaults`` (#39): where the exposure starts,
   its path, the defaults before and after; ``dynamic-depth`` (#40, #44): the dynamic seeds' depth
-  by the rule against the scene's true depth (an oracle).
+  by the rule against the scene's true depth (an oracle) and against a modelled video depth
+  model's depth aligned to the static points.
 A variant is a name, config overrides (a nested dict merged into the config's JSON form, so a
 variant is data and every key is checked by ``ExperimentConfig.from_dict``), scene overrides
 (``SuiteConfig`` fields, e.g. exposure 0 or true poses) and an optional preprocessing of the
@@ -158,6 +159,8 @@ EXPERIMENTS = {
     "dynamic-depth": (
         Variant("static_median", config={"init": {"dynamic_depth": "static_median"}}),
         Variant("oracle_depth", config={"init": {"dynamic_depth": "scene"}}),
+        # a modelled video depth model's depth up to a scale (data/suite.py), aligned to the static points
+        Variant("prior_depth", scene={"depth_prior": "video"}, config={"init": {"dynamic_depth": "prior"}}),
     ),
     # A background drawn at random each step against the fixed black one, over which a model can
     # stay semi-transparent (issue #40, docs/method.md §10), with the given (noisy) and true poses.

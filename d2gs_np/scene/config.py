@@ -18,7 +18,8 @@ __all__ = ["DeformConfig", "InitConfig", "StereoConfig", "MotionInitConfig", "WA
 
 # how a seed's pixel can follow its object's track (``MotionInitConfig.warp``)
 WARPS = ("centroid", "similarity", "homography", "flow")
-DYNAMIC_DEPTHS = ("static_median", "scene")  # InitConfig.dynamic_depth
+DYNAMIC_DEPTHS = ("static_median", "scene", "prior")  # InitConfig.dynamic_depth
+PRIOR_SPACES = ("depth", "disparity")  # InitConfig.depth_prior_space
 
 
 @dataclass(frozen=True)
@@ -119,7 +120,14 @@ class InitConfig:
     # Where a dynamic seed's depth comes from: "static_median" (the rule above) or "scene": the
     # scene's depth maps (depth_file_path) at the seed's pixel, for data with measured depth. On
     # synthetic scenes those are the truth: a run with "scene" is then an oracle (docs/method.md §8).
+    # "prior": the scene's depth priors (depth_prior_file_path, e.g. a monocular network's), each
+    # frame's aligned by a scale and shift to the static points seen in it (align_depth_prior).
     dynamic_depth: str = "static_median"
+    # What a prior holds (scene/depth_prior.py): "depth", a depth up to one scale for the clip
+    # (video depth models such as the paper's Align3R), or "disparity", inverse depth up to a scale
+    # and a shift per frame (single-image networks).
+    depth_prior_space: str = "depth"
+    depth_prior_min_points: int = 20  # fewer usable static points: the frame's (clip's) seeds keep the static-median rule
 
     def __post_init__(self):
         if not isinstance(self.features, FeatureConfig):
@@ -149,6 +157,9 @@ class InitConfig:
         check_number(self.dynamic_depth_factor, "InitConfig.dynamic_depth_factor", 0.0, 1.0, lo_open=True)
         check_number(self.dynamic_depth_jitter, "InitConfig.dynamic_depth_jitter", 0.0, 1.0, hi_open=True)
         check_choice(self.dynamic_depth, "InitConfig.dynamic_depth", DYNAMIC_DEPTHS)
+        check_choice(self.depth_prior_space, "InitConfig.depth_prior_space", PRIOR_SPACES)
+        check_int(self.depth_prior_min_points, "InitConfig.depth_prior_min_points", 3,
+                  hint="a scale and shift need at least 3 points to be checked")
 
 
 def _pair(v, name):

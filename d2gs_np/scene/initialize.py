@@ -86,6 +86,7 @@ from d2gs_np.pose.features import detect_features, match_keypoints, static_detec
 from d2gs_np.geometry.camera import camera_center, check_intrinsics, project_points, unproject_points
 from d2gs_np.geometry.se3 import check_rigid
 from d2gs_np.scene.config import InitConfig
+from d2gs_np.scene.depth_prior import align_depth_prior, align_depth_scale
 from d2gs_np.scene.stereo import plane_sweep_depth
 
 __all__ = ["initialize_points", "triangulate_matches", "sample_image_bilinear", "pixel_scale_cap",
@@ -262,9 +263,10 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
     Keyframe number i uses grid offset (i mod stride) in both axes, so keyframes sample
     different pixels. ``stereo``: a StereoConfig (None or disabled: interpolation from
     ref_points only); ``depth_range``: (near, far) of the sweep; ``skips``: source frames k +- s.
-    Returns (points (P, 3), colours (P, 3), source frames (P,), info dict).
+    Returns (points (P, 3), colours (P, 3), source frames (P,), info dict); info["measured"] (P,)
+    is True for the points at a stereo depth of their own pixel (not interpolated).
     """
-    pts, cols, src = [], [], []
+    pts, cols, src, measured = [], [], [], []
     info = {"stereo_kept_share": [], "stereo_seeds": 0}
     use_stereo = stereo is not None and stereo.enabled and depth_range is not None and len(frames) > 1
     for i, k in enumerate(keyframes):
@@ -279,6 +281,7 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
             rows, cols_ = rows[keep], cols_[keep]
         pix = np.stack([cols_ + PIXEL_CENTER_OFFSET, rows + PIXEL_CENTER_OFFSET], axis=1).astype(np.float64)
         depth = np.full(len(pix), np.nan)
+        own = np.zeros(len(pix), dtype=bool)
         if use_stereo:
             N = len(frames)
             others = sorted({min(max(k + d * sgn, 0), N - 1) for d in skips for sgn in (-1, 1)} - {k})
@@ -287,7 +290,8 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
                                             stereo, None if static is None else ~static)
             info["stereo_kept_share"].append(sinfo["kept_share"])
             depth = dmap[rows, cols_]
-            info["stereo_seeds"] += int(np.isfinite(depth).sum())
+            own = np.isfinite(depth)
+            info["stereo_seeds"] += int(own.sum())
             trusted = np.argwhere(np.isfinite(dmap))
             if len(trusted) >= 16 and not np.all(np.isfinite(depth)):
                 # anchors for the untextured pixels: a spread-out subset of the trusted ones
@@ -305,9 +309,10 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
         pts.append(unproject_points(pix[ok], depth[ok], f.cam_T_world, f.K))
         cols.append(f.image[rows[ok], cols_[ok]])
         src.append(np.full(int(ok.sum()), k, dtype=np.int64))
+        measured.append(own[ok])
     if not pts:
-        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=np.int64), info
-    return np.concatenate(pts), np.concatenate(cols), np.concatenate(src), info
+        return np.zeros((0, 3)), np.zeros((0, 3)), np.zeros(0, dtype=np.int64), {**info, "measured": np.zeros(0, bool)}
+    return np.concatenate(pts), np.concatenate(cols), np.concatenate(src), {**info, "measured": np.concatenate(measured)}
 
 
 def _random_pixels(rng, frames, pools, n):
@@ -343,6 +348,57 @@ def _scene_points(scene):
     return pts[keep], cols[keep], src[keep], depth[keep], np.full(int(keep.sum()), np.nan)
 
 
+def _at_pixels(maps, src, pix):
+    """Values of per-frame maps (a list of (H, W) arrays or None) at each seed's pixel (the pixel
+    that holds it); NaN where its frame's map is None."""
+    out = np.full(len(src), np.nan)
+    for i, (k, p) in enumerate(zip(src, pix)):
+        m = maps[k]
+        if m is not None:
+            out[i] = m[min(max(int(p[1]), 0), m.shape[0] - 1), min(max(int(p[0]), 0), m.shape[1] - 1)]
+    return out
+
+
+def _aligned_priors(frames, static_pts, which, config: InitConfig, dilation_px):
+    """Depth maps from the frames' priors (scene/depth_prior.py), for the frames in ``which``
+    (None elsewhere and where a frame cannot be aligned), aligned to ``static_pts`` seen off
+    each frame's dilated motion mask; and a summary for the run log."""
+    uvs, zs = [], []
+    for k in which:
+        f = frames[int(k)]
+        uv, z = project_points(static_pts, f.cam_T_world, f.K) if len(static_pts) else (np.zeros((0, 2)), np.zeros(0))
+        inside = (z > 0) & (uv[:, 0] >= 0) & (uv[:, 0] < f.width) & (uv[:, 1] >= 0) & (uv[:, 1] < f.height)
+        if f.mask is not None and inside.any():
+            allowed = static_detector_mask(f.mask, dilation_px) > 0
+            r = np.clip(np.floor(uv[inside, 1]).astype(np.int64), 0, f.height - 1)
+            c = np.clip(np.floor(uv[inside, 0]).astype(np.int64), 0, f.width - 1)
+            inside[np.flatnonzero(inside)] = allowed[r, c]
+        uvs.append(uv[inside])
+        zs.append(z[inside])
+    maps = [None] * len(frames)
+    reasons, errs = {}, []
+    if config.depth_prior_space == "depth":  # one scale for the clip
+        scale, info = align_depth_scale([frames[int(k)].depth_prior for k in which], uvs, zs,
+                                        config.depth_prior_min_points)
+        if scale is None:
+            reasons = {int(k): info["reason"] for k in which}
+        else:
+            errs.append(info["rel_error"])
+            for k in which:
+                maps[int(k)] = scale * frames[int(k)].depth_prior
+    else:  # a scale and shift per frame
+        for k, uv, z in zip(which, uvs, zs):
+            maps[int(k)], info = align_depth_prior(frames[int(k)].depth_prior, uv, z, config.depth_prior_space,
+                                                   config.depth_prior_min_points)
+            if maps[int(k)] is None:
+                reasons[int(k)] = info["reason"]
+            else:
+                errs.append(info["rel_error"])
+    summary = {"frames": len(which), "aligned": len(which) - len(reasons), "failed": reasons,
+               "median_rel_error": float(np.median(errs)) if errs else float("nan")}
+    return maps, summary
+
+
 def initialize_points(scene, config: InitConfig = None, rng=None):
     """Initial static and dynamic points of ``scene`` (see the module docstring).
 
@@ -360,6 +416,10 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
     if config.dynamic_depth == "scene" and not scene.has_depth:
         raise ValueError("InitConfig.dynamic_depth = 'scene' needs a depth map for every training frame "
                          "(depth_file_path, docs/dataset_format.md §3); this scene has none: use 'static_median'")
+    if config.dynamic_depth == "prior" and scene.has_moving_pixels and not scene.has_depth_prior:
+        raise ValueError("InitConfig.dynamic_depth = 'prior' needs a depth prior for every training frame "
+                         "(depth_prior_file_path, docs/dataset_format.md §3); this scene lacks one: add them "
+                         "or use 'static_median'")
     frames = scene.frames
     N = len(frames)
     fc = config.features
@@ -423,7 +483,7 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
     # ---- 3. dense pixel-grid seeding at interpolated depths
     dense_pts, dense_cols = np.zeros((0, 3)), np.zeros((0, 3))
     dense_src = np.zeros(0, dtype=np.int64)
-    dense_info = {"stereo_kept_share": [], "stereo_seeds": 0}
+    dense_info = {"stereo_kept_share": [], "stereo_seeds": 0, "measured": np.zeros(0, dtype=bool)}
     if config.dense_frames > 0 and (tri_pts.shape[0] >= 3 or (config.stereo.enabled and N > 1)):
         keyframes = np.unique(np.round(np.linspace(0, N - 1, min(config.dense_frames, N))).astype(int))
         dense_pts, dense_cols, dense_src, dense_info = dense_seed(
@@ -463,6 +523,7 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
     dyn_src = np.zeros(0, dtype=np.int64)
     dyn_pix = np.zeros((0, 2))
     frame_depth = np.full(N, np.nan)
+    prior_info = None
     if has_moving and config.dynamic_points > 0:
         ref = tri_pts if tri_pts.shape[0] > 0 else fill_pts
         fallback = float(np.median(tri_depth)) if tri_depth.size else 0.5 * (near + far)
@@ -474,11 +535,18 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
         jitter = rng.uniform(1.0 - config.dynamic_depth_jitter, 1.0 + config.dynamic_depth_jitter, len(dyn_src))
         depth = config.dynamic_depth_factor * frame_depth[dyn_src] * jitter
         if config.dynamic_depth == "scene":  # the scene's depth maps at the seeds' pixels (checked above)
-            measured = np.array([frames[k].depth[min(max(int(p[1]), 0), frames[k].height - 1),
-                                                 min(max(int(p[0]), 0), frames[k].width - 1)]
-                                 for k, p in zip(dyn_src, dyn_pix)]) * jitter
+            measured = _at_pixels([f.depth for f in frames], dyn_src, dyn_pix) * jitter
             ok = np.isfinite(measured) & (measured > 0)
             depth = np.where(ok, measured, depth)
+        elif config.dynamic_depth == "prior":  # each frame's prior aligned to the static points seen there
+            # the measured static points: triangulated, and dense seeds at their own pixel's stereo depth
+            measured_pts = np.concatenate([tri_pts, dense_pts[dense_info["measured"]]])
+            aligned, prior_info = _aligned_priors(frames, measured_pts, np.unique(dyn_src), config,
+                                                  fc.mask_dilation_px)
+            measured = _at_pixels(aligned, dyn_src, dyn_pix) * jitter
+            ok = np.isfinite(measured) & (measured > 0)
+            depth = np.where(ok, measured, depth)
+            prior_info["seeds_from_prior"] = int(ok.sum())
         dynamic_points = np.empty((len(dyn_src), 3))
         dynamic_colors = np.empty((len(dyn_src), 3))
         for k in np.unique(dyn_src):
@@ -513,6 +581,7 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
         "fill_depth_source": depth_source,
         "dynamic": dynamic_note,
         "dynamic_frame_depths": frame_depth,
+        "dynamic_depth_prior": prior_info,
         "static_source_frames": np.concatenate([tri_src, dense_src, fill_src]),
         "dynamic_source_frames": dyn_src,
         "dynamic_source_pixels": dyn_pix,

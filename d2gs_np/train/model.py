@@ -99,6 +99,14 @@ class Model:
         s_pts, s_col, d_pts, d_col, info = initialize_points(scene, config.init, rng)
         if not components.dynamic:
             d_pts, d_col = None, None
+        elif info.get("dynamic_depth_prior") is not None:
+            pi = info["dynamic_depth_prior"]
+            failed = "".join(f"; frame {k}: {why}" for k, why in sorted(pi["failed"].items())[:3])
+            rest = info["num_dynamic"] - pi["seeds_from_prior"]
+            say(f"dynamic seeds at the depth prior aligned to the static points in {pi['aligned']} of "
+                f"{pi['frames']} frames (init.depth_prior_space = {config.init.depth_prior_space}; median "
+                f"relative error {pi['median_rel_error']:.3f}; {pi['seeds_from_prior']} seeds from it"
+                + (f", {rest} by the static-median rule" if rest else "") + f"{failed})")
         params = gaussians.init_params(s_pts, s_col, d_pts, d_col, deform_config=config.deform, rng=rng)
         for prefix, pts, src in ((STATIC, s_pts, info["static_source_frames"]),
                                  (DYNAMIC, d_pts, info["dynamic_source_frames"])):

@@ -812,3 +812,52 @@ def test_depth_that_is_not_a_positive_camera_z_is_refused(tmp_path, value):
     with pytest.raises(ValueError, match="depth has NaN or non-positive values"):
         write_scene(scene, tmp_path / "t")
     assert not (tmp_path / "t").exists()
+
+
+# ------------------------------------------------------------------ depth priors
+def _with_prior(rng, scene):
+    for fr in scene.frames:
+        p = 0.2 + rng.random((fr.height, fr.width))
+        p[1, 2] = np.nan  # no estimate at this pixel
+        fr.depth_prior = p
+    return scene
+
+
+def test_depth_priors_round_trip_with_their_missing_pixels(tmp_path):
+    rng = np.random.default_rng(13)
+    scene = _with_prior(rng, _scene(rng))
+    write_scene(scene, tmp_path / "s")
+    assert (tmp_path / "s" / "depth_prior" / "0000.npy").is_file()
+    loaded = load_scene(tmp_path / "s")
+    assert loaded.has_depth_prior and not loaded.has_depth  # a prior is not a true depth
+    for a, b in zip(scene.frames, loaded.frames):
+        assert b.depth_prior.dtype == np.float64 and np.isnan(b.depth_prior[1, 2])
+        np.testing.assert_allclose(b.depth_prior, a.depth_prior, rtol=DEPTH_RTOL, atol=0)  # float32 on disk
+    assert not _scene(rng).has_depth_prior
+
+
+@pytest.mark.parametrize("value", [0.0, -1.0, np.inf])
+def test_a_prior_that_is_not_a_positive_estimate_is_refused(tmp_path, value):
+    rng = np.random.default_rng(14)
+    scene = _with_prior(rng, _scene(rng))
+    write_scene(scene, tmp_path / "s")
+    p = np.load(tmp_path / "s" / "depth_prior" / "0001.npy")
+    p[3, 4] = value
+    np.save(tmp_path / "s" / "depth_prior" / "0001.npy", p)
+    with pytest.raises(ValueError, match="frames\\[1\\].*depth prior file .* 1 pixel.*infinite, zero or negative"):
+        load_scene(tmp_path / "s")
+    scene.frames[1].depth_prior[3, 4] = value  # and the writer refuses it before writing anything
+    with pytest.raises(ValueError, match="depth_prior has infinite, zero or negative values"):
+        write_scene(scene, tmp_path / "t")
+    assert not (tmp_path / "t").exists()
+
+
+def test_a_prior_without_any_estimate_and_a_missing_prior_file_are_refused(tmp_path):
+    rng = np.random.default_rng(15)
+    write_scene(_with_prior(rng, _scene(rng)), tmp_path / "s")
+    np.save(tmp_path / "s" / "depth_prior" / "0002.npy", np.full((H, W), np.nan))
+    with pytest.raises(ValueError, match="frames\\[2\\].*NaN everywhere; drop 'depth_prior_file_path'"):
+        load_scene(tmp_path / "s")
+    (tmp_path / "s" / "depth_prior" / "0002.npy").unlink()
+    with pytest.raises(FileNotFoundError, match="depth prior file .* does not exist; fix 'depth_prior_file_path'"):
+        load_scene(tmp_path / "s", load_images=False)  # found by the header pass, before any pixel

@@ -172,8 +172,38 @@ def test_write_and_load_round_trip(tmp_path):
     assert cfg["family"] == "wall_disk" and cfg["width"] == 48
 
 
+def test_a_modelled_depth_prior_leaves_the_video_as_it_was_and_follows_the_truth():
+    base = suite.make_suite_scene("crossing", 0, **TINY)
+    rel = 0.1
+    video = suite.make_suite_scene("crossing", 0, depth_prior="video", prior_edge_px=0.0, prior_rel_error=rel, **TINY)
+    mono = suite.make_suite_scene("crossing", 0, depth_prior="monocular", prior_edge_px=0.0, prior_rel_error=0.0,
+                                  **TINY)
+    for a, b, c in zip(base.frames, video.frames, mono.frames):
+        assert np.array_equal(a.image, b.image) and np.array_equal(a.mask, b.mask)  # its own random stream
+        assert np.array_equal(a.cam_T_world, c.cam_T_world) and a.depth_prior is None
+        hit = np.isfinite(a.depth)
+        assert np.array_equal(np.isfinite(b.depth_prior), hit) and np.all(c.depth_prior[hit] > 0)
+    # "video": one scale for the clip, times a smooth error of the given log standard deviation
+    logs = [np.log(b.depth_prior / a.depth)[np.isfinite(a.depth)] for a, b in zip(base.frames, video.frames)]
+    clip_scale = np.exp(np.median(np.concatenate(logs)))
+    for lg in logs:
+        # a smooth field over a 48 px frame has few degrees of freedom: its frame mean wanders by
+        # about its own standard deviation, so the bound is 3 sigma, not a tight one
+        assert abs(np.median(lg) - np.log(clip_scale)) < 3 * rel
+        assert 0.3 * rel < np.std(lg) < 3 * rel
+    # "monocular" without edge blur or error: exactly a disparity up to a positive scale and a shift
+    for a, c in zip(base.frames, mono.frames):
+        hit = np.isfinite(a.depth)
+        x = 1.0 / a.depth[hit]
+        A = np.stack([x, np.ones_like(x)], axis=1)
+        (scale, shift), *_ = np.linalg.lstsq(A, c.depth_prior[hit], rcond=None)
+        assert scale > 0 and np.max(np.abs(A @ (scale, shift) - c.depth_prior[hit])) < 1e-9
+
+
 @pytest.mark.parametrize("bad, match", [
     (dict(family="moon_base"), "family"),
+    (dict(depth_prior="lidar"), "SuiteConfig.depth_prior"),
+    (dict(prior_rel_error=-0.1), "prior_rel_error"),
     (dict(exposure_fraction=1.5), "exposure_fraction"),
     (dict(rot_noise_deg=-1.0), "pose noise"),
     (dict(drift=2.0), "drift"),

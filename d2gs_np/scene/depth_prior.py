@@ -1,0 +1,120 @@
+"""Depth priors aligned to the static reconstruction (docs/method.md §8, the dynamic seeds).
+
+A prior is a per-pixel estimate that a depth network gives, known up to what the network
+cannot know. Two kinds:
+- "depth": a depth up to one scale for the whole clip, as video depth models that align their
+  frames give it (Align3R, which the paper uses, and metric-depth networks). The scale is the
+  median of z / prior over the static points of every frame (``align_depth_scale``).
+- "disparity": inverse depth up to a scale and a shift per frame, as single-image networks
+  give it. With x the prior at the pixels of the static points seen in the frame and y their
+  inverse depth, y ~ a x + b by least squares, refitted on the points within ``k`` robust
+  sigmas (1.4826 MAD) of the line (``align_depth_prior``), as MonoSDF and DN-Splatter align a
+  monocular depth to COLMAP's sparse points per image. The shift is told only where the static
+  points span depths: against a flat back wall it is not, and the frame falls back.
+Static points are taken off the dilated motion mask. The aligned maps give the movers a depth
+that the photometric loss cannot (docs/method.md §8: a mover's depth is not observable from one
+moving camera).
+"""
+from __future__ import annotations
+
+import numpy as np
+
+from d2gs_np.constants import MAD_TO_SIGMA
+
+__all__ = ["fit_scale_shift", "align_depth_prior", "align_depth_scale"]
+
+
+def fit_scale_shift(x, y, rounds: int = 3, k: float = 3.0):
+    """Robust y ~ a x + b on 1-D arrays of equal length (>= 3): least squares on all, then up to
+    ``rounds`` refits on the points whose residual is within k robust sigmas of the last fit.
+    Returns (a, b, inliers (bool mask)), or None when x does not vary over the inliers (no
+    scale can be told: a constant prior, or a single distinct pixel)."""
+    x, y = np.asarray(x, dtype=np.float64), np.asarray(y, dtype=np.float64)
+    keep = np.ones(x.shape[0], dtype=bool)
+    a = b = None
+    for _ in range(rounds + 1):
+        xs, ys = x[keep], y[keep]
+        if xs.size < 3 or np.ptp(xs) <= 1e-12 * max(np.max(np.abs(xs)), 1e-300):
+            return None
+        xm, ym = xs.mean(), ys.mean()
+        # centred normal equations: well conditioned whatever the prior's offset
+        a = float(np.dot(xs - xm, ys - ym) / np.dot(xs - xm, xs - xm))
+        b = float(ym - a * xm)
+        r = y - (a * x + b)
+        sigma = MAD_TO_SIGMA * np.median(np.abs(r[keep] - np.median(r[keep])))
+        new = np.abs(r) <= k * sigma + 1e-12 * max(np.max(np.abs(y)), 1e-300)
+        if new.sum() < 3 or np.array_equal(new, keep):
+            break
+        keep = new
+    return a, b, keep
+
+
+def align_depth_prior(prior, uv, z, space: str = "disparity", min_points: int = 20):
+    """Depth map (H, W) from ``prior`` (H, W; NaN = no estimate) aligned to the static points at
+    pixels ``uv`` (M, 2; pixel centres at +0.5) with camera depths ``z`` (M,) in this frame.
+
+    ``space``: "disparity" (the prior is a x / z + b) or "depth" (a x z + b). Returns (depth,
+    info): depth NaN where the prior has no estimate or the fitted line is not positive; depth
+    None when the frame cannot be aligned (fewer than ``min_points`` usable points, a prior
+    constant over them, or a scale that is not positive: the prior falls where the points
+    rise, as a depth given for a disparity does), with the reason in ``info["reason"]``. info
+    also has "points", "scale", "shift" and "rel_error" (median |fit - z| / z on the inliers)."""
+    if space not in ("disparity", "depth"):
+        raise ValueError(f"align_depth_prior: space must be 'disparity' or 'depth'; got {space!r}")
+    prior = np.asarray(prior, dtype=np.float64)
+    H, W = prior.shape
+    uv, z = np.asarray(uv, dtype=np.float64).reshape(-1, 2), np.asarray(z, dtype=np.float64).ravel()
+    ok = np.isfinite(z) & (z > 0) & np.all(np.isfinite(uv), axis=1)
+    ok &= (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+    col = np.clip(np.floor(uv[ok, 0]).astype(np.int64), 0, W - 1)
+    row = np.clip(np.floor(uv[ok, 1]).astype(np.int64), 0, H - 1)
+    x, zz = prior[row, col], z[ok]
+    have = np.isfinite(x)
+    x, zz = x[have], zz[have]
+    info = {"points": int(x.size), "scale": float("nan"), "shift": float("nan"), "rel_error": float("nan")}
+    if x.size < min_points:
+        return None, {**info, "reason": f"{x.size} static points with a prior value (fewer than {min_points})"}
+    y = 1.0 / zz if space == "disparity" else zz
+    fit = fit_scale_shift(x, y)
+    if fit is None:
+        return None, {**info, "reason": "the prior does not vary over the static points"}
+    a, b, inl = fit
+    info.update(scale=a, shift=b)
+    if not a > 0:
+        other = "depth" if space == "disparity" else "disparity"
+        return None, {**info, "reason": f"the fitted scale {a:.3g} is not positive: is the prior a {other}? "
+                                        f"(InitConfig.depth_prior_space = '{other}')"}
+    v = a * prior + b
+    with np.errstate(invalid="ignore", divide="ignore"):
+        depth = np.where(v > 0, (1.0 / v) if space == "disparity" else v, np.nan)
+        fit_z = a * x[inl] + b
+        fit_z = 1.0 / fit_z if space == "disparity" else fit_z
+        info["rel_error"] = float(np.median(np.abs(fit_z - zz[inl]) / zz[inl]))
+    depth[~np.isfinite(depth)] = np.nan
+    return depth, info
+
+
+def align_depth_scale(priors, uvs, zs, min_points: int = 20):
+    """One scale for a clip's depth priors: ``priors`` a list of (H, W) maps (NaN = no estimate),
+    ``uvs`` / ``zs`` per frame the static points' pixels (M_k, 2) and depths (M_k,). The scale is
+    exp(median of log(z / prior)) over every usable point of every frame, robust to a share of
+    wrong points below one half. Returns (scale or None, info) with "points" and "rel_error"
+    (median |scale prior - z| / z), or None and info["reason"] when fewer than ``min_points``
+    points have a prior value."""
+    logs = []
+    for prior, uv, z in zip(priors, uvs, zs):
+        prior = np.asarray(prior, dtype=np.float64)
+        H, W = prior.shape
+        uv, z = np.asarray(uv, dtype=np.float64).reshape(-1, 2), np.asarray(z, dtype=np.float64).ravel()
+        ok = np.isfinite(z) & (z > 0) & np.all(np.isfinite(uv), axis=1)
+        ok &= (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+        x = prior[np.floor(uv[ok, 1]).astype(np.int64), np.floor(uv[ok, 0]).astype(np.int64)]
+        have = np.isfinite(x) & (x > 0)
+        logs.append(np.log(z[ok][have]) - np.log(x[have]))
+    logs = np.concatenate(logs) if logs else np.zeros(0)
+    info = {"points": int(logs.size), "scale": float("nan"), "rel_error": float("nan")}
+    if logs.size < min_points:
+        return None, {**info, "reason": f"{logs.size} static points with a prior value (fewer than {min_points})"}
+    m = float(np.median(logs))
+    info.update(scale=float(np.exp(m)), rel_error=float(np.median(np.abs(np.expm1(m - logs)))))
+    return info["scale"], info
