@@ -67,7 +67,9 @@ Dynamic points (only if some frame has a motion mask with a True pixel; otherwis
   points that project into that frame (the whole set's median if none does), times a
   uniform jitter in [1 - j, 1 + j] with j = ``dynamic_depth_jitter``; with ``dynamic_depth =
   "scene"`` the scene's own depth map at the seed's pixel instead (where finite), times the
-  jitter (measured depth; on a synthetic scene the truth, an oracle). Choice: movers are usually
+  jitter (measured depth; on a synthetic scene the truth, an oracle); with ``"prior"`` the
+  scene's depth priors (a depth network's estimate) aligned to the measured static points
+  (``scene/depth_prior.py``), where a frame's alignment succeeds. Choice: movers are usually
   in front of the background they occlude, and a per-frame static depth is the only depth
   evidence available before training; the jitter gives the set some thickness. The
   deformation model moves these points over time, so their exact placement matters less.
@@ -583,6 +585,9 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
         "dynamic_frame_depths": frame_depth,
         "dynamic_depth_prior": prior_info,
         "static_source_frames": np.concatenate([tri_src, dense_src, fill_src]),
+        # the static points at a measured depth: triangulated, or dense at their own pixel's stereo depth
+        "static_measured": np.concatenate([np.ones(len(tri_src), bool), dense_info["measured"],
+                                           np.zeros(len(fill_src), bool)]),
         "dynamic_source_frames": dyn_src,
         "dynamic_source_pixels": dyn_pix,
     }
