@@ -4,7 +4,8 @@ For each suite scene folder (true depth maps needed), a modelled depth network's
 to every training frame (``data.suite.modelled_depth_prior``: the true depth, edges blurred,
 a smooth relative error; "video": depth up to one scale for the clip, "monocular": disparity up
 to a scale and shift per frame), the initial points are made with the poses a run starts from
-(the bundle adjustment's, as training does; or the given or the true poses), and the table gives:
+(the bundle adjustment's, as training does, with its points as the priors' reference; or the
+given or the true poses, with the measured initial points as the reference), and the table gives:
 
 - static: the measured static points' depth error, median |z / true - 1| (triangulated, and
   dense seeds at their own pixel's stereo depth: what a prior is aligned to);
@@ -31,14 +32,15 @@ from d2gs_np.train.config import ExperimentConfig
 
 
 def start_poses(scene, which: str):
-    """(N, 4, 4) poses the initialisation is run with."""
+    """(N, 4, 4) poses the initialisation is run with, and the bundle adjustment's points (the
+    priors' reference in a run) when those poses are its own, else None."""
     if which == "true":
-        return np.stack([f.gt_cam_T_world for f in scene.frames])
+        return np.stack([f.gt_cam_T_world for f in scene.frames]), None
     if which == "adjusted":
         adjusted = adjusted_start(scene, ExperimentConfig())
         if adjusted.poses is not None:
-            return adjusted.poses
-    return np.stack([f.cam_T_world for f in scene.frames])
+            return adjusted.poses, adjusted.points
+    return np.stack([f.cam_T_world for f in scene.frames]), None
 
 
 def seed_ratio(scene, dyn, info):
@@ -69,7 +71,7 @@ def alignment_table(folder, poses: str = "adjusted", seed: int = 0, edge_px: flo
     scene = load_scene(folder)
     if not scene.has_depth or not scene.has_moving_pixels:
         raise ValueError(f"{folder}: needs true depth maps and moving pixels (a suite scene with movers)")
-    P = start_poses(scene, poses)
+    P, anchors = start_poses(scene, poses)
     rng = np.random.default_rng(seed)
     clip_scale = np.exp(rng.uniform(-1.0, 1.0))
     frames = []
@@ -83,13 +85,15 @@ def alignment_table(folder, poses: str = "adjusted", seed: int = 0, edge_px: flo
             for f in frames])
         for rule in (("static_median", "prior") if kind == "video" else ("prior",)):
             cfg = InitConfig(dynamic_depth=rule, depth_prior_space=space)
-            static, _, dyn, _, info = init_module.initialize_points(with_prior, cfg, np.random.default_rng(0))
+            static, _, dyn, _, info = init_module.initialize_points(with_prior, cfg, np.random.default_rng(0),
+                                                                    anchor_points=anchors)
             ratio = seed_ratio(with_prior, dyn, info)
             name = rule if rule == "static_median" else f"prior ({kind}, {space})"
             row = {"ratio": np.percentile(ratio, [50, 10, 90])}
             if info["dynamic_depth_prior"] is not None:
                 pi = info["dynamic_depth_prior"]
-                row.update(aligned=f"{pi['aligned']}/{pi['frames']}", rel_error=pi["median_rel_error"])
+                row.update(aligned=f"{pi['aligned']}/{pi['frames']}", rel_error=pi["median_rel_error"],
+                           reference=pi["reference"])
             rows[name] = row
             if rule == "static_median":
                 rows["_static"] = static_error(with_prior, static[info["static_measured"]])

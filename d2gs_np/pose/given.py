@@ -213,6 +213,8 @@ def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = N
                           f"max_change_deg {cfg.max_change_deg} / max_change_rel {cfg.max_change_rel}")
     else:
         info["kept"] = True
+        # its points seen by at least two inlier observations, in the adjusted poses' world
+        info["points_xyz"] = pts[np.bincount(o_pt, minlength=len(pts)) >= 2]
         return T1, info
     return T0.copy(), info
 
@@ -235,6 +237,7 @@ class AdjustedStart:
     # over the prior's (``prior_rot_deg``); 1 for a held frame; () when nothing was kept
     rotation_uncertainty: tuple = ()
     depth: Optional[float] = None  # the median depth of its triangulated points in the given cameras
+    points: Optional[np.ndarray] = None  # (P, 3) its points seen by two inlier observations or more
 
 
 def adjusted_start(scene, config, note=None) -> AdjustedStart:
@@ -280,7 +283,7 @@ def adjusted_start(scene, config, note=None) -> AdjustedStart:
         f"{info['change_rel_max']:.4f}); {counts}; rotation uncertainty against the other frames "
         f"{np.median(rel):.3f} deg median (min {rel.min():.3f}, max {rel.max():.3f}; prior {pc.prior_rot_deg:g})")
     return AdjustedStart(poses, tuple(int(k) for k in held), tuple(float(x) for x in rel / pc.prior_rot_deg),
-                         float(info["depth"]))
+                         float(info["depth"]), info["points_xyz"])
 
 
 def track_reprojection_rms(cam_T_world, K, tracks, min_views=3, min_parallax_deg=1.0, clip_px=3.0):

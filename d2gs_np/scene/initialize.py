@@ -68,8 +68,9 @@ Dynamic points (only if some frame has a motion mask with a True pixel; otherwis
   uniform jitter in [1 - j, 1 + j] with j = ``dynamic_depth_jitter``; with ``dynamic_depth =
   "scene"`` the scene's own depth map at the seed's pixel instead (where finite), times the
   jitter (measured depth; on a synthetic scene the truth, an oracle); with ``"prior"`` the
-  scene's depth priors (a depth network's estimate) aligned to the measured static points
-  (``scene/depth_prior.py``), where a frame's alignment succeeds. Choice: movers are usually
+  scene's depth priors (a depth network's estimate) aligned to the bundle adjustment's points
+  when the run has them, else to the measured static points (``scene/depth_prior.py``), where a
+  frame's alignment succeeds. Choice: movers are usually
   in front of the background they occlude, and a per-frame static depth is the only depth
   evidence available before training; the jitter gives the set some thickness. The
   deformation model moves these points over time, so their exact placement matters less.
@@ -401,11 +402,14 @@ def _aligned_priors(frames, static_pts, which, config: InitConfig, dilation_px):
     return maps, summary
 
 
-def initialize_points(scene, config: InitConfig = None, rng=None):
+def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=None):
     """Initial static and dynamic points of ``scene`` (see the module docstring).
 
     scene: d2gs_np.data.scene.Scene with images (and optional masks, True = dynamic).
     config: InitConfig. rng: np.random.Generator (subsampling, fill, dynamic seeding).
+    anchor_points: optional (P, 3) static points known better than these (the bundle
+    adjustment's, in the frames' poses): with ``depth_prior_min_points`` of them or more, the
+    depth priors are aligned to them instead of the measured initial points.
     Returns (static_points (Ns, 3), static_colors (Ns, 3), dynamic_points (Nd, 3) or None,
     dynamic_colors (Nd, 3) or None, info dict). Colours are RGB in [0, 1], float64.
     """
@@ -541,10 +545,16 @@ def initialize_points(scene, config: InitConfig = None, rng=None):
             ok = np.isfinite(measured) & (measured > 0)
             depth = np.where(ok, measured, depth)
         elif config.dynamic_depth == "prior":  # each frame's prior aligned to the static points seen there
-            # the measured static points: triangulated, and dense seeds at their own pixel's stereo depth
-            measured_pts = np.concatenate([tri_pts, dense_pts[dense_info["measured"]]])
-            aligned, prior_info = _aligned_priors(frames, measured_pts, np.unique(dyn_src), config,
+            # the bundle adjustment's points, else the measured static points: triangulated, and
+            # dense seeds at their own pixel's stereo depth
+            if anchor_points is not None and len(anchor_points) >= config.depth_prior_min_points:
+                reference, what = np.asarray(anchor_points, dtype=np.float64), "the bundle adjustment's points"
+            else:
+                reference = np.concatenate([tri_pts, dense_pts[dense_info["measured"]]])
+                what = "the measured static points"
+            aligned, prior_info = _aligned_priors(frames, reference, np.unique(dyn_src), config,
                                                   fc.mask_dilation_px)
+            prior_info["reference"] = f"{what} ({len(reference)})"
             measured = _at_pixels(aligned, dyn_src, dyn_pix) * jitter
             ok = np.isfinite(measured) & (measured > 0)
             depth = np.where(ok, measured, depth)

@@ -76,12 +76,13 @@ class Model:
     # ------------------------------------------------------------------ construction
     @classmethod
     def from_scene(cls, scene, config: ExperimentConfig, components: Components, note=None,
-                   poses=None) -> "Model":
+                   poses=None, anchor_points=None) -> "Model":
         """The initial model of a scene (docs/method.md §8): initial static and dynamic points
         (``scene/initialize.py``), motion from mask tracks (``scene/motion_init.py``), the endpoint
         model and the exposure length. One seeded generator (``config.train.seed``) draws all of it,
         in this order. ``poses`` (N, 4, 4): start from these instead of the scene's given poses
-        (the bundle adjustment of ``pose_init.py``); the given ones stay ``poses_est``."""
+        (the bundle adjustment of ``pose_init.py``); the given ones stay ``poses_est``.
+        ``anchor_points`` (P, 3): that adjustment's points, which depth priors are aligned to."""
         say = note if note is not None else (lambda m: None)
         rng = np.random.default_rng(config.train.seed)
         given = np.stack([f.cam_T_world for f in scene.frames]).astype(np.float64)
@@ -96,14 +97,14 @@ class Model:
         times = np.array([f.time for f in frames], dtype=np.float64)
         poses = np.stack([f.cam_T_world for f in frames]).astype(np.float64)
         t0 = time.perf_counter()
-        s_pts, s_col, d_pts, d_col, info = initialize_points(scene, config.init, rng)
+        s_pts, s_col, d_pts, d_col, info = initialize_points(scene, config.init, rng, anchor_points=anchor_points)
         if not components.dynamic:
             d_pts, d_col = None, None
         elif info.get("dynamic_depth_prior") is not None:
             pi = info["dynamic_depth_prior"]
             failed = "".join(f"; frame {k}: {why}" for k, why in sorted(pi["failed"].items())[:3])
             rest = info["num_dynamic"] - pi["seeds_from_prior"]
-            say(f"dynamic seeds at the depth prior aligned to the static points in {pi['aligned']} of "
+            say(f"dynamic seeds at the depth prior aligned to {pi['reference']} in {pi['aligned']} of "
                 f"{pi['frames']} frames (init.depth_prior_space = {config.init.depth_prior_space}; median "
                 f"relative error {pi['median_rel_error']:.3f}; {pi['seeds_from_prior']} seeds from it"
                 + (f", {rest} by the static-median rule" if rest else "") + f"{failed})")

@@ -138,7 +138,7 @@ def set_up_run(scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resu
     else:
         for line in composition_notes([t.name for t in terms], [p.name for p in plugins]):
             log.note(line)
-        model = Model.from_scene(scene, config, components, log.note, poses=start_poses)
+        model = Model.from_scene(scene, config, components, log.note, poses=start_poses, anchor_points=start.points)
         for p in plugins:
             p.on_init(model)
         state = TrainState(model, adam.adam_init(model.params), _plugin_rows(plugins, model.params))

@@ -223,6 +223,29 @@ def _seed_depth_over_truth(scene, dyn, info):
     return ratio
 
 
+def test_a_prior_is_aligned_to_the_anchor_points_when_there_are_enough(scene):
+    # anchors exactly on the true surfaces (the bundle adjustment's points stand for these), in a
+    # world scaled by 1.3: the prior follows the anchors, not the initial points
+    rng = np.random.default_rng(7)
+    anchors = []
+    for f in scene.frames:
+        static = np.flatnonzero(~f.mask.ravel())
+        pick = rng.choice(static, 10, replace=False)
+        pix = np.stack([pick % f.width + 0.5, pick // f.width + 0.5], axis=1)
+        anchors.append(unproject_points(pix, 1.3 * f.depth.ravel()[pick], f.cam_T_world, f.K))
+    anchors = np.concatenate(anchors)  # 80 points
+    with_prior = dataclasses.replace(scene, frames=[dataclasses.replace(f, depth_prior=2.5 * f.depth)
+                                                    for f in scene.frames])
+    cfg = InitConfig(dynamic_depth="prior", dynamic_depth_jitter=0.0, dynamic_points=100)
+    _, _, dyn, _, info = initialize_points(with_prior, cfg, np.random.default_rng(3), anchor_points=anchors)
+    assert info["dynamic_depth_prior"]["reference"] == "the bundle adjustment's points (80)"
+    # exact anchors and an exact prior: the clip's scale 1.3 / 2.5 to rounding
+    np.testing.assert_allclose(_seed_depth_over_truth(scene, dyn, info), 1.3, rtol=1e-9)
+    _, _, dyn, _, info = initialize_points(with_prior, cfg, np.random.default_rng(3), anchor_points=anchors[:19])
+    assert info["dynamic_depth_prior"]["reference"].startswith("the measured static points")  # 19 < min 20
+    assert np.all(np.abs(_seed_depth_over_truth(scene, dyn, info) - 1.0) < PRIOR_SEED_REL_TOL)
+
+
 def test_a_prior_of_the_wrong_kind_falls_back_to_the_rule_and_says_why(scene):
     with_prior = dataclasses.replace(scene, frames=[dataclasses.replace(f, depth_prior=2.0 * f.depth)
                                                     for f in scene.frames])
