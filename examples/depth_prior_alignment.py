@@ -24,6 +24,7 @@ import numpy as np
 
 from d2gs_np.data.io import load_scene
 from d2gs_np.data.suite import modelled_depth_prior
+from d2gs_np.evaluation.metrics import seed_depth_ratio
 from d2gs_np.geometry.camera import project_points
 from d2gs_np.pose.given import adjusted_start
 from d2gs_np.scene import initialize as init_module
@@ -41,18 +42,6 @@ def start_poses(scene, which: str):
         if adjusted.poses is not None:
             return adjusted.poses, adjusted.points
     return np.stack([f.cam_T_world for f in scene.frames]), None
-
-
-def seed_ratio(scene, dyn, info):
-    """Each dynamic seed's depth in its source frame over the true depth at its pixel."""
-    src, pix = info["dynamic_source_frames"], info["dynamic_source_pixels"]
-    ratio = np.empty(len(src))
-    for k in np.unique(src):
-        f = scene.frames[k]
-        _, z = project_points(dyn[src == k], f.cam_T_world, f.K)
-        p = pix[src == k]
-        ratio[src == k] = z / f.depth[p[:, 1].astype(int), p[:, 0].astype(int)]
-    return ratio
 
 
 def static_error(scene, points):
@@ -87,7 +76,8 @@ def alignment_table(folder, poses: str = "adjusted", seed: int = 0, edge_px: flo
             cfg = InitConfig(dynamic_depth=rule, depth_prior_space=space)
             static, _, dyn, _, info = init_module.initialize_points(with_prior, cfg, np.random.default_rng(0),
                                                                     anchor_points=anchors)
-            ratio = seed_ratio(with_prior, dyn, info)
+            ratio = seed_depth_ratio(with_prior.frames, dyn, info["dynamic_source_frames"],
+                                     info["dynamic_source_pixels"])
             name = rule if rule == "static_median" else f"prior ({kind}, {space})"
             row = {"ratio": np.percentile(ratio, [50, 10, 90])}
             if info["dynamic_depth_prior"] is not None:

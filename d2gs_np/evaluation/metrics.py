@@ -60,6 +60,7 @@ __all__ = [
     "sim3_apply_to_poses",
     "ate",
     "rpe",
+    "seed_depth_ratio",
 ]
 
 # Border dropped before averaging the SSIM map: (win_size - 1) // 2 = 5 for the 11-tap window.
@@ -205,6 +206,25 @@ def depth_errors(pred, true, mask=None) -> dict:
     if rel.size == 0:
         return {"absrel": None, "delta1": None, "num_pixels": 0}
     return {"absrel": float(rel.mean()), "delta1": float(np.mean(ratio < 1.25)), "num_pixels": int(rel.size)}
+
+
+def seed_depth_ratio(frames, points, source_frames, source_pixels):
+    """Each initial point's depth in its source frame over that frame's true depth (``depth``) at
+    the pixel that holds its source pixel (pixel centres at +0.5): (P,) floats, 1 where a seed sits
+    on the true surface. How far the dynamic seeds' depth rule is from the movers
+    (docs/method.md §8)."""
+    src, pix = np.asarray(source_frames), np.asarray(source_pixels, dtype=np.float64)
+    ratio = np.empty(len(src))
+    for k in np.unique(src):
+        f = frames[int(k)]
+        if f.depth is None:
+            raise ValueError(f"seed_depth_ratio: frame {int(k)} has no true depth map")
+        _, z = project_points(np.asarray(points)[src == k], f.cam_T_world, f.K)
+        p = pix[src == k]
+        row = np.clip(p[:, 1].astype(int), 0, f.height - 1)
+        col = np.clip(p[:, 0].astype(int), 0, f.width - 1)
+        ratio[src == k] = z / f.depth[row, col]
+    return ratio
 
 
 def lpips(img, ref, *args, **kwargs):

@@ -798,22 +798,6 @@ def test_a_bad_depth_file_is_refused_before_any_pixel_is_decoded(tmp_path, bad, 
     assert "frames[2]" in str(e.value) or "0002" in str(e.value)
 
 
-@pytest.mark.parametrize("value", [np.nan, 0.0, -1.0, -np.inf])
-def test_depth_that_is_not_a_positive_camera_z_is_refused(tmp_path, value):
-    rng = np.random.default_rng(6)
-    scene = _with_depth(rng, _scene(rng))
-    write_scene(scene, tmp_path / "s")
-    d = np.load(tmp_path / "s" / "depth" / "0001.npy")
-    d[3, 4] = value
-    np.save(tmp_path / "s" / "depth" / "0001.npy", d)
-    with pytest.raises(ValueError, match="1 pixel.*NaN or not positive"):
-        load_scene(tmp_path / "s")
-    scene.frames[1].depth[3, 4] = value  # and the writer refuses it before writing anything
-    with pytest.raises(ValueError, match="depth has NaN or non-positive values"):
-        write_scene(scene, tmp_path / "t")
-    assert not (tmp_path / "t").exists()
-
-
 # ------------------------------------------------------------------ depth priors
 def _with_prior(rng, scene):
     for fr in scene.frames:
@@ -836,18 +820,29 @@ def test_depth_priors_round_trip_with_their_missing_pixels(tmp_path):
     assert not _scene(rng).has_depth_prior
 
 
-@pytest.mark.parametrize("value", [0.0, -1.0, np.inf])
-def test_a_prior_that_is_not_a_positive_estimate_is_refused(tmp_path, value):
-    rng = np.random.default_rng(14)
-    scene = _with_prior(rng, _scene(rng))
+_NOT_DEPTH = ("frames\\[1\\].*depth file .* 1 pixel.*NaN or not positive", "depth has NaN or non-positive values")
+_NOT_PRIOR = ("frames\\[1\\].*depth prior file .* 1 pixel.*infinite, zero or negative",
+              "depth_prior has infinite, zero or negative values")
+
+
+@pytest.mark.parametrize("kind, value, matches", [
+    ("depth", np.nan, _NOT_DEPTH), ("depth", 0.0, _NOT_DEPTH), ("depth", -1.0, _NOT_DEPTH),
+    ("depth", -np.inf, _NOT_DEPTH),
+    # a prior may lack an estimate (NaN) but not be infinite: it is a depth or a disparity
+    ("depth_prior", 0.0, _NOT_PRIOR), ("depth_prior", -1.0, _NOT_PRIOR), ("depth_prior", np.inf, _NOT_PRIOR),
+])
+def test_a_map_that_is_not_a_positive_depth_or_estimate_is_refused(tmp_path, kind, value, matches):
+    rng = np.random.default_rng(6)
+    scene = (_with_depth if kind == "depth" else _with_prior)(rng, _scene(rng))
     write_scene(scene, tmp_path / "s")
-    p = np.load(tmp_path / "s" / "depth_prior" / "0001.npy")
-    p[3, 4] = value
-    np.save(tmp_path / "s" / "depth_prior" / "0001.npy", p)
-    with pytest.raises(ValueError, match="frames\\[1\\].*depth prior file .* 1 pixel.*infinite, zero or negative"):
+    path = tmp_path / "s" / kind / "0001.npy"
+    d = np.load(path)
+    d[3, 4] = value
+    np.save(path, d)
+    with pytest.raises(ValueError, match=matches[0]):
         load_scene(tmp_path / "s")
-    scene.frames[1].depth_prior[3, 4] = value  # and the writer refuses it before writing anything
-    with pytest.raises(ValueError, match="depth_prior has infinite, zero or negative values"):
+    getattr(scene.frames[1], kind)[3, 4] = value  # and the writer refuses it before writing anything
+    with pytest.raises(ValueError, match=matches[1]):
         write_scene(scene, tmp_path / "t")
     assert not (tmp_path / "t").exists()
 

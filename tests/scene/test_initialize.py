@@ -6,6 +6,7 @@ import pytest
 
 from d2gs_np.constants import ONE_DEPTH_RANGE_FACTOR
 from d2gs_np.data import synthetic as syn
+from d2gs_np.evaluation.metrics import seed_depth_ratio
 from d2gs_np.pose.features import static_detector_mask
 from d2gs_np.geometry.camera import look_at, make_intrinsics, project_points, unproject_points
 from d2gs_np.scene.config import InitConfig
@@ -212,15 +213,7 @@ def test_dynamic_depth_from_a_prior_is_the_aligned_prior_at_the_seed_pixel(scene
 
 
 def _seed_depth_over_truth(scene, dyn, info):
-    """Each dynamic seed's depth in its source frame over the true depth at its pixel."""
-    src, pix = info["dynamic_source_frames"], info["dynamic_source_pixels"]
-    ratio = np.empty(len(src))
-    for k in np.unique(src):
-        f = scene.frames[k]
-        _, zd = project_points(dyn[src == k], f.cam_T_world, f.K)
-        p = pix[src == k]
-        ratio[src == k] = zd / f.depth[p[:, 1].astype(int), p[:, 0].astype(int)]
-    return ratio
+    return seed_depth_ratio(scene.frames, dyn, info["dynamic_source_frames"], info["dynamic_source_pixels"])
 
 
 def test_a_prior_is_aligned_to_the_anchor_points_when_there_are_enough(scene):
