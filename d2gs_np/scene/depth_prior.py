@@ -24,6 +24,19 @@ from d2gs_np.constants import MAD_TO_SIGMA
 __all__ = ["fit_scale_shift", "align_depth_prior", "align_depth_scale"]
 
 
+def _prior_at_points(prior, uv, z):
+    """(x, z): the prior at the pixels holding the points ``uv`` (M, 2; centres at +0.5) and
+    their depths, for the points in front of the camera, inside the image and at a pixel with
+    an estimate (finite)."""
+    H, W = prior.shape
+    uv, z = np.asarray(uv, dtype=np.float64).reshape(-1, 2), np.asarray(z, dtype=np.float64).ravel()
+    ok = np.isfinite(z) & (z > 0) & np.all(np.isfinite(uv), axis=1)
+    ok &= (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
+    x = prior[np.floor(uv[ok, 1]).astype(np.int64), np.floor(uv[ok, 0]).astype(np.int64)]
+    have = np.isfinite(x)
+    return x[have], z[ok][have]
+
+
 def fit_scale_shift(x, y, rounds: int = 3, k: float = 3.0):
     """Robust y ~ a x + b on 1-D arrays of equal length (>= 3): least squares on all, then up to
     ``rounds`` refits on the points whose residual is within k robust sigmas of the last fit.
@@ -62,15 +75,7 @@ def align_depth_prior(prior, uv, z, space: str = "disparity", min_points: int = 
     if space not in ("disparity", "depth"):
         raise ValueError(f"align_depth_prior: space must be 'disparity' or 'depth'; got {space!r}")
     prior = np.asarray(prior, dtype=np.float64)
-    H, W = prior.shape
-    uv, z = np.asarray(uv, dtype=np.float64).reshape(-1, 2), np.asarray(z, dtype=np.float64).ravel()
-    ok = np.isfinite(z) & (z > 0) & np.all(np.isfinite(uv), axis=1)
-    ok &= (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
-    col = np.clip(np.floor(uv[ok, 0]).astype(np.int64), 0, W - 1)
-    row = np.clip(np.floor(uv[ok, 1]).astype(np.int64), 0, H - 1)
-    x, zz = prior[row, col], z[ok]
-    have = np.isfinite(x)
-    x, zz = x[have], zz[have]
+    x, zz = _prior_at_points(prior, uv, z)
     info = {"points": int(x.size), "scale": float("nan"), "shift": float("nan"), "rel_error": float("nan")}
     if x.size < min_points:
         return None, {**info, "reason": f"{x.size} static points with a prior value (fewer than {min_points})"}
@@ -103,14 +108,8 @@ def align_depth_scale(priors, uvs, zs, min_points: int = 20):
     points have a prior value."""
     logs = []
     for prior, uv, z in zip(priors, uvs, zs):
-        prior = np.asarray(prior, dtype=np.float64)
-        H, W = prior.shape
-        uv, z = np.asarray(uv, dtype=np.float64).reshape(-1, 2), np.asarray(z, dtype=np.float64).ravel()
-        ok = np.isfinite(z) & (z > 0) & np.all(np.isfinite(uv), axis=1)
-        ok &= (uv[:, 0] >= 0) & (uv[:, 0] < W) & (uv[:, 1] >= 0) & (uv[:, 1] < H)
-        x = prior[np.floor(uv[ok, 1]).astype(np.int64), np.floor(uv[ok, 0]).astype(np.int64)]
-        have = np.isfinite(x) & (x > 0)
-        logs.append(np.log(z[ok][have]) - np.log(x[have]))
+        x, zz = _prior_at_points(np.asarray(prior, dtype=np.float64), uv, z)
+        logs.append(np.log(zz[x > 0]) - np.log(x[x > 0]))
     logs = np.concatenate(logs) if logs else np.zeros(0)
     info = {"points": int(logs.size), "scale": float("nan"), "rel_error": float("nan")}
     if logs.size < min_points:
