@@ -53,10 +53,15 @@ class LossConfig:
     # L_reproj on the rendered depth (train.terms.Reprojection): the pose solver's cycle residuals of
     # matched pixels (its matching settings, beta and robust scale: PoseSolverConfig) with the poses held
     lambda_reproj: float = 0.0
+    # L_depth (train.terms.DepthPrior): 1 - the rendered depth's Pearson correlation with the scene's
+    # depth priors (depth_prior_file_path; what they hold: InitConfig.depth_prior_space). Not in the
+    # paper; off by default (docs/method.md §6 has the measurements)
+    lambda_depth_prior: float = 0.0
 
     def __post_init__(self):
         check_number(self.lambda_ssim, "LossConfig.lambda_ssim", 0.0, 1.0)
-        for name in ("lambda_ts", "ts_time_weight", "ts_spatial_weight", "lambda_gs", "lambda_freq", "lambda_reproj"):
+        for name in ("lambda_ts", "ts_time_weight", "ts_spatial_weight", "lambda_gs", "lambda_freq", "lambda_reproj",
+                     "lambda_depth_prior"):
             check_number(getattr(self, name), f"LossConfig.{name}", 0.0, hint="0 = term off")
         check_number(self.ts_time_offset, "LossConfig.ts_time_offset", 0.0, lo_open=True,
                      hint="a time offset, the method's 0.08")

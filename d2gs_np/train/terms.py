@@ -26,6 +26,9 @@ from typing import NamedTuple, Optional
 
 import numpy as np
 
+from collections import OrderedDict
+
+from d2gs_np.losses.depth_prior import depth_prior_bwd, depth_prior_fwd
 from d2gs_np.losses.entropy import _entropy_fwd, entropy_bwd
 from d2gs_np.losses.frequency import _frequency_fwd, frequency_bwd, target_spectrum
 from d2gs_np.losses.frequency import warm_up as _frequency_warm_up
@@ -34,13 +37,14 @@ from d2gs_np.geometry.sampling import bilinear_bwd, bilinear_fwd
 from d2gs_np.losses.reprojection import cycle_bwd, cycle_fwd
 from d2gs_np.losses.smoothness import _spatial_fwd, _time_fwd, spatial_bwd, time_bwd
 from d2gs_np.losses.ssim import SSIM_WINDOW
-from d2gs_np.constants import POSE_DEPTH_ALPHA_MIN
+from d2gs_np.constants import GN_MIN_DEPTH, POSE_DEPTH_ALPHA_MIN
 from d2gs_np.scene.gaussians import DEFORM_FIELDS, DYNAMIC, STATIC
 from d2gs_np.train.config import LossConfig
 from d2gs_np.train.plugins import DepthMemory, NeighbourRefresh
+from d2gs_np.train.schedule import downsample_area
 
 __all__ = ["TermInputs", "TermGrads", "Photometric", "Smoothness", "OpacityEntropy", "Frequency", "Reprojection",
-           "loss_terms", "terms_fwd_bwd"]
+           "DepthPrior", "loss_terms", "terms_fwd_bwd"]
 
 
 class TermInputs(NamedTuple):
@@ -235,13 +239,63 @@ class Reprojection:
         return TermGrads(render={"expected_depth": v.astype(dtype, copy=False)}, params={})
 
 
-def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_dir=None, pose_solver=None) -> list:
+class DepthPrior:
+    """L_depth: 1 - the Pearson correlation of the rendered expected depth with the frame's depth
+    prior (docs/method.md §6; ``losses/depth_prior.py``), over the pixels where the prior has an
+    estimate, the render's alpha is at least POSE_DEPTH_ALPHA_MIN and the loss mask (warm-up: the
+    static pixels) is on. Invariant to the prior's scale and shift, so it needs no alignment. The
+    prior at a render size is the area mean of the full-resolution map where every pixel under it
+    has an estimate (NaN elsewhere), kept per (frame, size) like the targets (``TargetCache``)."""
+
+    name = "depth_prior"
+
+    def __init__(self, weight, priors, space, max_entries=256):
+        self.weight, self.space = weight, space
+        self._priors = list(priors)
+        self._sized = OrderedDict()
+        self._max_entries = int(max_entries)
+
+    def prior(self, frame, width, height):
+        """The prior of ``frame`` at (width, height): (height, width) float64, NaN without an estimate."""
+        key = (frame, width, height)
+        hit = self._sized.get(key)
+        if hit is not None:
+            self._sized.move_to_end(key)
+            return hit
+        full = np.asarray(self._priors[frame], np.float64)
+        if full.shape == (height, width):
+            sized = full
+        else:
+            known = np.isfinite(full)
+            share = downsample_area(known.astype(np.float64), width, height)
+            mean = downsample_area(np.where(known, full, 0.0), width, height)
+            sized = np.where(share >= 1.0 - 1e-9, mean, np.nan)  # only where every pixel under it is known
+        self._sized[key] = sized
+        while len(self._sized) > self._max_entries:
+            self._sized.popitem(last=False)
+        return sized
+
+    def fwd(self, x: TermInputs):
+        depth = x.out["expected_depth"]
+        h, w = depth.shape
+        return depth_prior_fwd(depth, self.prior(x.frame, w, h), x.out["alpha"], self.space,
+                               POSE_DEPTH_ALPHA_MIN, GN_MIN_DEPTH, x.loss_mask)
+
+    def bwd(self, saved) -> TermGrads:
+        if saved is None:
+            return TermGrads(render={}, params={})
+        return TermGrads(render={"expected_depth": depth_prior_bwd(saved, self.weight)}, params={})
+
+
+def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_dir=None, pose_solver=None,
+               prior_space="depth") -> list:
     """The loss terms of a run, photometric first (module docstring). ``components``
     (``train/components.py``): what the run models; L_ts is left out without a dynamic set (and
     ``note`` says so). L_reproj needs the ``scene`` (its frames and masks, for the matches), the
     run folder (the matches' cache) and the ``PoseSolverConfig`` (matching settings, beta and the
     robust scale of the solver's residuals); without a scene of two frames or more it is left
-    out and ``note`` says so."""
+    out and ``note`` says so. L_depth needs the scene's depth priors (``prior_space``: what they
+    hold, ``InitConfig.depth_prior_space``); without them it is left out and ``note`` says so."""
     say = note if note is not None else (lambda m: None)
     terms = [Photometric(config.lambda_ssim)]
     if config.lambda_ts > 0:
@@ -266,6 +320,14 @@ def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_d
             memory = DepthMemory([f.image for f in scene.frames], [f.mask for f in scene.frames],
                                  pose_solver.correspond, run_dir, note)
             terms.append(Reprojection(config.lambda_reproj, memory, gc.beta, gc.robust_scale))
+    if config.lambda_depth_prior > 0:
+        if scene is None or not scene.has_depth_prior:
+            say("L_depth: left out (the scene has no depth priors: depth_prior_file_path, docs/dataset_format.md "
+                "§3), although loss.lambda_depth_prior > 0")
+        else:
+            terms.append(DepthPrior(config.lambda_depth_prior, [f.depth_prior for f in scene.frames], prior_space))
+            say(f"L_depth: weight {config.lambda_depth_prior:g}, the rendered depth's correlation with the scene's "
+                f"depth priors (held as {prior_space}) on every frame")
     return terms
 
 
