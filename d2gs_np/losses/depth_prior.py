@@ -1,24 +1,29 @@
-"""L_depth: the rendered depth against a depth prior, up to scale and shift (docs/method.md §6).
+"""L_depth: the rendered depth against a depth prior, up to what the prior leaves unknown
+(docs/method.md §6).
 
-A depth network's estimate (a video model's depth up to one scale, or a single-image network's
-disparity up to scale and shift; ``docs/dataset_format.md §3``) is not in the scene's units, so
-the term scores the *Pearson correlation* of the rendered expected depth with it over the valid
-pixels of one frame, as the sparse-view splatting methods do (FSGS, DNGaussian): invariant to any
-positive scale and shift of either side, so it needs no alignment and cannot pull the scene
-towards a misjudged scale. With ``space = "depth"`` the correlation is of the depth D with the
-prior P; with ``"disparity"`` of 1/D with P.
+A depth network's estimate is not in the scene's units (``docs/dataset_format.md §3``), and what
+is unknown depends on its kind (``InitConfig.depth_prior_space``), so the term is invariant to
+exactly that, per frame, and needs no alignment:
 
-    x   = D (depth) or 1/D (disparity), y = P, over the N valid pixels
-    x~  = x - mean(x),  y~ = y - mean(y)
-    rho = mean(x~ y~) / sqrt((mean(x~^2) + k mean(x)^2) (mean(y~^2) + k mean(y)^2)),  k = 1e-8
-    L   = 1 - rho  in [0, 2]
+- ``"depth"`` (a video depth model: depth up to one scale): the spread of the log ratio,
+  ``r = log D - log P``, about its frame mean, in L1 (robust to the prior's wrong edges),
+  ``L = mean |r - mean(r)|``: invariant to any scale of either side, not to a shift, so the
+  depth ratios the prior holds (near against far) are what the render is pulled to.
+- ``"disparity"`` (a single-image network: disparity up to scale and shift): 1 - the Pearson
+  correlation of 1/D with P, as the sparse-view splatting methods do (FSGS, DNGaussian):
 
-The ``k mean^2`` floors keep rho and its gradient finite where one side is flat (a constant
-render has rho = 0, not 0/0); they move rho by ~1e-8 relative where the depth varies by per
-cents, and are differentiated like the rest. A pixel is valid where the prior is finite, the
-render's alpha is at least ``alpha_min`` (no depth is read through a transparent pixel) and the
-depth is above ``min_depth``; validity is not differentiated. Fewer than two valid pixels: value 0
-and no gradient.
+      x = 1/D, y = P, x~ = x - mean(x), y~ = y - mean(y)
+      rho = mean(x~ y~) / sqrt((mean(x~^2) + k mean(x)^2) (mean(y~^2) + k mean(y)^2)),  k = 1e-12
+      L = 1 - rho  in [0, 2]
+
+  The ``k mean^2`` floors keep rho and its gradient finite where one side is flat (a constant
+  render has rho = 0, not 0/0); they move rho by ~1e-11 relative where the disparity varies by
+  per cents, and are differentiated like the rest.
+
+A pixel is valid where the prior is finite and positive ("depth"), the render's alpha is at least
+``alpha_min`` (no depth is read through a transparent pixel) and the depth is above ``min_depth``;
+validity is not differentiated. Fewer than two valid pixels: value 0 and no gradient. The L1's
+kink (r_i at the frame mean) takes the subgradient 0 there.
 
 ``depth_prior_fwd`` / ``depth_prior_bwd`` are pure functions on plain (h, w) arrays; the gradient
 is on the expected depth (the render's ``expected_depth``; with the blur model the mean over the
@@ -31,7 +36,7 @@ import numpy as np
 __all__ = ["depth_prior_fwd", "depth_prior_bwd", "SPACES", "FLAT_FLOOR"]
 
 SPACES = ("depth", "disparity")
-FLAT_FLOOR = 1e-8  # k: the variance floor of each side, relative to its squared mean
+FLAT_FLOOR = 1e-12  # k: the variance floor of each side, relative to its squared mean
 
 
 def _check(name, x, shape=None):
@@ -42,9 +47,9 @@ def _check(name, x, shape=None):
 
 
 def depth_prior_fwd(depth, prior, alpha, space="depth", alpha_min=0.5, min_depth=1e-6, mask=None):
-    """1 - Pearson correlation of the rendered depth (or its inverse) with the prior (module
-    docstring). ``depth``, ``prior``, ``alpha``: (h, w); the prior NaN where it has no estimate;
-    ``mask``: optional (h, w) weights, a pixel counts only where it is > 0. Returns (value, saved);
+    """The spread of log(D / P) about its mean ("depth") or 1 - the Pearson correlation of 1/D
+    with P ("disparity"), over the valid pixels (module docstring). ``depth``, ``prior``,
+    ``alpha``: (h, w); the prior NaN where it has no estimate; ``mask``: optional (h, w) weights, a pixel counts only where it is > 0. Returns (value, saved);
     saved is None when fewer than two pixels are valid (value 0)."""
     _check("depth", depth)
     for name, a in (("prior", prior), ("alpha", alpha)) + ((("mask", mask),) if mask is not None else ()):
@@ -52,15 +57,22 @@ def depth_prior_fwd(depth, prior, alpha, space="depth", alpha_min=0.5, min_depth
     if space not in SPACES:
         raise ValueError(f"space must be one of {SPACES}; got {space!r}")
     d = np.asarray(depth, np.float64)
-    valid = np.isfinite(prior) & (alpha >= alpha_min) & np.isfinite(d) & (d > min_depth)
+    p = np.asarray(prior, np.float64)
+    valid = np.isfinite(p) & (alpha >= alpha_min) & np.isfinite(d) & (d > min_depth)
+    if space == "depth":
+        valid &= p > 0
     if mask is not None:
         valid &= mask > 0
     n = int(valid.sum())
     if n < 2:
         return 0.0, None
     dv = d[valid]
-    x = dv if space == "depth" else 1.0 / dv
-    y = np.asarray(prior, np.float64)[valid]
+    if space == "depth":
+        r = np.log(dv) - np.log(p[valid])
+        sign = np.sign(r - r.mean())
+        return float(np.mean(np.abs(r - r.mean()))), (valid, dv, sign, space, depth.dtype)
+    x = 1.0 / dv
+    y = p[valid]
     xm, ym = x.mean(), y.mean()
     xt, yt = x - xm, y - ym
     c = np.mean(xt * yt)
@@ -77,13 +89,17 @@ def depth_prior_bwd(saved, weight=1.0):
     zero at invalid pixels. ``saved`` None (no valid pixels): None."""
     if saved is None:
         return None
+    if saved[-2] == "depth":
+        valid, dv, sign, _, dtype = saved
+        # d/dr_i of mean_j |r_j - mean(r)| = (sign_i - mean(sign)) / N, and dr_i/dD_i = 1/D_i
+        out = np.zeros(valid.shape, np.float64)
+        out[valid] = weight * (sign - sign.mean()) / (sign.size * dv)
+        return out.astype(dtype, copy=False)
     valid, dv, xt, yt, xm, a, b, rho, space, dtype = saved
     n = xt.size
     # d rho / d x_i = (1/N) [y~_i / sqrt(a b) - rho (x~_i + k mean(x)) / a]
     drho_dx = (yt / np.sqrt(a * b) - rho * (xt + FLAT_FLOOR * xm) / a) / n
-    g = -weight * drho_dx
-    if space == "disparity":
-        g = g * (-1.0 / (dv * dv))
+    g = weight * drho_dx / (dv * dv)  # dL/dx = -drho/dx, dx/dD = -1/D^2
     out = np.zeros(valid.shape, np.float64)
     out[valid] = g
     return out.astype(dtype, copy=False)

@@ -1,0 +1,144 @@
+"""L_depth (losses/depth_prior.py): 1 - the Pearson correlation of the rendered depth with a depth
+prior. Its gradient against central differences in both spaces, its invariance to the prior's and
+the render's scale and shift, the pixels it ignores, flat and extreme inputs, bad input."""
+import numpy as np
+import pytest
+
+from d2gs_np.losses.depth_prior import depth_prior_bwd, depth_prior_fwd
+
+H, W = 9, 11
+
+
+def _depth(seed=0, lo=1.5, hi=6.0):
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:H, 0:W]
+    return lo + (hi - lo) * (0.5 + 0.4 * np.sin(xx / 2.3 + seed) * np.cos(yy / 3.1)) + 0.05 * rng.standard_normal((H, W))
+
+
+def _with_holes(prior, alpha, seed=1):
+    """NaN in a few prior pixels, alpha below 0.5 in others: both must be ignored."""
+    rng = np.random.default_rng(seed)
+    prior, alpha = prior.copy(), alpha.copy()
+    prior[rng.random((H, W)) < 0.1] = np.nan
+    alpha[rng.random((H, W)) < 0.1] = 0.3
+    return prior, alpha
+
+
+def _central(f, x, h):
+    g = np.zeros_like(x)
+    for i in np.ndindex(x.shape):
+        xp, xm = x.copy(), x.copy()
+        xp[i] += h
+        xm[i] -= h
+        g[i] = (f(xp) - f(xm)) / (2 * h)
+    return g
+
+
+@pytest.mark.parametrize("space", ["depth", "disparity"])
+def test_gradient_matches_central_differences(space):
+    # The render's depth and a prior that agrees with it only in part (rho ~ 0.6-0.9): every
+    # factor of the gradient is exercised. Central differences at h = 1e-6 on depths 1.5-6:
+    # truncation ~h^2, rounding ~1e-16 / 1e-6 = 1e-10 against gradients ~1e-3..1e-1 per pixel;
+    # 1e-7 relative to the largest catches a missing term (the floor's, the mean's) or factor.
+    d = _depth(0)
+    truth = 1.0 / d if space == "disparity" else d
+    prior = 0.7 * truth + 0.3 * np.roll(truth, 3, axis=1) + 0.2
+    prior, alpha = _with_holes(prior, np.ones((H, W)))
+    mask = np.ones((H, W))
+    mask[:, :2] = 0.0
+    weight = 0.37
+
+    def value(x):
+        return weight * depth_prior_fwd(x, prior, alpha, space, mask=mask)[0]
+
+    v, saved = depth_prior_fwd(d, prior, alpha, space, mask=mask)
+    assert 0.02 < v < 0.6
+    g = depth_prior_bwd(saved, weight)
+    fd = _central(value, d, 1e-6)
+    assert np.max(np.abs(g - fd)) < 1e-7 * np.max(np.abs(fd))
+    ignored = ~np.isfinite(prior) | (alpha < 0.5) | (mask == 0)
+    assert np.all(g[ignored] == 0.0) and np.any(g[~ignored] != 0.0)
+
+
+def test_scale_and_shift_of_either_side_do_not_change_it():
+    d = _depth(2)
+    prior = 0.5 * d + 0.1 * _depth(3)
+    alpha = np.ones((H, W))
+    v = depth_prior_fwd(d, prior, alpha)[0]
+    # exact but for the flat floor, k mean^2 / variance of the moved side: 0.01 d + 0.5 has a mean
+    # ~40 times its standard deviation, so 1e-12 x 40^2 ~ 2e-9
+    for a, b in ((3.0, 0.0), (0.01, 0.5), (1e5, -7.0)):
+        assert depth_prior_fwd(a * d + b, prior, alpha)[0] == pytest.approx(v, abs=1e-7)
+        assert depth_prior_fwd(d, a * prior + b, alpha)[0] == pytest.approx(v, abs=1e-7)
+    # a prior that is the depth up to scale and shift costs nothing; reversed, the most
+    assert depth_prior_fwd(d, 4.0 * d - 1.0, alpha)[0] == pytest.approx(0.0, abs=1e-7)
+    assert depth_prior_fwd(d, -d, alpha)[0] == pytest.approx(2.0, abs=1e-7)
+    # a disparity prior: exact for 1/D in that space, not in depth space
+    disp = 0.3 / d + 0.05
+    assert depth_prior_fwd(d, disp, alpha, "disparity")[0] == pytest.approx(0.0, abs=1e-7)
+    assert depth_prior_fwd(d, disp, alpha, "depth")[0] > 1.0  # anticorrelated
+
+
+def test_ignored_pixels_do_not_change_the_value():
+    d = _depth(4)
+    prior, alpha = _with_holes(0.8 * d + 0.3 * _depth(5), np.ones((H, W)))
+    v = depth_prior_fwd(d, prior, alpha)[0]
+    other = d.copy()
+    bad = ~np.isfinite(prior) | (alpha < 0.5)
+    other[bad] = 100.0 * np.random.default_rng(0).random(bad.sum())
+    assert depth_prior_fwd(other, prior, alpha)[0] == v
+
+
+def test_flat_sides_and_too_few_pixels_are_finite():
+    d = _depth(6)
+    alpha = np.ones((H, W))
+    flat = np.full((H, W), 3.0)
+    # a flat render has no correlation with anything: value 1, a finite gradient towards the prior
+    v, saved = depth_prior_fwd(flat, d, alpha)
+    g = depth_prior_bwd(saved)
+    assert v == pytest.approx(1.0, abs=1e-12) and np.all(np.isfinite(g))
+    assert np.corrcoef(-g.ravel(), d.ravel())[0, 1] > 0.99  # descent raises the depth where the prior is far
+    v, saved = depth_prior_fwd(d, flat, alpha)  # a flat prior: nothing to follow
+    assert v == pytest.approx(1.0, abs=1e-12) and np.all(np.isfinite(depth_prior_bwd(saved)))
+    # one valid pixel, or none, or a prior of zeros: no value and no gradient
+    one = np.full((H, W), np.nan)
+    one[2, 3] = 1.0
+    assert depth_prior_fwd(d, one, alpha) == (0.0, None) and depth_prior_bwd(None) is None
+    assert depth_prior_fwd(d, d, np.zeros((H, W))) == (0.0, None)
+    assert depth_prior_fwd(d, np.zeros((H, W)), alpha) == (0.0, None)
+
+
+@pytest.mark.parametrize("scale", [1e-4, 1e6])
+def test_tiny_and_huge_depths_give_the_same_value_and_a_scaled_gradient(scale):
+    d = _depth(7)
+    prior = 0.6 * d + 0.2 * _depth(8)
+    alpha = np.ones((H, W))
+    v, s = depth_prior_fwd(d, prior, alpha)
+    vs, ss = depth_prior_fwd(scale * d, prior, alpha, min_depth=0.0)
+    assert vs == pytest.approx(v, abs=1e-9)
+    np.testing.assert_allclose(depth_prior_bwd(ss) * scale, depth_prior_bwd(s), rtol=1e-6, atol=1e-12)
+    # in disparity space too (1/D spans 1e-6 .. 1e4)
+    vd, sd = depth_prior_fwd(scale * d, 1.0 / d, alpha, "disparity", min_depth=0.0)
+    assert vd == pytest.approx(0.0, abs=1e-9) and np.all(np.isfinite(depth_prior_bwd(sd)))
+
+
+def test_float32_renders_get_a_float32_gradient_close_to_float64():
+    d = _depth(9)
+    prior = 0.8 * d + 0.4 * _depth(10)
+    alpha = np.ones((H, W))
+    g64 = depth_prior_bwd(depth_prior_fwd(d, prior, alpha)[1])
+    g32 = depth_prior_bwd(depth_prior_fwd(d.astype(np.float32), prior, alpha)[1])
+    assert g32.dtype == np.float32
+    # the float32 input rounds depths by ~6e-8 relative; the statistics are taken in float64
+    np.testing.assert_allclose(g32, g64, rtol=1e-4, atol=1e-6 * np.abs(g64).max())
+
+
+def test_bad_input_is_refused_with_what_to_fix():
+    d = _depth(0)
+    alpha = np.ones((H, W))
+    with pytest.raises(ValueError, match="prior must have the depth's shape"):
+        depth_prior_fwd(d, d[:-1], alpha)
+    with pytest.raises(ValueError, match="depth must be an \\(h, w\\) array"):
+        depth_prior_fwd(d[None], d, alpha)
+    with pytest.raises(ValueError, match="space must be one of"):
+        depth_prior_fwd(d, d, alpha, "inverse")

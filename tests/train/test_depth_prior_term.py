@@ -1,0 +1,109 @@
+"""The L_depth loss term (train.terms.DepthPrior): the prior at each render size, left out without
+priors, its gradient through the render reaching the Gaussians downhill, and the term in a
+training run (log column, weighted sum, the runs it changes)."""
+import dataclasses
+
+import numpy as np
+import pytest
+
+from d2gs_np.data import suite
+from d2gs_np.losses.depth_prior import depth_prior_fwd
+from d2gs_np.blur.config import BlurConfig
+from d2gs_np.render.config import RenderConfig
+from d2gs_np.train.config import ExperimentConfig, LossConfig, PoseSolverConfig, TrainConfig
+from d2gs_np.train.model import frame_render_bwd, frame_render_fwd
+from d2gs_np.train.terms import DepthPrior, TermInputs, loss_terms
+from d2gs_np.train.trainer import Trainer
+
+TINY = dict(width=48, height=27, num_frames=4, num_test_views=2, subframes=4)
+
+
+@pytest.fixture(scope="module")
+def prior_scene():
+    return suite.make_suite_scene("crossing", 0, depth_prior="video", **TINY)
+
+
+def test_the_prior_at_a_render_size_is_the_area_mean_where_every_pixel_is_known():
+    full = np.arange(1.0, 1.0 + 8 * 6).reshape(6, 8)
+    full[0, 0] = np.nan
+    term = DepthPrior(1.0, [full], "depth")
+    assert term.prior(0, 8, 6) is not None and np.array_equal(term.prior(0, 8, 6), full, equal_nan=True)
+    half = term.prior(0, 4, 3)
+    assert np.isnan(half[0, 0])  # one unknown pixel under it
+    np.testing.assert_allclose(half[1:, :], full[2:, :].reshape(2, 2, 4, 2).mean(axis=(1, 3)), rtol=1e-15)
+    np.testing.assert_allclose(half[0, 1:], full[:2, 2:].reshape(1, 2, 3, 2).mean(axis=(1, 3))[0], rtol=1e-15)
+    assert term.prior(0, 4, 3) is half  # kept per size
+
+
+def test_left_out_without_depth_priors(prior_scene):
+    notes = []
+    bare = suite.make_suite_scene("crossing", 0, **TINY)
+    terms = loss_terms(LossConfig(lambda_depth_prior=0.1, lambda_freq=0.0), note=notes.append, scene=bare)
+    assert [t.name for t in terms] == ["photometric"]
+    assert any("L_depth: left out" in n and "depth_prior_file_path" in n for n in notes)
+    terms = loss_terms(LossConfig(lambda_depth_prior=0.1, lambda_freq=0.0), note=notes.append, scene=prior_scene,
+                       prior_space="disparity")
+    assert [t.name for t in terms] == ["photometric", "depth_prior"] and terms[1].space == "disparity"
+
+
+def _config(iters, weight, **train):
+    base = dict(iters=iters, quiet=True, eval_every=0, log_every=1, checkpoint_every=0, prune_every=0)
+    base.update(train)
+    return ExperimentConfig(train=TrainConfig(**base), loss=LossConfig(lambda_depth_prior=weight, lambda_freq=0.0),
+                            pose_solver=PoseSolverConfig(mode="off"))
+
+
+def test_its_gradient_through_the_render_is_downhill(prior_scene, tmp_path):
+    # The term's cotangent on the expected depth, through the float64 render backward, onto the
+    # static means: a step of the means against it lowers the term; central differences along
+    # that direction agree with the gradient's squared norm to 1e-4 (the render is smooth in the
+    # means away from tile and radius changes; 1e-4 leaves room for such a change).
+    cfg = dataclasses.replace(_config(1, 1.0), render=RenderConfig(raster_float32=False),
+                              blur=BlurConfig(backward_views=0))  # float64, every view's backward
+    tr = Trainer(prior_scene, cfg, tmp_path / "r")
+    term = next(t for t in tr.terms if t.name == "depth_prior")
+    model, k = tr.model, 1
+    tgt = tr.cache.get(k, 1.0)
+
+    def value(params):
+        m = model.replace(params=params)
+        out, saved = frame_render_fwd(m, k, tgt.K, tgt.width, tgt.height)
+        return term.fwd(TermInputs(out, tgt.image, None, m, k, None)), saved
+
+    (v, s), saved = value(model.params)
+    assert s is not None and 0.0 < v < 2.0
+    grads = frame_render_bwd(saved, np.zeros_like(tgt.image), v_expected_depth=term.bwd(s).render["expected_depth"])[0]
+    g = grads["static.means"]
+    assert np.abs(g).max() > 0
+    h = 1e-6 / np.abs(g).max()
+    plus = dict(model.params, **{"static.means": model.params["static.means"] + h * g})
+    minus = dict(model.params, **{"static.means": model.params["static.means"] - h * g})
+    slope = (value(plus)[0][0] - value(minus)[0][0]) / (2 * h)
+    assert slope == pytest.approx(float(np.sum(g * g)), rel=1e-4)
+    assert value(minus)[0][0] < v
+
+
+def test_training_logs_the_term_and_it_reaches_the_gaussians(prior_scene, tmp_path):
+    a = Trainer(prior_scene, _config(6, 0.5), tmp_path / "a")
+    assert [t.name for t in a.terms] == ["photometric", "depth_prior"]
+    a.run()
+    assert any(n.startswith("L_depth: weight 0.5") for n in a.log.notes)
+    rows = a.log.rows
+    vals = [r["loss_depth_prior"] for r in rows]
+    assert all(np.isfinite(vals)) and min(vals) > 0
+    r = rows[-1]
+    assert r["loss"] == pytest.approx(r["loss_photometric"] + 0.5 * r["loss_depth_prior"], rel=1e-12)
+    b = Trainer(prior_scene, dataclasses.replace(_config(6, 0.5), loss=LossConfig(lambda_freq=0.0)), tmp_path / "b")
+    b.run()
+    assert not np.array_equal(a.params["static.means"], b.params["static.means"])
+
+
+def test_the_value_is_the_loss_functions(prior_scene, tmp_path):
+    # the term is depth_prior_fwd on the render and the frame's prior at its size, no more
+    tr = Trainer(prior_scene, _config(1, 1.0), tmp_path / "v")
+    term = next(t for t in tr.terms if t.name == "depth_prior")
+    tgt = tr.cache.get(2, 0.5)
+    out, _ = frame_render_fwd(tr.model, 2, tgt.K, tgt.width, tgt.height)
+    v, _ = term.fwd(TermInputs(out, tgt.image, None, tr.model, 2, None))
+    expect = depth_prior_fwd(out["expected_depth"], term.prior(2, tgt.width, tgt.height), out["alpha"])[0]
+    assert v == expect and out["expected_depth"].shape == (tgt.height, tgt.width)
