@@ -1,6 +1,7 @@
-"""L_depth (losses/depth_prior.py): 1 - the Pearson correlation of the rendered depth with a depth
-prior. Its gradient against central differences in both spaces, its invariance to the prior's and
-the render's scale and shift, the pixels it ignores, flat and extreme inputs, bad input."""
+"""L_depth (losses/depth_prior.py): the rendered depth against a depth prior, invariant to what the
+prior's kind leaves unknown (a scale for a depth, a scale and shift for a disparity). Its gradient
+against central differences in both spaces, its invariances (and the shift a depth prior does
+fix), the pixels it ignores, flat and extreme inputs, bad input."""
 import numpy as np
 import pytest
 
@@ -36,9 +37,10 @@ def _central(f, x, h):
 
 @pytest.mark.parametrize("space", ["depth", "disparity"])
 def test_gradient_matches_central_differences(space):
-    # The render's depth and a prior that agrees with it only in part (rho ~ 0.6-0.9): every
-    # factor of the gradient is exercised. Central differences at h = 1e-6 on depths 1.5-6:
-    # truncation ~h^2, rounding ~1e-16 / 1e-6 = 1e-10 against gradients ~1e-3..1e-1 per pixel;
+    # The render's depth and a prior that agrees with it only in part: every factor of the
+    # gradient is exercised. Central differences at h = 1e-6 on depths 1.5-6: truncation ~h^2
+    # (0 for the L1, piecewise linear in log D: no pixel's log ratio lies within 1e-6 of the
+    # frame mean here), rounding ~1e-16 / 1e-6 = 1e-10 against gradients ~1e-3..1e-1 per pixel;
     # 1e-7 relative to the largest catches a missing term (the floor's, the mean's) or factor.
     d = _depth(0)
     truth = 1.0 / d if space == "disparity" else d
@@ -53,6 +55,10 @@ def test_gradient_matches_central_differences(space):
 
     v, saved = depth_prior_fwd(d, prior, alpha, space, mask=mask)
     assert 0.02 < v < 0.6
+    if space == "depth":
+        valid = np.isfinite(prior) & (alpha >= 0.5) & (mask > 0)
+        r = np.log(d[valid] / prior[valid])
+        assert np.min(np.abs(r - r.mean())) > 1e-4  # away from the L1's kinks
     g = depth_prior_bwd(saved, weight)
     fd = _central(value, d, 1e-6)
     assert np.max(np.abs(g - fd)) < 1e-7 * np.max(np.abs(fd))
@@ -60,29 +66,42 @@ def test_gradient_matches_central_differences(space):
     assert np.all(g[ignored] == 0.0) and np.any(g[~ignored] != 0.0)
 
 
-def test_scale_and_shift_of_either_side_do_not_change_it():
+def test_a_depth_prior_fixes_the_ratios_up_to_a_scale():
     d = _depth(2)
-    prior = 0.5 * d + 0.1 * _depth(3)
+    prior = d * np.exp(0.1 * np.sin(np.arange(W) / 2.0))[None, :]
     alpha = np.ones((H, W))
     v = depth_prior_fwd(d, prior, alpha)[0]
-    # exact but for the flat floor, k mean^2 / variance of the moved side: 0.01 d + 0.5 has a mean
-    # ~40 times its standard deviation, so 1e-12 x 40^2 ~ 2e-9
-    for a, b in ((3.0, 0.0), (0.01, 0.5), (1e5, -7.0)):
-        assert depth_prior_fwd(a * d + b, prior, alpha)[0] == pytest.approx(v, abs=1e-7)
-        assert depth_prior_fwd(d, a * prior + b, alpha)[0] == pytest.approx(v, abs=1e-7)
-    # a prior that is the depth up to scale and shift costs nothing; reversed, the most
-    assert depth_prior_fwd(d, 4.0 * d - 1.0, alpha)[0] == pytest.approx(0.0, abs=1e-7)
-    assert depth_prior_fwd(d, -d, alpha)[0] == pytest.approx(2.0, abs=1e-7)
-    # a disparity prior: exact for 1/D in that space, not in depth space
-    disp = 0.3 / d + 0.05
-    assert depth_prior_fwd(d, disp, alpha, "disparity")[0] == pytest.approx(0.0, abs=1e-7)
-    assert depth_prior_fwd(d, disp, alpha, "depth")[0] > 1.0  # anticorrelated
+    assert v > 0.01
+    for a in (3.0, 0.01, 1e5):  # exact in logs: log a cancels with the frame mean
+        assert depth_prior_fwd(a * d, prior, alpha)[0] == pytest.approx(v, abs=1e-12)
+        assert depth_prior_fwd(d, a * prior, alpha)[0] == pytest.approx(v, abs=1e-12)
+    assert depth_prior_fwd(d, 4.0 * d, alpha)[0] == pytest.approx(0.0, abs=1e-12)
+    # a shift changes the ratios, so it costs: a scene whose depth range is stretched is not free
+    assert depth_prior_fwd(d + 2.0, d, alpha)[0] > 0.05
+    assert depth_prior_fwd(d, d + 2.0, alpha)[0] > 0.05
+
+
+def test_a_disparity_prior_is_matched_up_to_scale_and_shift():
+    d = _depth(2)
+    prior = 0.5 / d + 0.1 / _depth(3)
+    alpha = np.ones((H, W))
+    v = depth_prior_fwd(d, prior, alpha, "disparity")[0]
+    assert v > 0.001
+    # exact but for the flat floor, k mean^2 / variance of the moved side (here at most ~10^2,
+    # so ~1e-10)
+    for a, b in ((3.0, 0.0), (0.01, 0.005), (1e5, -7.0)):
+        assert depth_prior_fwd(d / a, prior, alpha, "disparity")[0] == pytest.approx(v, abs=1e-7)
+        assert depth_prior_fwd(d, a * prior + b, alpha, "disparity")[0] == pytest.approx(v, abs=1e-7)
+    # a prior that is the disparity up to scale and shift costs nothing; reversed, the most
+    assert depth_prior_fwd(d, 4.0 / d - 1.0, alpha, "disparity")[0] == pytest.approx(0.0, abs=1e-7)
+    assert depth_prior_fwd(d, -1.0 / d, alpha, "disparity")[0] == pytest.approx(2.0, abs=1e-7)
 
 
 def test_ignored_pixels_do_not_change_the_value():
     d = _depth(4)
     prior, alpha = _with_holes(0.8 * d + 0.3 * _depth(5), np.ones((H, W)))
     v = depth_prior_fwd(d, prior, alpha)[0]
+    assert v == depth_prior_fwd(d, np.where(alpha < 0.5, -1.0, prior), alpha)[0]  # no estimate, or no render
     other = d.copy()
     bad = ~np.isfinite(prior) | (alpha < 0.5)
     other[bad] = 100.0 * np.random.default_rng(0).random(bad.sum())
@@ -93,19 +112,24 @@ def test_flat_sides_and_too_few_pixels_are_finite():
     d = _depth(6)
     alpha = np.ones((H, W))
     flat = np.full((H, W), 3.0)
-    # a flat render has no correlation with anything: value 1, a finite gradient towards the prior
-    v, saved = depth_prior_fwd(flat, d, alpha)
-    g = depth_prior_bwd(saved)
-    assert v == pytest.approx(1.0, abs=1e-12) and np.all(np.isfinite(g))
-    assert np.corrcoef(-g.ravel(), d.ravel())[0, 1] > 0.99  # descent raises the depth where the prior is far
-    v, saved = depth_prior_fwd(d, flat, alpha)  # a flat prior: nothing to follow
-    assert v == pytest.approx(1.0, abs=1e-12) and np.all(np.isfinite(depth_prior_bwd(saved)))
+    for space, prior in (("depth", d), ("disparity", 1.0 / d)):
+        # a flat render: the prior's own spread (depth) or no correlation (disparity), and a finite
+        # gradient that raises the depth where the prior is far
+        v, saved = depth_prior_fwd(flat, prior, alpha, space)
+        g = depth_prior_bwd(saved)
+        assert np.all(np.isfinite(g))
+        assert v == pytest.approx(np.mean(np.abs(np.log(d) - np.log(d).mean())) if space == "depth" else 1.0, abs=1e-12)
+        far = d > np.median(d)
+        assert np.mean(-g[far]) > 0 > np.mean(-g[~far])
+        v, saved = depth_prior_fwd(d, np.full((H, W), 0.5), alpha, space)  # a flat prior
+        assert np.isfinite(v) and v > 0 and np.all(np.isfinite(depth_prior_bwd(saved)))
     # one valid pixel, or none, or a prior of zeros: no value and no gradient
     one = np.full((H, W), np.nan)
     one[2, 3] = 1.0
     assert depth_prior_fwd(d, one, alpha) == (0.0, None) and depth_prior_bwd(None) is None
     assert depth_prior_fwd(d, d, np.zeros((H, W))) == (0.0, None)
-    assert depth_prior_fwd(d, np.zeros((H, W)), alpha) == (0.0, None)
+    assert depth_prior_fwd(d, np.zeros((H, W)), alpha) == (0.0, None)  # no positive depth to compare
+    assert depth_prior_fwd(d, np.zeros((H, W)), alpha, "disparity") == (0.0, None)
 
 
 @pytest.mark.parametrize("scale", [1e-4, 1e6])
@@ -115,7 +139,7 @@ def test_tiny_and_huge_depths_give_the_same_value_and_a_scaled_gradient(scale):
     alpha = np.ones((H, W))
     v, s = depth_prior_fwd(d, prior, alpha)
     vs, ss = depth_prior_fwd(scale * d, prior, alpha, min_depth=0.0)
-    assert vs == pytest.approx(v, abs=1e-9)
+    assert vs == pytest.approx(v, abs=1e-12)
     np.testing.assert_allclose(depth_prior_bwd(ss) * scale, depth_prior_bwd(s), rtol=1e-6, atol=1e-12)
     # in disparity space too (1/D spans 1e-6 .. 1e4)
     vd, sd = depth_prior_fwd(scale * d, 1.0 / d, alpha, "disparity", min_depth=0.0)
