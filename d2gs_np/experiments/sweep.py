@@ -26,7 +26,7 @@ Variants (``EXPERIMENTS``):
 - ``exposure-start``, ``exposure-path``, ``exposure-defaults`` (#39): where the exposure starts,
   its path, the defaults before and after; ``dynamic-depth`` (#40, #44): the dynamic seeds' depth
   by the rule against the scene's true depth (an oracle) and against a modelled video depth
-  model's depth aligned to the static points.
+  model's depth aligned to the static points, and that depth also as a loss (L_depth).
 A variant is a name, config overrides (a nested dict merged into the config's JSON form, so a
 variant is data and every key is checked by ``ExperimentConfig.from_dict``), scene overrides
 (``SuiteConfig`` fields, e.g. exposure 0 or true poses) and an optional preprocessing of the
@@ -161,6 +161,9 @@ EXPERIMENTS = {
         Variant("oracle_depth", config={"init": {"dynamic_depth": "scene"}}),
         # a modelled video depth model's depth up to a scale (data/suite.py), aligned to the static points
         Variant("prior_depth", scene={"depth_prior": "video"}, config={"init": {"dynamic_depth": "prior"}}),
+        # the same prior also as a loss on every frame's rendered depth (L_depth, docs/method.md §6)
+        Variant("prior_loss", scene={"depth_prior": "video"},
+                config={"init": {"dynamic_depth": "prior"}, "loss": {"lambda_depth_prior": 0.1}}),
     ),
     # A background drawn at random each step against the fixed black one, over which a model can
     # stay semi-transparent (issue #40, docs/method.md §10), with the given (noisy) and true poses.
