@@ -161,9 +161,14 @@ EXPERIMENTS = {
         Variant("oracle_depth", config={"init": {"dynamic_depth": "scene"}}),
         # a modelled video depth model's depth up to a scale (data/suite.py), aligned to the static points
         Variant("prior_depth", scene={"depth_prior": "video"}, config={"init": {"dynamic_depth": "prior"}}),
-        # the same prior also as a loss on every frame's rendered depth (L_depth, docs/method.md §6)
+        # the same prior also as a loss on every frame's rendered depth (L_depth, docs/method.md §6):
+        # every pixel pulled, or only beyond the prior's 10 % accuracy
         Variant("prior_loss", scene={"depth_prior": "video"},
-                config={"init": {"dynamic_depth": "prior"}, "loss": {"lambda_depth_prior": 0.1}}),
+                config={"init": {"dynamic_depth": "prior"},
+                        "loss": {"lambda_depth_prior": 0.1, "depth_prior_tolerance": 0.0}}),
+        Variant("prior_loss_tol", scene={"depth_prior": "video"},
+                config={"init": {"dynamic_depth": "prior"},
+                        "loss": {"lambda_depth_prior": 0.1, "depth_prior_tolerance": 0.1}}),
     ),
     # A background drawn at random each step against the fixed black one, over which a model can
     # stay semi-transparent (issue #40, docs/method.md §10), with the given (noisy) and true poses.

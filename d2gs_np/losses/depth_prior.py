@@ -6,9 +6,11 @@ is unknown depends on its kind (``InitConfig.depth_prior_space``), so the term i
 exactly that, per frame, and needs no alignment:
 
 - ``"depth"`` (a video depth model: depth up to one scale): the spread of the log ratio,
-  ``r = log D - log P``, about its frame mean, in L1 (robust to the prior's wrong edges),
-  ``L = mean |r - mean(r)|``: invariant to any scale of either side, not to a shift, so the
-  depth ratios the prior holds (near against far) are what the render is pulled to.
+  ``r = log D - log P``, about its frame mean, in L1 (robust to the prior's wrong edges) beyond
+  a tolerance tau, ``L = mean max(|r - mean(r)| - tau, 0)``: invariant to any scale of either
+  side, not to a shift, so the depth ratios the prior holds (near against far) are what the
+  render is pulled to, and only where it departs from them by more than the prior's own
+  accuracy (tau = 0.1: 10 %; 0 pulls every pixel).
 - ``"disparity"`` (a single-image network: disparity up to scale and shift): 1 - the Pearson
   correlation of 1/D with P, as the sparse-view splatting methods do (FSGS, DNGaussian):
 
@@ -46,9 +48,10 @@ def _check(name, x, shape=None):
         raise ValueError(f"{name} must have the depth's shape {shape}; got {x.shape}")
 
 
-def depth_prior_fwd(depth, prior, alpha, space="depth", alpha_min=0.5, min_depth=1e-6, mask=None):
+def depth_prior_fwd(depth, prior, alpha, space="depth", alpha_min=0.5, min_depth=1e-6, mask=None, tolerance=0.0):
     """The spread of log(D / P) about its mean ("depth") or 1 - the Pearson correlation of 1/D
-    with P ("disparity"), over the valid pixels (module docstring). ``depth``, ``prior``,
+    with P ("disparity"), over the valid pixels (module docstring); ``tolerance``: tau of the
+    "depth" kind. ``depth``, ``prior``,
     ``alpha``: (h, w); the prior NaN where it has no estimate; ``mask``: optional (h, w) weights, a pixel counts only where it is > 0. Returns (value, saved);
     saved is None when fewer than two pixels are valid (value 0)."""
     _check("depth", depth)
@@ -68,9 +71,13 @@ def depth_prior_fwd(depth, prior, alpha, space="depth", alpha_min=0.5, min_depth
         return 0.0, None
     dv = d[valid]
     if space == "depth":
-        r = np.log(dv) - np.log(p[valid])
-        sign = np.sign(r - r.mean())
-        return float(np.mean(np.abs(r - r.mean()))), (valid, dv, sign, space, depth.dtype)
+        if not tolerance >= 0.0:
+            raise ValueError(f"tolerance must be >= 0 (a relative depth error); got {tolerance}")
+        dev = np.log(dv) - np.log(p[valid])
+        dev -= dev.mean()
+        excess = np.abs(dev) - tolerance
+        sign = np.where(excess > 0.0, np.sign(dev), 0.0)  # pixels within tau pull nothing
+        return float(np.mean(np.maximum(excess, 0.0))), (valid, dv, sign, space, depth.dtype)
     x = 1.0 / dv
     y = p[valid]
     xm, ym = x.mean(), y.mean()
@@ -91,7 +98,8 @@ def depth_prior_bwd(saved, weight=1.0):
         return None
     if saved[-2] == "depth":
         valid, dv, sign, _, dtype = saved
-        # d/dr_i of mean_j |r_j - mean(r)| = (sign_i - mean(sign)) / N, and dr_i/dD_i = 1/D_i
+        # d/dr_i of mean_j max(|r_j - mean(r)| - tau, 0) = (sign_i - mean(sign)) / N, sign 0
+        # within tau; dr_i/dD_i = 1/D_i
         out = np.zeros(valid.shape, np.float64)
         out[valid] = weight * (sign - sign.mean()) / (sign.size * dv)
         return out.astype(dtype, copy=False)

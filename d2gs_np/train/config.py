@@ -57,12 +57,16 @@ class LossConfig:
     # depth priors (depth_prior_file_path; what they hold: InitConfig.depth_prior_space). Not in the
     # paper; off by default (docs/method.md §6 has the measurements)
     lambda_depth_prior: float = 0.0
+    # a depth prior's log-ratio departures within this (relative) pull nothing: its own accuracy
+    depth_prior_tolerance: float = 0.1
 
     def __post_init__(self):
         check_number(self.lambda_ssim, "LossConfig.lambda_ssim", 0.0, 1.0)
         for name in ("lambda_ts", "ts_time_weight", "ts_spatial_weight", "lambda_gs", "lambda_freq", "lambda_reproj",
                      "lambda_depth_prior"):
             check_number(getattr(self, name), f"LossConfig.{name}", 0.0, hint="0 = term off")
+        check_number(self.depth_prior_tolerance, "LossConfig.depth_prior_tolerance", 0.0,
+                     hint="the prior's relative accuracy, e.g. 0.1; 0 pulls every pixel")
         check_number(self.ts_time_offset, "LossConfig.ts_time_offset", 0.0, lo_open=True,
                      hint="a time offset, the method's 0.08")
         for name in ("ts_neighbours", "ts_knn_every"):

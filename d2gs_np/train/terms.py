@@ -249,8 +249,8 @@ class DepthPrior:
 
     name = "depth_prior"
 
-    def __init__(self, weight, priors, space, max_entries=256):
-        self.weight, self.space = weight, space
+    def __init__(self, weight, priors, space, tolerance=0.0, max_entries=256):
+        self.weight, self.space, self.tolerance = weight, space, float(tolerance)
         self._priors = list(priors)
         self._sized = OrderedDict()
         self._max_entries = int(max_entries)
@@ -279,7 +279,7 @@ class DepthPrior:
         depth = x.out["expected_depth"]
         h, w = depth.shape
         return depth_prior_fwd(depth, self.prior(x.frame, w, h), x.out["alpha"], self.space,
-                               POSE_DEPTH_ALPHA_MIN, GN_MIN_DEPTH, x.loss_mask)
+                               POSE_DEPTH_ALPHA_MIN, GN_MIN_DEPTH, x.loss_mask, self.tolerance)
 
     def bwd(self, saved) -> TermGrads:
         if saved is None:
@@ -325,9 +325,12 @@ def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_d
             say("L_depth: left out (the scene has no depth priors: depth_prior_file_path, docs/dataset_format.md "
                 "§3), although loss.lambda_depth_prior > 0")
         else:
-            terms.append(DepthPrior(config.lambda_depth_prior, [f.depth_prior for f in scene.frames], prior_space))
-            say(f"L_depth: weight {config.lambda_depth_prior:g}, the rendered depth's correlation with the scene's "
-                f"depth priors (held as {prior_space}) on every frame")
+            terms.append(DepthPrior(config.lambda_depth_prior, [f.depth_prior for f in scene.frames], prior_space,
+                                    config.depth_prior_tolerance))
+            how = (f"the log depth ratios beyond {config.depth_prior_tolerance:g}" if prior_space == "depth"
+                   else "the correlation of the rendered disparity")
+            say(f"L_depth: weight {config.lambda_depth_prior:g}, {how} against the scene's depth priors (held as "
+                f"{prior_space}) on every frame")
     return terms
 
 

@@ -35,8 +35,8 @@ def _central(f, x, h):
     return g
 
 
-@pytest.mark.parametrize("space", ["depth", "disparity"])
-def test_gradient_matches_central_differences(space):
+@pytest.mark.parametrize("space, tol", [("depth", 0.0), ("depth", 0.05), ("disparity", 0.0)])
+def test_gradient_matches_central_differences(space, tol):
     # The render's depth and a prior that agrees with it only in part: every factor of the
     # gradient is exercised. Central differences at h = 1e-6 on depths 1.5-6: truncation ~h^2
     # (0 for the L1, piecewise linear in log D: no pixel's log ratio lies within 1e-6 of the
@@ -51,19 +51,37 @@ def test_gradient_matches_central_differences(space):
     weight = 0.37
 
     def value(x):
-        return weight * depth_prior_fwd(x, prior, alpha, space, mask=mask)[0]
+        return weight * depth_prior_fwd(x, prior, alpha, space, mask=mask, tolerance=tol)[0]
 
-    v, saved = depth_prior_fwd(d, prior, alpha, space, mask=mask)
-    assert 0.02 < v < 0.6
+    v, saved = depth_prior_fwd(d, prior, alpha, space, mask=mask, tolerance=tol)
+    assert 0.01 < v < 0.6
     if space == "depth":
         valid = np.isfinite(prior) & (alpha >= 0.5) & (mask > 0)
         r = np.log(d[valid] / prior[valid])
-        assert np.min(np.abs(r - r.mean())) > 1e-4  # away from the L1's kinks
+        assert np.min(np.abs(np.abs(r - r.mean()) - tol)) > 1e-4  # away from the kinks
+        assert tol == 0 or 0 < np.mean(np.abs(r - r.mean()) < tol) < 1  # some pixels within tau
     g = depth_prior_bwd(saved, weight)
     fd = _central(value, d, 1e-6)
     assert np.max(np.abs(g - fd)) < 1e-7 * np.max(np.abs(fd))
     ignored = ~np.isfinite(prior) | (alpha < 0.5) | (mask == 0)
     assert np.all(g[ignored] == 0.0) and np.any(g[~ignored] != 0.0)
+
+
+def test_departures_within_the_tolerance_cost_nothing():
+    d = _depth(11)
+    alpha = np.ones((H, W))
+    ripple = 0.04 * np.sin(np.arange(W) / 1.7)[None, :] * np.ones((H, 1))
+    prior = 2.5 * d * np.exp(ripple)  # the ratios off by at most 4 % (+ the mean's shift)
+    v, saved = depth_prior_fwd(d, prior, alpha, tolerance=0.1)
+    assert v == 0.0 and np.all(depth_prior_bwd(saved) == 0.0)
+    v0 = depth_prior_fwd(d, prior, alpha, tolerance=0.0)[0]
+    assert v0 > 0.01
+    # beyond it, the excess only: a 30 % step on half the frame
+    far = prior * np.where(np.arange(W)[None, :] < W // 2, 1.0, 1.3)
+    v1 = depth_prior_fwd(d, far, alpha, tolerance=0.1)[0]
+    assert 0.0 < v1 < depth_prior_fwd(d, far, alpha, tolerance=0.0)[0] - 0.05
+    with pytest.raises(ValueError, match="tolerance must be >= 0"):
+        depth_prior_fwd(d, prior, alpha, tolerance=-0.1)
 
 
 def test_a_depth_prior_fixes_the_ratios_up_to_a_scale():

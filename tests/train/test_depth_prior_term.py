@@ -106,5 +106,7 @@ def test_the_value_is_the_loss_functions(prior_scene, tmp_path):
     tgt = tr.cache.get(2, 0.5)
     out, _ = frame_render_fwd(tr.model, 2, tgt.K, tgt.width, tgt.height)
     v, _ = term.fwd(TermInputs(out, tgt.image, None, tr.model, 2, None))
-    expect = depth_prior_fwd(out["expected_depth"], term.prior(2, tgt.width, tgt.height), out["alpha"])[0]
+    expect = depth_prior_fwd(out["expected_depth"], term.prior(2, tgt.width, tgt.height), out["alpha"],
+                             tolerance=0.1)[0]
+    assert term.tolerance == 0.1  # LossConfig.depth_prior_tolerance
     assert v == expect and out["expected_depth"].shape == (tgt.height, tgt.width)
