@@ -110,10 +110,9 @@ class TrackConfig:
     quality: float = 0.005  # Shi-Tomasi quality (share of the best corner's score): low, blur lowers corner scores
     min_distance_px: int = 5  # corners (new and active) at least this far apart
     window_px: int = 15  # Lucas-Kanade window; 15 px: a few px of blur fits inside
-    # points that fail (step 1) with window_px are tracked again with this window (0: no retry): a
-    # fast shake streaks the frames along a turning direction (the suite's crossing, seed 1), and
-    # with 15 px alone too few static tracks crossed them to register the static world; a 21 px
-    # window for every point did worse (docs/results.md §12)
+    # points that fail (step 1) with window_px are tracked again with this window (0: no retry):
+    # frames streaked by a fast turning shake need the wider window; only the failures get it
+    # because it is worse for the rest (docs/results.md §12)
     retry_window_px: int = 21
     levels: int = 3  # pyramid levels (3: displacements of ~30 px between neighbouring frames)
     fb_px: float = 0.5  # forward-backward error above which a track ends
@@ -216,9 +215,8 @@ class GaussNewtonConfig:
     """Settings of the pose solver (``pose/gauss_newton.py``; its robust loss and damping: ``pose/lm.py``)."""
 
     max_iters: int = 40  # the tight pose prior needs them to converge (docs/results.md §11)
-    # Weight of the relative depth residual: the paper's 100 reduced to 10, and the Cauchy loss at
-    # 1 px: on the wall_disk suite scene they lowered the pose error where the paper's beta with a
-    # Huber loss raised it (docs/results.md §11).
+    # Weight of the relative depth residual (the paper's 100 reduced to 10) and a Cauchy loss at
+    # 1 px: the choice against the paper's beta with a Huber loss is in docs/results.md §11.
     beta: float = 10.0
     robust: str = "cauchy"  # "none", "huber" or "cauchy" (IRLS)
     robust_scale: float = 1.0  # d of the robust loss, in residual units (pixels)

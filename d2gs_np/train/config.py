@@ -53,9 +53,9 @@ class LossConfig:
     # L_reproj on the rendered depth (train.terms.Reprojection): the pose solver's cycle residuals of
     # matched pixels (its matching settings, beta and robust scale: PoseSolverConfig) with the poses held
     lambda_reproj: float = 0.0
-    # L_depth (train.terms.DepthPrior): 1 - the rendered depth's Pearson correlation with the scene's
-    # depth priors (depth_prior_file_path; what they hold: InitConfig.depth_prior_space). Not in the
-    # paper; off by default (docs/method.md §6 has the measurements)
+    # L_depth (train.terms.DepthPrior): the rendered depth against the scene's depth priors
+    # (depth_prior_file_path), invariant to what their kind leaves unknown
+    # (InitConfig.depth_prior_space). Not in the paper; off by default (why: docs/method.md §6)
     lambda_depth_prior: float = 0.0
     # a depth prior's log-ratio departures within this (relative) pull nothing: its own accuracy
     depth_prior_tolerance: float = 0.1
@@ -99,7 +99,7 @@ class LearningRates:
     camera: float = 1e-3  # trajectory endpoints xi_start / xi_end and PoseNet weights; decays to camera_final
     camera_final: float = 1e-5
     # The spread of a centred exposure (trusted poses, TrajectoryConfig.centre): a tenth of the
-    # camera rate, at which Adam walked it away from the true exposure's (docs/results.md §7).
+    # camera rate, so Adam does not walk it away from the true exposure's (docs/results.md §7).
     camera_spread: float = 1e-4
     camera_spread_final: float = 1e-6
     # The camera rate's factor for the endpoint rows of frames a kept bundle adjustment moved, when
@@ -115,8 +115,8 @@ class LearningRates:
     # The length that scales the position rates (means, deform): "camera", 3DGS's camera extent
     # (train.learning_rates.scene_extent), or "scene", the scene's size (train.learning_rates.size_extent: the
     # larger of that and 1.1 x the 90th percentile distance of the initial points from the cameras'
-    # mean). A hand-held camera moves little against the depth it sees, so in camera units a CPU
-    # budget left the positions where the initialisation put them (docs/results.md §7).
+    # mean). A hand-held camera moves little against the depth it sees, so camera units make the
+    # position steps too small for a CPU budget (docs/results.md §7).
     means_unit: str = "scene"
 
     def __post_init__(self):
@@ -234,9 +234,8 @@ class PoseSolverConfig:
     # Both keep the calls from shrinking and turning the trajectory (docs/results.md §11).
     # Real (not schedule) steps a call needs since the previous call, or since the start: the
     # depths a call reads come from the scene Adam fitted since. The cadence ``every`` runs on the
-    # schedule's clock, so on a loaded machine the calls came every few real steps and the scene
-    # never caught up; 40 is about one period's real steps on an idle machine, so it changes
-    # nothing there (docs/results.md §11).
+    # schedule's clock, which a loaded machine stretches; 40 is about one period's real steps on
+    # an idle machine (docs/results.md §11).
     min_steps: int = 40
     prior_rot_deg: float = 0.3
     prior_trans_rel: float = 0.006
@@ -245,8 +244,8 @@ class PoseSolverConfig:
     # triangulated with the current and with the proposed mid poses (pose_init.
     # track_reprojection_rms); a solve whose poses explain the tracks worse, by more than
     # track_tolerance (relative rise of the rms), is not written. The solver's residuals read
-    # rendered depths of a scene fitted to the poses they test; the tracks depend on none. A
-    # converged solve that raised ATE tenfold raised the tracks' rms too (docs/results.md §11).
+    # rendered depths of a scene fitted to the poses they test; the tracks depend on none
+    # (docs/results.md §11).
     track_check: bool = True
     track_tolerance: float = 0.1
 
@@ -312,8 +311,7 @@ class PruneConfig:
     max_outside_share: float = 0.5  # of the frames where a dynamic centre is in view
     mask_dilation_px: int = 3  # masks are grown this much before the escaped test (blur, init slack)
     # Prune also past the schedule's end, while a budgeted run trains on (TrainConfig.stretch_to_budget),
-    # until 90 % of the budget. Off: it fixed the depth of a sharp-input run's veils, not its images
-    # (docs/method.md §10).
+    # until 90 % of the budget. Off by default (why: docs/method.md §10, the veils).
     past_schedule: bool = False
 
     def __post_init__(self):
