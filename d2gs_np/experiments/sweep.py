@@ -170,6 +170,16 @@ EXPERIMENTS = {
                 config={"init": {"dynamic_depth": "prior"},
                         "loss": {"lambda_depth_prior": 0.1, "depth_prior_tolerance": 0.1}}),
     ),
+    # The dynamic set's growth capped by its moving pixels (docs/method.md §8, densification): the
+    # default (the dynamic set takes what the 40 000 total leaves) against one Gaussian per 17 moving
+    # pixels, alone and with the depth prior's seeds and loss.
+    "dynamic-cap": (
+        Variant("default"),
+        Variant("dynamic_cap", config={"densify": {"dynamic_pixels_per_gaussian": 17.0}}),
+        Variant("dynamic_cap_prior", scene={"depth_prior": "video"},
+                config={"init": {"dynamic_depth": "prior"}, "densify": {"dynamic_pixels_per_gaussian": 17.0},
+                        "loss": {"lambda_depth_prior": 0.1, "depth_prior_tolerance": 0.1}}),
+    ),
     # A background drawn at random each step against the fixed black one, over which a model can
     # stay semi-transparent (issue #40, docs/method.md §10), with the given (noisy) and true poses.
     "background": (

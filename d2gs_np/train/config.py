@@ -283,6 +283,10 @@ class DensifyConfig:
     # width), at most max_gaussians (densify.gaussian_cap); 0, the default: max_gaussians alone
     # (why: docs/method.md §8).
     pixels_per_gaussian: float = 0.0
+    # > 0: the dynamic set grows to at most one Gaussian per this many moving pixels (the motion
+    # masks' pixels over all frames, full resolution; densify.dynamic_gaussian_cap); 0, the default:
+    # the dynamic set takes what the total cap leaves (why: docs/method.md §8).
+    dynamic_pixels_per_gaussian: float = 0.0
     absgrad: bool = False  # densify on the absolute-sum statistic (module docstring)
     grad_threshold_abs_ndc: float = 8e-4  # its threshold (gsplat's advice for absgrad)
 
@@ -298,6 +302,8 @@ class DensifyConfig:
             check_number(getattr(self, name), f"DensifyConfig.{name}", 0.0, lo_open=True)
         check_number(self.pixels_per_gaussian, "DensifyConfig.pixels_per_gaussian", 0.0,
                      hint="observed pixels per Gaussian, or 0 for the fixed max_gaussians")
+        check_number(self.dynamic_pixels_per_gaussian, "DensifyConfig.dynamic_pixels_per_gaussian", 0.0,
+                     hint="moving pixels per dynamic Gaussian, or 0 for no cap of the dynamic set's own")
         check_number(self.split_factor, "DensifyConfig.split_factor", 1.0, lo_open=True)
         check_bool(self.enabled, "DensifyConfig.enabled")
         check_bool(self.absgrad, "DensifyConfig.absgrad")

@@ -50,6 +50,19 @@ def gaussian_cap(config: DensifyConfig, pixels: int) -> int:
     return min(config.max_gaussians, max(1, math.ceil(pixels / config.pixels_per_gaussian)))
 
 
+def dynamic_gaussian_cap(config: DensifyConfig, moving_pixels: int) -> int:
+    """The most Gaussians densification may grow the dynamic set to on a clip whose motion masks mark
+    ``moving_pixels`` pixels (over all frames, full resolution): one per
+    ``dynamic_pixels_per_gaussian`` of them, at least 1; 0 (no cap of its own: the dynamic set
+    takes what the total cap leaves) when that is 0, the default. A cap below the set's size stops
+    its growth; it never removes rows."""
+    if config.dynamic_pixels_per_gaussian <= 0:
+        return 0
+    if moving_pixels < 0:
+        raise ValueError(f"dynamic_gaussian_cap needs the motion masks' pixel count (>= 0); got {moving_pixels}")
+    return max(1, math.ceil(moving_pixels / config.dynamic_pixels_per_gaussian))
+
+
 def init_grad_stats(params) -> dict:
     """Zero statistics for every row of both sets: {GRAD_SUM: {set: (N_set,)}, GRAD_COUNT: ...}."""
     return {name: {p: np.zeros(num_rows(params, p)) for p in SETS} for name in (GRAD_SUM, GRAD_COUNT)}
@@ -74,7 +87,7 @@ def mean_grad(rows, prefix):
     return rows[GRAD_SUM][prefix] / np.maximum(rows[GRAD_COUNT][prefix], 1.0)
 
 
-def densify(params, adam_state, rows, config: DensifyConfig, extent, width, rng):
+def densify(params, adam_state, rows, config: DensifyConfig, extent, width, rng, dynamic_cap: int = 0):
     """Clone / split (see the module docstring), through ``train.rows.resize_rows`` so the Adam
     state and every per-row statistic follow; then the gradient statistics restart from zero.
     Returns (params, adam_state, rows, info) with info = {"cloned": int, "split": int} (totals)
@@ -82,7 +95,8 @@ def densify(params, adam_state, rows, config: DensifyConfig, extent, width, rng)
 
     When the candidates exceed what ``max_gaussians`` leaves, the static set takes the room first
     (its highest gradients), the dynamic set what is left: the moving pixels are not short of
-    Gaussians, so a joint ranking would only move rows to the dynamic set (docs/results.md §10)."""
+    Gaussians, so a joint ranking would only move rows to the dynamic set (docs/results.md §10).
+    ``dynamic_cap`` > 0 (``dynamic_gaussian_cap``) bounds the dynamic set's own growth as well."""
     threshold = (config.grad_threshold_abs_ndc if config.absgrad else config.grad_threshold_ndc) * 2.0 / float(width)
     info = {"cloned": 0, "split": 0}
     info.update({f"{p}_{kind}": 0 for p in SETS for kind in ("cloned", "split")})
@@ -92,8 +106,10 @@ def densify(params, adam_state, rows, config: DensifyConfig, extent, width, rng)
         if n == 0:
             continue
         budget = config.max_gaussians - total
+        if prefix == DYNAMIC and dynamic_cap > 0:
+            budget = min(budget, dynamic_cap - n)
         if budget <= 0:
-            break
+            continue
         grad = mean_grad(rows, prefix)
         scales = np.exp(params[f"{prefix}.log_scales"])
         big = scales.max(axis=1) > config.percent_dense * extent

@@ -50,7 +50,7 @@ from d2gs_np.scene import gaussians
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
 from d2gs_np.train import prune as prune_rules
 from d2gs_np.train.config import ExperimentConfig
-from d2gs_np.train.densify import add_grad_stats, densify, gaussian_cap, init_grad_stats
+from d2gs_np.train.densify import add_grad_stats, densify, dynamic_gaussian_cap, gaussian_cap, init_grad_stats
 from d2gs_np.train.log import psnr_from_mse
 from d2gs_np.train.learning_rates import size_extent
 from d2gs_np.train.rows import SETS, num_rows
@@ -244,12 +244,14 @@ class Prune(Plugin):
 class Densify(Plugin):
     """Every ``densify.every`` steps inside [start, stop) of the run: clone and split
     (``train/densify.py``) up to the clip's cap (``gaussian_cap`` of its ``pixels``, observed
-    pixels at full resolution), with a generator seeded by (seed, step) so a resumed run draws the
+    pixels at full resolution) and the dynamic set's own (``dynamic_gaussian_cap`` of
+    ``moving_pixels``, the motion masks' pixels), with a generator seeded by (seed, step) so a resumed run draws the
     same children; notes the cap once and what each densification did."""
 
     name = "densify"
 
-    def __init__(self, config: ExperimentConfig, extent: float, width: int, pixels: int, note=None):
+    def __init__(self, config: ExperimentConfig, extent: float, width: int, pixels: int, note=None,
+                 moving_pixels: int = 0):
         self.config, self.extent, self.width = config, extent, width
         self.note = note if note is not None else (lambda m: None)
         dc = config.densify
@@ -257,7 +259,10 @@ class Densify(Plugin):
         why = (f"{pixels} observed pixels / densify.pixels_per_gaussian = {dc.pixels_per_gaussian:g}, at most "
                f"densify.max_gaussians = {dc.max_gaussians}" if dc.pixels_per_gaussian > 0
                else "densify.max_gaussians; densify.pixels_per_gaussian = 0")
-        self.note(f"densification: up to {cap} Gaussians ({why})")
+        self.dynamic_cap = dynamic_gaussian_cap(dc, moving_pixels)
+        dyn = (f"; the dynamic set up to {self.dynamic_cap} ({moving_pixels} moving pixels / "
+               f"densify.dynamic_pixels_per_gaussian = {dc.dynamic_pixels_per_gaussian:g})" if self.dynamic_cap else "")
+        self.note(f"densification: up to {cap} Gaussians ({why}){dyn}")
         self.densify_config = dataclasses.replace(dc, max_gaussians=cap)  # the clip's cap, built once
 
     def on_step(self, state):
@@ -265,7 +270,8 @@ class Densify(Plugin):
         if not (entered_period(state, dc.every) and dc.start_fraction * total <= state.sched < dc.stop_fraction * total):
             return state
         rng = np.random.default_rng((self.config.train.seed, state.step, 7))
-        params, adam_state, rows, info = densify(state.params, state.adam, state.rows, dc, self.extent, self.width, rng)
+        params, adam_state, rows, info = densify(state.params, state.adam, state.rows, dc, self.extent, self.width, rng,
+                                                  self.dynamic_cap)
         state = state.replace(model=state.model.replace(params=params), adam=adam_state, rows=rows)
         if info["cloned"] or info["split"]:
             dyn = (f"; dynamic set: cloned {info['dynamic_cloned']}, split {info['dynamic_split']}"

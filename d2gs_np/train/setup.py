@@ -249,8 +249,9 @@ def default_plugins(context: RunContext, adjusted_then: str = "") -> list:
         plugins.append(Prune(config, context.extent, [f.mask for f in scene.frames]))
     if config.densify.enabled:
         pixels = sum(f.width * f.height for f in scene.frames)
+        moving = sum(int(np.count_nonzero(f.mask)) for f in scene.frames if f.mask is not None)
         plugins.append(Densify(config, context.extent, max(f.width for f in scene.frames), pixels,
-                                context.note))
+                                context.note, moving_pixels=moving))
     if use_pose_solver(scene, config, context.note, adjusted_then):
         plugins.append(PoseSolver(scene, config, context.run_dir, context.note))
     return plugins

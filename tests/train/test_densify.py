@@ -6,7 +6,8 @@ import pytest
 from d2gs_np.optim import adam
 from d2gs_np.scene.gaussians import init_params
 from d2gs_np.train.config import DensifyConfig
-from d2gs_np.train.densify import GRAD_COUNT, GRAD_SUM, add_grad_stats, densify, gaussian_cap, init_grad_stats
+from d2gs_np.train.densify import (GRAD_COUNT, GRAD_SUM, add_grad_stats, densify, dynamic_gaussian_cap, gaussian_cap,
+                                   init_grad_stats)
 
 
 def _params(rng):
@@ -84,6 +85,54 @@ def test_the_static_set_takes_the_room_first():
     out, _, _, info = densify(p, adam.adam_init(p), stats, DensifyConfig(enabled=True, max_gaussians=12),
                               extent=1.0, width=width, rng=rng)
     assert info["static_cloned"] + info["static_split"] == 2 and info["dynamic_cloned"] + info["dynamic_split"] == 1
+
+
+def test_the_dynamic_cap_stops_the_dynamic_sets_growth_and_leaves_the_static_set_alone():
+    # Every row hot; the total cap is far away. With room for 2 more dynamic rows (cap 5, 3 rows)
+    # the dynamic set takes its 2 hottest candidates; with a cap at or below its size it does not
+    # grow and keeps its rows; the static set densifies exactly as without the cap.
+    rng = np.random.default_rng(5)
+    p = _params(rng)
+    width = 100
+    thr = DensifyConfig().grad_threshold_ndc * 2 / width
+    g = np.full((9, 2), 0.0)
+    g[:, 0] = 2 * thr
+    g[7, 0] = 5 * thr  # dynamic rows 1 and 2 the hottest
+    g[8, 0] = 4 * thr
+    stats = add_grad_stats(init_grad_stats(p), g, np.ones(9), num_static=6)
+    cfg = DensifyConfig(enabled=True)
+    free, _, _, info_free = densify(p, adam.adam_init(p), stats, cfg, extent=1.0, width=width,
+                                    rng=np.random.default_rng(1))
+    assert info_free["dynamic_cloned"] + info_free["dynamic_split"] == 3  # all three without a cap
+    capped, _, _, info = densify(p, adam.adam_init(p), stats, cfg, extent=1.0, width=width,
+                                 rng=np.random.default_rng(1), dynamic_cap=5)
+    assert info["dynamic_cloned"] + info["dynamic_split"] == 2
+    assert capped["dynamic.means"].shape[0] == 5
+    for name in ("static_cloned", "static_split"):
+        assert info[name] == info_free[name]
+    np.testing.assert_array_equal(capped["static.means"], free["static.means"])
+    for cap in (3, 1):
+        out, _, _, info = densify(p, adam.adam_init(p), stats, cfg, extent=1.0, width=width,
+                                  rng=np.random.default_rng(1), dynamic_cap=cap)
+        assert info["dynamic_cloned"] + info["dynamic_split"] == 0
+        np.testing.assert_array_equal(out["dynamic.means"], p["dynamic.means"])
+    # the room went to the two hottest rows: every dynamic row of the capped set carries the
+    # deformation coefficients (copied exactly into clones and split children) of rows 1 or 2, or
+    # is row 0 kept as it was
+    parents = [tuple(r.ravel()) for r in p["dynamic.deform_means"]]
+    rows = [parents.index(tuple(r.ravel())) for r in capped["dynamic.deform_means"]]
+    assert sorted(set(rows) - {0}) == [1, 2] and rows.count(0) == 1
+
+
+def test_the_dynamic_cap_follows_the_moving_pixels():
+    assert dynamic_gaussian_cap(DensifyConfig(), 10**6) == 0  # the default: no cap of its own
+    assert dynamic_gaussian_cap(DensifyConfig(dynamic_pixels_per_gaussian=17.0), 102568) == 6034  # cube_sign, 24 frames
+    assert dynamic_gaussian_cap(DensifyConfig(dynamic_pixels_per_gaussian=17.0), 0) == 1
+    with pytest.raises(ValueError, match="motion masks' pixel count"):
+        dynamic_gaussian_cap(DensifyConfig(dynamic_pixels_per_gaussian=17.0), -1)
+    for bad in (-1.0, float("nan"), True):
+        with pytest.raises(ValueError, match="dynamic_pixels_per_gaussian"):
+            DensifyConfig(dynamic_pixels_per_gaussian=bad)
 
 
 def test_config_validation():

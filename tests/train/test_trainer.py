@@ -311,6 +311,26 @@ def test_the_clips_pixel_count_caps_densification_and_the_log_says_so(dynamic_sc
     assert any(f"densification: up to {n0 + 6} Gaussians ({pixels} observed pixels" in n for n in tr.log.notes)
 
 
+def test_the_moving_pixels_cap_the_dynamic_set_and_the_log_says_so(dynamic_scene, tmp_path):
+    from d2gs_np.train.config import DensifyConfig
+
+    moving = sum(int(np.count_nonzero(f.mask)) for f in dynamic_scene.frames)
+    dens = dict(enabled=True, every=4, start_fraction=0.0, stop_fraction=1.0, grad_threshold_ndc=1e-9)
+    free = Trainer(dynamic_scene, _config(iters=12).replace(densify=DensifyConfig(**dens)), tmp_path / "free")
+    d0 = free.params["dynamic.means"].shape[0]
+    free.run()
+    assert free.params["dynamic.means"].shape[0] > d0 + 2, "without the cap the tiny threshold grows the dynamic set"
+    # room for 2 more dynamic Gaussians by the moving pixels (ceil of d0 + 1.5)
+    ppg = moving / (d0 + 1.5)
+    capped = Trainer(dynamic_scene, _config(iters=12).replace(
+        densify=DensifyConfig(**dens, dynamic_pixels_per_gaussian=ppg)), tmp_path / "capped")
+    capped.run()
+    assert d0 < capped.params["dynamic.means"].shape[0] <= d0 + 2
+    # the static set grows as it does without the cap (same candidates, same seeded children)
+    assert capped.params["static.means"].shape[0] == free.params["static.means"].shape[0]
+    assert any(f"the dynamic set up to {d0 + 2} ({moving} moving pixels" in n for n in capped.log.notes)
+
+
 def test_resume_is_exact_with_densification(dynamic_scene, tmp_path):
     from d2gs_np.train.config import DensifyConfig
 
