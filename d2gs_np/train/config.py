@@ -284,9 +284,9 @@ class DensifyConfig:
     # (why: docs/method.md §8).
     pixels_per_gaussian: float = 0.0
     # > 0: the dynamic set grows to at most one Gaussian per this many moving pixels (the motion
-    # masks' pixels over all frames, full resolution; densify.dynamic_gaussian_cap); 0, the default:
-    # the dynamic set takes what the total cap leaves (why: docs/method.md §8).
-    dynamic_pixels_per_gaussian: float = 0.0
+    # masks' pixels over all frames, full resolution; densify.dynamic_gaussian_cap); 0: the dynamic
+    # set takes what the total cap leaves (why 17: docs/method.md §8).
+    dynamic_pixels_per_gaussian: float = 17.0
     absgrad: bool = False  # densify on the absolute-sum statistic (module docstring)
     grad_threshold_abs_ndc: float = 8e-4  # its threshold (gsplat's advice for absgrad)
 

@@ -53,8 +53,8 @@ def gaussian_cap(config: DensifyConfig, pixels: int) -> int:
 def dynamic_gaussian_cap(config: DensifyConfig, moving_pixels: int) -> int:
     """The most Gaussians densification may grow the dynamic set to on a clip whose motion masks mark
     ``moving_pixels`` pixels (over all frames, full resolution): one per
-    ``dynamic_pixels_per_gaussian`` of them, at least 1; 0 (no cap of its own: the dynamic set
-    takes what the total cap leaves) when that is 0, the default. A cap below the set's size stops
+    ``dynamic_pixels_per_gaussian`` of them (17 by default), at least 1; 0 (no cap of its own: the
+    dynamic set takes what the total cap leaves) when that is 0. A cap below the set's size stops
     its growth; it never removes rows."""
     if config.dynamic_pixels_per_gaussian <= 0:
         return 0

@@ -125,7 +125,8 @@ def test_the_dynamic_cap_stops_the_dynamic_sets_growth_and_leaves_the_static_set
 
 
 def test_the_dynamic_cap_follows_the_moving_pixels():
-    assert dynamic_gaussian_cap(DensifyConfig(), 10**6) == 0  # the default: no cap of its own
+    assert dynamic_gaussian_cap(DensifyConfig(dynamic_pixels_per_gaussian=0.0), 10**6) == 0  # off: no cap of its own
+    assert dynamic_gaussian_cap(DensifyConfig(), 102568) == 6034  # the default: 17 moving pixels per Gaussian
     assert dynamic_gaussian_cap(DensifyConfig(dynamic_pixels_per_gaussian=17.0), 102568) == 6034  # cube_sign, 24 frames
     assert dynamic_gaussian_cap(DensifyConfig(dynamic_pixels_per_gaussian=17.0), 0) == 1
     with pytest.raises(ValueError, match="motion masks' pixel count"):

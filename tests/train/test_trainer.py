@@ -316,7 +316,8 @@ def test_the_moving_pixels_cap_the_dynamic_set_and_the_log_says_so(dynamic_scene
 
     moving = sum(int(np.count_nonzero(f.mask)) for f in dynamic_scene.frames)
     dens = dict(enabled=True, every=4, start_fraction=0.0, stop_fraction=1.0, grad_threshold_ndc=1e-9)
-    free = Trainer(dynamic_scene, _config(iters=12).replace(densify=DensifyConfig(**dens)), tmp_path / "free")
+    free = Trainer(dynamic_scene, _config(iters=12).replace(
+        densify=DensifyConfig(**dens, dynamic_pixels_per_gaussian=0.0)), tmp_path / "free")
     d0 = free.params["dynamic.means"].shape[0]
     free.run()
     assert free.params["dynamic.means"].shape[0] > d0 + 2, "without the cap the tiny threshold grows the dynamic set"
