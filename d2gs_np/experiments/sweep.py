@@ -171,9 +171,8 @@ EXPERIMENTS = {
                         "loss": {"lambda_depth_prior": 0.1, "depth_prior_tolerance": 0.1}}),
     ),
     # The dynamic set's growth capped by its moving pixels (docs/method.md §8, densification): no cap
-    # of its own (the dynamic set takes what the 40 000 total leaves; the default until session 38)
-    # against one Gaussian per 17 moving pixels (the default since), alone and with the depth
-    # prior's seeds and loss.
+    # of its own (the dynamic set takes what the total cap leaves) against one Gaussian per 17 moving
+    # pixels, alone and with the depth prior's seeds and loss.
     "dynamic-cap": (
         Variant("uncapped", config={"densify": {"dynamic_pixels_per_gaussian": 0.0}}),
         Variant("dynamic_cap", config={"densify": {"dynamic_pixels_per_gaussian": 17.0}}),

@@ -261,7 +261,8 @@ class Densify(Plugin):
                else "densify.max_gaussians; densify.pixels_per_gaussian = 0")
         self.dynamic_cap = dynamic_gaussian_cap(dc, moving_pixels)
         dyn = (f"; the dynamic set up to {self.dynamic_cap} ({moving_pixels} moving pixels / "
-               f"densify.dynamic_pixels_per_gaussian = {dc.dynamic_pixels_per_gaussian:g})" if self.dynamic_cap else "")
+               f"densify.dynamic_pixels_per_gaussian = {dc.dynamic_pixels_per_gaussian:g})"
+               if self.dynamic_cap and moving_pixels else "")  # no moving pixels: no dynamic set to cap
         self.note(f"densification: up to {cap} Gaussians ({why}){dyn}")
         self.densify_config = dataclasses.replace(dc, max_gaussians=cap)  # the clip's cap, built once
 
