@@ -180,6 +180,14 @@ EXPERIMENTS = {
                 config={"init": {"dynamic_depth": "prior"}, "densify": {"dynamic_pixels_per_gaussian": 17.0},
                         "loss": {"lambda_depth_prior": 0.1, "depth_prior_tolerance": 0.1}}),
     ),
+    # Neighbouring exposures on one constant-velocity camera path (L_cont, docs/method.md §6; issue #39's
+    # neighbour-continuity prior): off, at the weight that balances a pixel of residual against the
+    # photometric gradient on the endpoints, and a tenth of it.
+    "exposure-continuity": (
+        Variant("none", config={"loss": {"lambda_continuity": 0.0}}),
+        Variant("continuity", config={"loss": {"lambda_continuity": 0.01}}),
+        Variant("continuity_weak", config={"loss": {"lambda_continuity": 0.001}}),
+    ),
     # A background drawn at random each step against the fixed black one, over which a model can
     # stay semi-transparent (issue #40, docs/method.md §10), with the given (noisy) and true poses.
     "background": (

@@ -59,11 +59,14 @@ class LossConfig:
     lambda_depth_prior: float = 0.0
     # a depth prior's log-ratio departures within this (relative) pull nothing: its own accuracy
     depth_prior_tolerance: float = 0.1
+    # L_cont (train.terms.ExposureContinuity): neighbouring exposures on one constant-velocity camera
+    # path, in squared pixels. Not in the paper (DyBluRF ties neighbouring exposures); off by default
+    lambda_continuity: float = 0.0
 
     def __post_init__(self):
         check_number(self.lambda_ssim, "LossConfig.lambda_ssim", 0.0, 1.0)
         for name in ("lambda_ts", "ts_time_weight", "ts_spatial_weight", "lambda_gs", "lambda_freq", "lambda_reproj",
-                     "lambda_depth_prior"):
+                     "lambda_depth_prior", "lambda_continuity"):
             check_number(getattr(self, name), f"LossConfig.{name}", 0.0, hint="0 = term off")
         check_number(self.depth_prior_tolerance, "LossConfig.depth_prior_tolerance", 0.0,
                      hint="the prior's relative accuracy, e.g. 0.1; 0 pulls every pixel")

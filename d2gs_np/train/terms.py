@@ -28,6 +28,9 @@ import numpy as np
 
 from collections import OrderedDict
 
+from d2gs_np.blur.endpoints import XI_END, XI_START
+from d2gs_np.blur.exposure import EXPOSURE_BLOCK, exposure_bwd, exposure_fwd
+from d2gs_np.losses.continuity import continuity_bwd, continuity_fwd, pixel_weights, time_pairs
 from d2gs_np.losses.depth_prior import depth_prior_bwd, depth_prior_fwd
 from d2gs_np.losses.entropy import _entropy_fwd, entropy_bwd
 from d2gs_np.losses.frequency import _frequency_fwd, frequency_bwd, target_spectrum
@@ -44,7 +47,7 @@ from d2gs_np.train.plugins import DepthMemory, NeighbourRefresh
 from d2gs_np.train.schedule import downsample_area
 
 __all__ = ["TermInputs", "TermGrads", "Photometric", "Smoothness", "OpacityEntropy", "Frequency", "Reprojection",
-           "DepthPrior", "loss_terms", "terms_fwd_bwd"]
+           "DepthPrior", "ExposureContinuity", "loss_terms", "terms_fwd_bwd"]
 
 
 class TermInputs(NamedTuple):
@@ -287,6 +290,44 @@ class DepthPrior:
         return TermGrads(render={"expected_depth": depth_prior_bwd(saved, self.weight)}, params={})
 
 
+class ExposureContinuity:
+    """L_cont: the step frame's exposure and its neighbours' in time lie on one constant-velocity
+    path (docs/method.md §6; ``losses/continuity.py``): the residuals of the (at most two) pairs of
+    neighbouring frames that hold the step's frame, in pixels (``weights``, the full-resolution
+    focal over the scene's depth on the translation, the focal on the rotation). The gradient goes
+    to the endpoint rows (the optimiser takes the step frame's row) and, where the exposure length
+    is learned, to ``camera.exposure_logit``. Without the blur model, or with a PoseNet
+    trajectory (no per-frame endpoint rows), it is 0."""
+
+    name = "continuity"
+
+    def __init__(self, weight, weights):
+        self.weight, self.weights = weight, np.asarray(weights, dtype=np.float64)
+
+    def fwd(self, x: TermInputs):
+        m = x.model
+        if not m.components.blur or XI_START not in m.params:
+            return 0.0, None
+        e_saved = None
+        if m.components.learn_exposure:
+            tau, e_saved = exposure_fwd(m.params, m.num_frames)
+        else:
+            tau = m.exposure_tau()
+        pairs = time_pairs(m.times, [x.frame])
+        value, saved = continuity_fwd(m.params[XI_START], m.params[XI_END], m.poses_ref, m.times, tau, pairs,
+                                      self.weights)
+        return value, (saved, e_saved)
+
+    def bwd(self, saved) -> TermGrads:
+        if saved is None:
+            return TermGrads(render={}, params={})
+        g_s, g_e, g_tau = continuity_bwd(saved[0], self.weight)
+        params = {XI_START: g_s, XI_END: g_e}
+        if saved[1] is not None:
+            params[EXPOSURE_BLOCK] = exposure_bwd(saved[1], g_tau)[EXPOSURE_BLOCK]
+        return TermGrads(render={}, params=params)
+
+
 def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_dir=None, pose_solver=None,
                prior_space="depth") -> list:
     """The loss terms of a run, photometric first (module docstring). ``components``
@@ -331,6 +372,17 @@ def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_d
                    else "the correlation of the rendered disparity")
             say(f"L_depth: weight {config.lambda_depth_prior:g}, {how} against the scene's depth priors (held as "
                 f"{prior_space}) on every frame")
+    if config.lambda_continuity > 0:
+        blur = components is None or components.blur
+        if not blur or scene is None or scene.num_frames < 2:
+            say("L_cont: left out (it needs the blur model and two frames or more), although "
+                "loss.lambda_continuity > 0")
+        else:
+            focal = float(scene.frames[0].K[0, 0])
+            terms.append(ExposureContinuity(config.lambda_continuity, pixel_weights(focal, scene.scene_scale)))
+            depth = f"{scene.scene_scale:.3g}" if scene.scene_scale else "1 (the scene gives no scale)"
+            say(f"L_cont: weight {config.lambda_continuity:g}, neighbouring exposures on one constant-velocity path, "
+                f"in pixels (focal {focal:.4g}, translation at depth {depth})")
     return terms
 
 
