@@ -108,8 +108,9 @@ class TrajectoryConfig:
     bend_px: the bend, in full-resolution pixels, beyond which "auto" takes the three-knot path:
         how far the quadratic through a frame's neighbouring poses leaves the chord of its
         exposure at mid-exposure. The best geodesic fit to a bent blur puts the deblurred view
-        about a third of the bend off the true mid pose, so the default 1 px keeps that error
-        under a third of a pixel (docs/results.md §4).
+        about a third of the bend off the true mid pose, so the default 0.4 px keeps that error
+        near a tenth of a pixel; every suite clip that bends more gained from the three-knot path
+        or scored level (docs/results.md §4).
     """
 
     kind: str = "direct"
@@ -122,7 +123,7 @@ class TrajectoryConfig:
     velocity_window: int = 1
     centre: str = "auto"
     path: str = "auto"
-    bend_px: float = 1.0
+    bend_px: float = 0.4
 
     def __post_init__(self):
         check_choice(self.centre, "TrajectoryConfig.centre", ("auto", "on", "off"))
