@@ -36,9 +36,8 @@ class BlurConfig:
         frame and step from the blur's current length in render pixels (``blur_length_px`` of
         the current endpoints and scene, ``views_for_length``): just enough views to keep
         neighbouring views at most ``view_spacing_px`` render pixels apart, at most n. It
-        follows the render scale too, and gives a short blur few views. The default: more steps
-        than "fixed" in the same time, and as good or better on every suite scene
-        (docs/results.md §8).
+        follows the render scale too, and gives a short blur few views. The default: it buys
+        steps where the blur is short (why: docs/results.md §8).
     view_spacing_px: the largest gap, in render pixels, between neighbouring virtual views of
         the "length" schedule (> 0).
     backward_views: m, how many of a step's virtual views its backward runs through (0: all).
@@ -48,9 +47,8 @@ class BlurConfig:
         is drawn at random and carries its run's share of the weight. The backward costs about
         twice the forward, so the backward of m = 2 of n = 8 views costs a quarter of the
         exact one. Views of one exposure see the scene from poses a few pixels apart, so their
-        gradients are nearly the same and the estimate's noise is small. Default 2: more steps
-        than the exact backward in the same time, and better on every suite scene; m = 1 was
-        worse (docs/results.md §8).
+        gradients are nearly the same and the estimate's noise is small. Default 2, the cheapest
+        estimate that did not cost accuracy (why: docs/results.md §8).
     """
 
     num_virtual: int = 8
@@ -109,8 +107,7 @@ class TrajectoryConfig:
         how far the quadratic through a frame's neighbouring poses leaves the chord of its
         exposure at mid-exposure. The best geodesic fit to a bent blur puts the deblurred view
         about a third of the bend off the true mid pose, so the default 0.4 px keeps that error
-        near a tenth of a pixel; every suite clip that bends more gained from the three-knot path
-        or scored level (docs/results.md §4).
+        near a tenth of a pixel (why this line: docs/results.md §4).
     """
 
     kind: str = "direct"

@@ -181,8 +181,7 @@ EXPERIMENTS = {
                         "loss": {"lambda_depth_prior": 0.1, "depth_prior_tolerance": 0.1}}),
     ),
     # Neighbouring exposures on one constant-velocity camera path (L_cont, docs/method.md §6; issue #39's
-    # neighbour-continuity prior): off, at the weight that balances a pixel of residual against the
-    # photometric gradient on the endpoints, and a tenth of it.
+    # neighbour-continuity prior): off, at 0.01 per squared pixel of residual, and at a tenth of it.
     "exposure-continuity": (
         Variant("none", config={"loss": {"lambda_continuity": 0.0}}),
         Variant("continuity", config={"loss": {"lambda_continuity": 0.01}}),

@@ -87,17 +87,29 @@ def continuity_fwd(xi_start, xi_end, poses_ref, times, tau, pairs, weights):
     for name, a in (("xi_start", xs), ("xi_end", xe), ("poses_ref", P), ("times", t), ("weights", w)):
         if not np.all(np.isfinite(a)):
             raise ValueError(f"continuity_fwd: {name} holds NaN or inf")
-    saved = {"P": 0, "N": N, "dtypes": (np.asarray(xi_start).dtype, np.asarray(xi_end).dtype)}
+    if pairs.shape[0]:
+        delta = t[pairs[:, 1]] - t[pairs[:, 0]]
+        if not np.all(delta > 0):
+            raise ValueError("continuity_fwd: every pair (i, j) needs t_i < t_j")
+        tau = float(tau)
+        if not (np.isfinite(tau) and 0.0 <= tau <= float(delta.min()) * (1.0 + 1e-12)):
+            raise ValueError(f"continuity_fwd: tau must lie in [0, the shortest frame interval {delta.min():.6g}]; "
+                             f"got {tau}")
+    return _continuity_fwd(xi_start, xi_end, P, t, tau, pairs, w)
+
+
+def _continuity_fwd(xi_start, xi_end, P, t, tau, pairs, w):
+    """``continuity_fwd`` without validation (the training step's path: a validated model, pairs from
+    ``time_pairs``, tau within the frame interval)."""
+    xs = np.asarray(xi_start, dtype=np.float64)
+    xe = np.asarray(xi_end, dtype=np.float64)
+    pairs = np.asarray(pairs, dtype=np.int64).reshape(-1, 2)
+    saved = {"P": 0, "N": xs.shape[0], "dtypes": (np.asarray(xi_start).dtype, np.asarray(xi_end).dtype)}
     if pairs.shape[0] == 0:
         return 0.0, saved
     i, j = pairs[:, 0], pairs[:, 1]
     delta = t[j] - t[i]
-    if not np.all(delta > 0):
-        raise ValueError("continuity_fwd: every pair (i, j) needs t_i < t_j")
-    tau = float(tau)
-    if not (np.isfinite(tau) and 0.0 <= tau <= float(delta.min()) * (1.0 + 1e-12)):
-        raise ValueError(f"continuity_fwd: tau must lie in [0, the shortest frame interval {delta.min():.6g}]; got {tau}")
-    e = np.minimum(tau / delta, 1.0)[:, None]
+    e = np.minimum(float(tau) / delta, 1.0)[:, None]
     eye = np.broadcast_to(np.eye(4), (len(i), 4, 4))
     g, ga, gb = _sandwich(xs[j], P[j] @ se3_inverse(P[i]), xe[i])  # gap: da_j, db_i
     mi, mib, mia = _sandwich(xe[i], eye, xs[i])  # exposure i: db_i, da_i
@@ -107,7 +119,7 @@ def continuity_fwd(xi_start, xi_end, poses_ref, times, tau, pairs, weights):
     wr = w * r
     value = float(np.mean(np.sum(wr * wr, axis=1)))
     saved.update(P=len(i), i=i, j=j, e=e, delta=delta, r=r, w=w, g=g, mbar=mbar,
-                 jac=(ga, gb, mib, mia, mjb, mja), clipped=(tau / delta > 1.0))
+                 jac=(ga, gb, mib, mia, mjb, mja), clipped=(float(tau) / delta > 1.0))
     return value, saved
 
 

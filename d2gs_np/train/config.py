@@ -156,7 +156,7 @@ class TrainConfig:
     background: tuple = (0.0, 0.0, 0.0)
     # True: each step's render is moved over a background drawn at random for that step, so
     # transparency costs loss and the model turns opaque where the images are (train/background.py);
-    # evaluation renders over ``background``. Off: it did not pay on the suite (docs/results.md §4).
+    # evaluation renders over ``background``. Off by default (why: docs/results.md §4).
     random_background: bool = False
     lr: LearningRates = field(default_factory=LearningRates)
     # Components: "auto" lets the scene decide (docs/method.md §9); "on"/"off" force.

@@ -30,7 +30,7 @@ from collections import OrderedDict
 
 from d2gs_np.blur.endpoints import XI_END, XI_START
 from d2gs_np.blur.exposure import EXPOSURE_BLOCK, exposure_bwd, exposure_fwd
-from d2gs_np.losses.continuity import continuity_bwd, continuity_fwd, pixel_weights, time_pairs
+from d2gs_np.losses.continuity import _continuity_fwd, continuity_bwd, pixel_weights, time_pairs
 from d2gs_np.losses.depth_prior import depth_prior_bwd, depth_prior_fwd
 from d2gs_np.losses.entropy import _entropy_fwd, entropy_bwd
 from d2gs_np.losses.frequency import _frequency_fwd, frequency_bwd, target_spectrum
@@ -314,8 +314,8 @@ class ExposureContinuity:
         else:
             tau = m.exposure_tau()
         pairs = time_pairs(m.times, [x.frame])
-        value, saved = continuity_fwd(m.params[XI_START], m.params[XI_END], m.poses_ref, m.times, tau, pairs,
-                                      self.weights)
+        value, saved = _continuity_fwd(m.params[XI_START], m.params[XI_END], m.poses_ref, m.times, tau, pairs,
+                                       self.weights)
         return value, (saved, e_saved)
 
     def bwd(self, saved) -> TermGrads:
