@@ -187,6 +187,13 @@ EXPERIMENTS = {
         Variant("continuity", config={"loss": {"lambda_continuity": 0.01}}),
         Variant("continuity_weak", config={"loss": {"lambda_continuity": 0.001}}),
     ),
+    # The dynamic set's neighbour distances held over time as on rigid objects (L_iso, docs/method.md §6;
+    # issue #44): off, at 0.01 and at 0.1.
+    "dynamic-rigidity": (
+        Variant("none", config={"loss": {"lambda_iso": 0.0}}),
+        Variant("iso", config={"loss": {"lambda_iso": 0.01}}),
+        Variant("iso_strong", config={"loss": {"lambda_iso": 0.1}}),
+    ),
     # A background drawn at random each step against the fixed black one, over which a model can
     # stay semi-transparent (issue #40, docs/method.md §10), with the given (noisy) and true poses.
     "background": (

@@ -62,16 +62,23 @@ class LossConfig:
     # L_cont (train.terms.ExposureContinuity): neighbouring exposures on one constant-velocity camera
     # path, in squared pixels. Not in the paper (DyBluRF ties neighbouring exposures); off by default
     lambda_continuity: float = 0.0
+    # L_iso (train.terms.Isometry): the dynamic set's neighbour distances at the step's time and
+    # iso_time_offset later (earlier at the clip's end) alike, as on a rigid object. Not in the paper
+    # (Dynamic 3D Gaussians' isometry); off by default. Its neighbours are L_ts's (ts_neighbours, ts_knn_every)
+    lambda_iso: float = 0.0
+    iso_time_offset: float = 0.25
 
     def __post_init__(self):
         check_number(self.lambda_ssim, "LossConfig.lambda_ssim", 0.0, 1.0)
         for name in ("lambda_ts", "ts_time_weight", "ts_spatial_weight", "lambda_gs", "lambda_freq", "lambda_reproj",
-                     "lambda_depth_prior", "lambda_continuity"):
+                     "lambda_depth_prior", "lambda_continuity", "lambda_iso"):
             check_number(getattr(self, name), f"LossConfig.{name}", 0.0, hint="0 = term off")
         check_number(self.depth_prior_tolerance, "LossConfig.depth_prior_tolerance", 0.0,
                      hint="the prior's relative accuracy, e.g. 0.1; 0 pulls every pixel")
         check_number(self.ts_time_offset, "LossConfig.ts_time_offset", 0.0, lo_open=True,
                      hint="a time offset, the method's 0.08")
+        check_number(self.iso_time_offset, "LossConfig.iso_time_offset", 0.0, 1.0, lo_open=True,
+                     hint="a time offset in the clip's normalised time, e.g. 0.25")
         for name in ("ts_neighbours", "ts_knn_every"):
             check_int(getattr(self, name), f"LossConfig.{name}", 1)
         check_bool(self.freq_static_only, "LossConfig.freq_static_only")

@@ -47,6 +47,7 @@ from d2gs_np.pose.correspond import correspondences
 from d2gs_np.losses.smoothness import knn
 from d2gs_np.data.scene import Scene
 from d2gs_np.scene import gaussians
+from d2gs_np.scene.deformation import deform_basis
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
 from d2gs_np.train import prune as prune_rules
 from d2gs_np.train.config import ExperimentConfig
@@ -292,13 +293,20 @@ class NeighbourRefresh(Plugin):
     the parameters, so removed rows change the count and appended rows arrive with a 0 marker,
     even when a prune and a densification leave the count unchanged. The lists (``state_dict``)
     and the marker (a row statistic) are checkpointed, so a resumed run uses the same lists.
+
+    With ``at_time`` (L_iso's lists, name "iso_knn") the neighbours are found among the deformed
+    positions at that time instead of the base positions: a base position is the deformed one
+    minus the deformation at that time, which need not keep an object's points together.
     """
 
     name = "knn"
     MARK = "knn_built"
 
-    def __init__(self, k: int, every: int):
+    def __init__(self, k: int, every: int, at_time=None, name: str = "knn"):
         self.k, self.every = int(k), int(every)
+        self.at_time, self.name = at_time, name
+        self.MARK = "knn_built" if name == "knn" else f"{name}_built"
+        self.deform = None  # the run's DeformConfig (on_init), for ``at_time``
         self.lists = None  # (N_dynamic, min(k, N_dynamic - 1)) int64, or None before the first build
 
     def rows(self, params):
@@ -306,10 +314,14 @@ class NeighbourRefresh(Plugin):
 
     def _build(self, params):
         means = params.get(f"{DYNAMIC}.means")
+        if means is not None and self.at_time is not None and self.deform is not None:
+            b = deform_basis(self.at_time, self.deform)[0]
+            means = means + np.einsum("k,nkd->nd", b.astype(means.dtype), params[f"{DYNAMIC}.deform_means"])
         self.lists = knn(means, self.k) if means is not None else np.zeros((0, 0), dtype=np.int64)
         return self.lists
 
     def on_init(self, model):
+        self.deform = model.config.deform
         self._build(model.params)
 
     def neighbours(self, params):

@@ -35,6 +35,7 @@ from d2gs_np.losses.depth_prior import depth_prior_bwd, depth_prior_fwd
 from d2gs_np.losses.entropy import _entropy_fwd, entropy_bwd
 from d2gs_np.losses.frequency import _frequency_fwd, frequency_bwd, target_spectrum
 from d2gs_np.losses.frequency import warm_up as _frequency_warm_up
+from d2gs_np.losses.isometry import _isometry_fwd, isometry_bwd, pair_floor
 from d2gs_np.losses.photometric import photometric_bwd, photometric_fwd
 from d2gs_np.geometry.sampling import bilinear_bwd, bilinear_fwd
 from d2gs_np.losses.reprojection import cycle_bwd, cycle_fwd
@@ -47,7 +48,7 @@ from d2gs_np.train.plugins import DepthMemory, NeighbourRefresh
 from d2gs_np.train.schedule import downsample_area
 
 __all__ = ["TermInputs", "TermGrads", "Photometric", "Smoothness", "OpacityEntropy", "Frequency", "Reprojection",
-           "DepthPrior", "ExposureContinuity", "loss_terms", "terms_fwd_bwd"]
+           "DepthPrior", "ExposureContinuity", "Isometry", "loss_terms", "terms_fwd_bwd"]
 
 
 class TermInputs(NamedTuple):
@@ -119,6 +120,37 @@ class Smoothness:
         gt = time_bwd(saved[0], self.weight * self.time_weight)
         gs = spatial_bwd(saved[1], self.weight * self.spatial_weight)
         return TermGrads(render={}, params={f"{DYNAMIC}.{f}": a + b for f, a, b in zip(DEFORM_FIELDS, gt, gs)})
+
+
+class Isometry:
+    """L_iso: the dynamic set's neighbour distances at the step frame's time t = model.times[frame]
+    and at t +- ``time_offset`` alike (docs/method.md §6; ``losses/isometry.py``), with gradients on
+    ``dynamic.means`` and ``dynamic.deform_means``. The neighbours come from its own
+    ``NeighbourRefresh`` plugin ("iso_knn"), found among the positions at mid-clip (t = 0.5). The
+    floor is ``pair_floor`` of the present base positions. In a stage that renders only the
+    static set (warm-up) the term is 0 (not evaluated)."""
+
+    name = "iso"
+
+    def __init__(self, weight, time_offset, neighbours, knn_every):
+        self.weight, self.time_offset = weight, time_offset
+        self.knn = NeighbourRefresh(neighbours, knn_every, at_time=0.5, name="iso_knn")
+        self.plugins = [self.knn]
+
+    def fwd(self, x: TermInputs):
+        p = x.model.params
+        if x.stage.static_only or f"{DYNAMIC}.means" not in p:
+            return 0.0, None
+        A0, C = p[f"{DYNAMIC}.means"], p[f"{DYNAMIC}.deform_means"]
+        nb = self.knn.neighbours(p)
+        return _isometry_fwd(A0, C, nb, float(x.model.times[x.frame]), self.time_offset, pair_floor(A0, nb),
+                             x.model.config.deform)
+
+    def bwd(self, saved) -> TermGrads:
+        if saved is None:
+            return TermGrads(render={}, params={})
+        v_A0, v_C = isometry_bwd(saved, self.weight)
+        return TermGrads(render={}, params={f"{DYNAMIC}.means": v_A0, f"{DYNAMIC}.deform_means": v_C})
 
 
 class OpacityEntropy:
@@ -345,6 +377,14 @@ def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_d
         else:
             terms.append(Smoothness(config.lambda_ts, config.ts_time_weight, config.ts_spatial_weight,
                                     config.ts_time_offset, config.ts_neighbours, config.ts_knn_every))
+    if config.lambda_iso > 0:
+        if components is not None and not components.dynamic:
+            say("L_iso: left out (no dynamic set, nothing moves), although loss.lambda_iso > 0")
+        else:
+            terms.append(Isometry(config.lambda_iso, config.iso_time_offset, config.ts_neighbours,
+                                  config.ts_knn_every))
+            say(f"L_iso: weight {config.lambda_iso:g}, the dynamic set's distances to its {config.ts_neighbours} "
+                f"nearest neighbours at t and t + {config.iso_time_offset:g} alike")
     if config.lambda_gs > 0:
         terms.append(OpacityEntropy(config.lambda_gs))
     if config.lambda_freq > 0:
