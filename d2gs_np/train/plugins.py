@@ -306,28 +306,27 @@ class NeighbourRefresh(Plugin):
         self.k, self.every = int(k), int(every)
         self.at_time, self.name = at_time, name
         self.MARK = "knn_built" if name == "knn" else f"{name}_built"
-        self.deform = None  # the run's DeformConfig (on_init), for ``at_time``
         self.lists = None  # (N_dynamic, min(k, N_dynamic - 1)) int64, or None before the first build
 
     def rows(self, params):
         return {self.MARK: {p: np.zeros(num_rows(params, p)) for p in SETS}}
 
-    def _build(self, params):
+    def _build(self, params, deform):
         means = params.get(f"{DYNAMIC}.means")
-        if means is not None and self.at_time is not None and self.deform is not None:
-            b = deform_basis(self.at_time, self.deform)[0]
+        if means is not None and self.at_time is not None:
+            b = deform_basis(self.at_time, deform)[0]
             means = means + np.einsum("k,nkd->nd", b.astype(means.dtype), params[f"{DYNAMIC}.deform_means"])
         self.lists = knn(means, self.k) if means is not None else np.zeros((0, 0), dtype=np.int64)
         return self.lists
 
     def on_init(self, model):
-        self.deform = model.config.deform
-        self._build(model.params)
+        self._build(model.params, model.config.deform)
 
-    def neighbours(self, params):
-        """The lists for these parameters (built now if there are none for this many rows)."""
+    def neighbours(self, params, deform=None):
+        """The lists for these parameters (built now if there are none for this many rows);
+        ``deform`` (the run's DeformConfig) is needed with ``at_time``."""
         if self.lists is None or self.lists.shape[0] != num_rows(params, DYNAMIC):
-            self._build(params)
+            self._build(params, deform)
         return self.lists
 
     def on_step(self, state):
@@ -336,7 +335,7 @@ class NeighbourRefresh(Plugin):
         resized = self.lists is None or self.lists.shape[0] != n or not np.all(mark > 0.0)
         if not (resized or entered_period(state, self.every)):
             return state
-        self._build(state.params)
+        self._build(state.params, state.model.config.deform)
         return state.replace(rows={**state.rows, self.MARK: {**state.rows[self.MARK], DYNAMIC: np.ones(n)}})
 
     def state_dict(self):

@@ -142,7 +142,7 @@ class Isometry:
         if x.stage.static_only or f"{DYNAMIC}.means" not in p:
             return 0.0, None
         A0, C = p[f"{DYNAMIC}.means"], p[f"{DYNAMIC}.deform_means"]
-        nb = self.knn.neighbours(p)
+        nb = self.knn.neighbours(p, x.model.config.deform)
         return _isometry_fwd(A0, C, nb, float(x.model.times[x.frame]), self.time_offset, pair_floor(A0, nb),
                              x.model.config.deform)
 
