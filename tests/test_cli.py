@@ -41,6 +41,9 @@ def test_eval_with_test_pose_refinement_reports_both_novel_view_scores(trained):
     # each view keeps its best pose, its start included: never below the plain score
     assert opt["psnr"] >= plain["psnr"] - 1e-9
     assert opt["mean_rotation_deg"] >= 0.0 and np.isfinite(opt["mean_translation"])
+    # moving and static pixels split as for the plain novel views (the scene's test views carry masks)
+    assert set(opt) >= {"moving_psnr", "static_psnr", "moving_share"}
+    assert opt["moving_share"] == plain["moving_share"] and 0.0 < opt["moving_share"] < 1.0
     assert main(["eval", str(run)]) == 0  # off by default: the key is absent
     assert "nvs_pose_opt" not in json.loads((run / "metrics.json").read_text())
     assert main(["eval", str(run), "--test-pose-opt", "-1"]) == 2  # argparse's refusal, as a status

@@ -8,7 +8,8 @@
 - nvs_pose_opt (with ``test_pose_steps`` > 0, ``d2gs eval --test-pose-opt N``): the same test
   views after each aligned pose was refined against its image on the frozen scene for N steps
   (``pose_fit.fit_pose``; the protocol of BARF and BAD-Gaussians), with the mean rotation and
-  translation of the refinement. Reported beside ``nvs``, never instead of it.
+  translation of the refinement and the moving / static split of ``nvs``. Reported beside
+  ``nvs``, never instead of it.
 - input_blur: the blurry inputs against the sharp frames (what doing nothing scores).
 - trajectory: ATE, RPE_t, RPE_r of the optimised mid poses against the true
   ones, and the same three for the given (initial) poses under ``initial``.
@@ -225,7 +226,8 @@ def _novel_views(run: LoadedRun, scene, mids, reference, test_pose_steps=0) -> d
             out["nvs"].update(_seen_psnr(pairs, scene, split))
     out["nvs"]["views"] = _view_metrics(pairs, scene, split)
     if fitted:
-        out["nvs_pose_opt"] = {**_image_metrics(fitted), "steps": int(test_pose_steps),
+        out["nvs_pose_opt"] = {**_image_metrics(fitted), **_split_psnr(fitted, [f.mask for f in scene.test_frames]),
+                               "steps": int(test_pose_steps),
                                "mean_rotation_deg": float(np.degrees(np.mean([m[0] for m in moves]))),
                                "mean_translation": float(np.mean([m[1] for m in moves]))}
     return out

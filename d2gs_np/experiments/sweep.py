@@ -194,6 +194,15 @@ EXPERIMENTS = {
         Variant("iso", config={"loss": {"lambda_iso": 0.01}}),
         Variant("iso_strong", config={"loss": {"lambda_iso": 0.1}}),
     ),
+    # The static world's depth at the start (issue #40): the dense seeds and the fill at the plane sweep's
+    # depth (the default) against the scene's true depth (an oracle, InitConfig.static_depth = "scene"),
+    # with the movers' seeds at theirs too, with the true poses and with the given ones.
+    "static-depth": (
+        Variant("stereo_true", scene=_TRUE_POSES),
+        Variant("oracle_true", scene=_TRUE_POSES, config={"init": {"static_depth": "scene", "dynamic_depth": "scene"}}),
+        Variant("stereo"),
+        Variant("oracle", config={"init": {"static_depth": "scene", "dynamic_depth": "scene"}}),
+    ),
     # A background drawn at random each step against the fixed black one, over which a model can
     # stay semi-transparent (issue #40, docs/method.md §10), with the given (noisy) and true poses.
     "background": (

@@ -276,6 +276,7 @@ _METRIC_ROWS = (
     ("novel views: SSIM", ("nvs", "ssim"), ".3f"),
     ("novel views: FLIP (lower is better)", ("nvs", "flip"), ".4f"),
     ("novel views, test poses refined: PSNR [dB]", ("nvs_pose_opt", "psnr"), ".2f"),
+    ("novel views, test poses refined, moving pixels: PSNR [dB]", ("nvs_pose_opt", "moving_psnr"), ".2f"),
     ("depth AbsRel, deblurred views (lower is better)", ("dvs", "depth", "absrel"), ".4f"),
     ("depth AbsRel, deblurred views, static pixels", ("dvs", "depth", "absrel_static"), ".4f"),
     ("depth AbsRel, deblurred views, moving pixels", ("dvs", "depth", "absrel_moving"), ".4f"),

@@ -19,6 +19,7 @@ __all__ = ["DeformConfig", "InitConfig", "StereoConfig", "MotionInitConfig", "WA
 # how a seed's pixel can follow its object's track (``MotionInitConfig.warp``)
 WARPS = ("centroid", "similarity", "homography", "flow")
 DYNAMIC_DEPTHS = ("static_median", "scene", "prior")  # InitConfig.dynamic_depth
+STATIC_DEPTHS = ("stereo", "scene")  # InitConfig.static_depth
 PRIOR_SPACES = ("depth", "disparity")  # InitConfig.depth_prior_space
 
 
@@ -123,6 +124,10 @@ class InitConfig:
     # "prior": the scene's depth priors (depth_prior_file_path, e.g. a monocular network's), each
     # frame's aligned by a scale and shift to the static points seen in it (align_depth_prior).
     dynamic_depth: str = "static_median"
+    # Where the dense seeds and the fill of the static set take their depth: "stereo" (the plane
+    # sweep, interpolated where it keeps nothing) or "scene": the scene's depth maps at each seed's
+    # pixel (measured depth; on a synthetic scene the truth: an oracle, docs/method.md §8).
+    static_depth: str = "stereo"
     # What a prior holds (scene/depth_prior.py): "depth", a depth up to one scale for the clip
     # (video depth models such as the paper's Align3R), or "disparity", inverse depth up to a scale
     # and a shift per frame (single-image networks).
@@ -157,6 +162,7 @@ class InitConfig:
         check_number(self.dynamic_depth_factor, "InitConfig.dynamic_depth_factor", 0.0, 1.0, lo_open=True)
         check_number(self.dynamic_depth_jitter, "InitConfig.dynamic_depth_jitter", 0.0, 1.0, hi_open=True)
         check_choice(self.dynamic_depth, "InitConfig.dynamic_depth", DYNAMIC_DEPTHS)
+        check_choice(self.static_depth, "InitConfig.static_depth", STATIC_DEPTHS)
         check_choice(self.depth_prior_space, "InitConfig.depth_prior_space", PRIOR_SPACES)
         check_int(self.depth_prior_min_points, "InitConfig.depth_prior_min_points", 3,
                   hint="a scale and shift need at least 3 points to be checked")

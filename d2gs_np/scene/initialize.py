@@ -75,6 +75,10 @@ Dynamic points (only if some frame has a motion mask with a True pixel; otherwis
   evidence available before training; the jitter gives the set some thickness. The
   deformation model moves these points over time, so their exact placement matters less.
 
+``static_depth = "scene"`` lifts the dense seeds and the fill at the scene's own depth maps
+(measured depth; on a synthetic scene the truth: an oracle of the static geometry) instead of
+the stereo and the interpolation; the triangulated points stay as measured.
+
 ``info`` (for the run log) holds counts, reprojection statistics and the depth range, plus
 per-point provenance arrays (``static_source_frames``, ``dynamic_source_frames``,
 ``dynamic_source_pixels``).
@@ -259,19 +263,22 @@ def depth_from_points(points, frame, query, outlier_rel, max_points=None):
 
 
 def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, stereo=None, depth_range=None,
-               skips=(2, 4, 8)):
+               skips=(2, 4, 8), depth_maps=None):
     """Pixel-grid points of each keyframe's static pixels at their stereo depth, else at depths
     interpolated from trusted stereo pixels or from ref_points (module docstring, step 3).
 
     Keyframe number i uses grid offset (i mod stride) in both axes, so keyframes sample
     different pixels. ``stereo``: a StereoConfig (None or disabled: interpolation from
-    ref_points only); ``depth_range``: (near, far) of the sweep; ``skips``: source frames k +- s.
+    ref_points only); ``depth_range``: (near, far) of the sweep; ``skips``: source frames k +- s;
+    ``depth_maps``: per-frame (H, W) depths (``InitConfig.static_depth = "scene"``) that replace the
+    stereo where finite and > 0.
     Returns (points (P, 3), colours (P, 3), source frames (P,), info dict); info["measured"] (P,)
     is True for the points at a stereo depth of their own pixel (not interpolated).
     """
     pts, cols, src, measured = [], [], [], []
     info = {"stereo_kept_share": [], "stereo_seeds": 0}
-    use_stereo = stereo is not None and stereo.enabled and depth_range is not None and len(frames) > 1
+    use_stereo = (stereo is not None and stereo.enabled and depth_range is not None and len(frames) > 1
+                  and depth_maps is None)
     for i, k in enumerate(keyframes):
         f = frames[k]
         off = i % stride
@@ -303,6 +310,10 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
                 anc_uv = np.stack([anc[:, 1] + PIXEL_CENTER_OFFSET, anc[:, 0] + PIXEL_CENTER_OFFSET], axis=1)
                 miss = ~np.isfinite(depth)
                 depth[miss], _ = interpolate_inverse_depth(anc_uv, dmap[anc[:, 0], anc[:, 1]], pix[miss], outlier_rel)
+        if depth_maps is not None:
+            given = depth_maps[k][rows, cols_]
+            use = np.isfinite(given) & (given > 0)
+            depth[use], own[use] = given[use], True
         if not np.all(np.isfinite(depth)):
             miss = ~np.isfinite(depth)
             depth[miss] = depth_from_points(ref_points, f, pix[miss], outlier_rel)
@@ -422,6 +433,9 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
     if config.dynamic_depth == "scene" and not scene.has_depth:
         raise ValueError("InitConfig.dynamic_depth = 'scene' needs a depth map for every training frame "
                          "(depth_file_path, docs/dataset_format.md §3); this scene has none: use 'static_median'")
+    if config.static_depth == "scene" and not scene.has_depth:
+        raise ValueError("InitConfig.static_depth = 'scene' needs a depth map for every training frame "
+                         "(depth_file_path, docs/dataset_format.md §3); this scene has none: use 'stereo'")
     if config.dynamic_depth == "prior" and scene.has_moving_pixels and not scene.has_depth_prior:
         raise ValueError("InitConfig.dynamic_depth = 'prior' needs a depth prior for every training frame "
                          "(depth_prior_file_path, docs/dataset_format.md §3); this scene lacks one: add them "
@@ -494,7 +508,8 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
         keyframes = np.unique(np.round(np.linspace(0, N - 1, min(config.dense_frames, N))).astype(int))
         dense_pts, dense_cols, dense_src, dense_info = dense_seed(
             frames, keyframes, tri_pts, config.dense_stride, config.dense_outlier_rel, fc.mask_dilation_px,
-            config.stereo, (near, far), config.frame_skips)
+            config.stereo, (near, far), config.frame_skips,
+            [f.depth for f in frames] if config.static_depth == "scene" else None)
 
     # ---- 4. random fill on static pixels
     static_pools = []
@@ -515,6 +530,9 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
             s = fill_src == k
             # on the surface the seeds describe, where they describe one
             d = depth_from_points(anchors, frames[k], pix[s], config.dense_outlier_rel, max_points=4000)
+            if config.static_depth == "scene":  # the scene's depth at the pixel, where it has one
+                z = _at_pixels([frames[k].depth], np.zeros(int(s.sum()), dtype=np.int64), pix[s])
+                d = np.where(np.isfinite(z) & (z > 0), z, d)
             depth[s] = np.where(np.isfinite(d) & (d > 0), d, depth[s])
             fill_pts[s] = unproject_points(pix[s], depth[s], frames[k].cam_T_world, frames[k].K)
             fill_cols[s] = sample_image_bilinear(frames[k].image, pix[s])

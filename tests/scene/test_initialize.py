@@ -188,6 +188,26 @@ def test_dynamic_depth_from_the_scene_is_its_depth_map_at_the_seed_pixel(scene):
         InitConfig(dynamic_depth="sensor")
 
 
+def test_static_depth_from_the_scene_puts_the_dense_seeds_and_fill_on_its_depth_maps(scene):
+    cfg = InitConfig(static_depth="scene")
+    static, _, _, _, info = initialize_points(scene, cfg, np.random.default_rng(3))
+    n_tri, n_dense = info["num_static_triangulated"], info["num_static_dense"]
+    assert n_dense > 0 and info["num_static_fill"] > 0 and info["num_static_dense_stereo"] == 0  # no sweep
+    src = info["static_source_frames"]
+    for lo, hi in ((n_tri, n_tri + n_dense), (n_tri + n_dense, len(static))):  # dense seeds, then the fill
+        for k in np.unique(src[lo:hi]):
+            f = scene.frames[k]
+            sel = np.arange(lo, hi)[src[lo:hi] == k]
+            uv, z = project_points(static[sel], f.cam_T_world, f.K)
+            # each lifted at the depth map of the pixel that holds it (float64 round trip)
+            np.testing.assert_allclose(z, f.depth[uv[:, 1].astype(int), uv[:, 0].astype(int)], rtol=1e-9)
+    bare = dataclasses.replace(scene, frames=[dataclasses.replace(f, depth=None) for f in scene.frames])
+    with pytest.raises(ValueError, match="static_depth = 'scene' needs a depth map"):
+        initialize_points(bare, cfg, np.random.default_rng(3))
+    with pytest.raises(ValueError, match="InitConfig.static_depth"):
+        InitConfig(static_depth="lidar")
+
+
 # A prior exact up to its scale, aligned to the initial static points: the scale is their median
 # ratio, off by their depth error (median 0.3 %, above); the seeds then sit at the truth within 1 %.
 PRIOR_SEED_REL_TOL = 0.01
