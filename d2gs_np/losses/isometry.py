@@ -17,7 +17,7 @@ r = 0 and its gradient 0. The neighbours are those of L_ts (``losses.smoothness.
 base positions A0), so a pair is two Gaussians near each other in the canonical frame.
 
 Only the positions enter (base means and their deformation coefficients); rotations and
-colours are free. The gradient scatters each pair's share to both Gaussians with ``np.add.at``
+colours are free. The gradient scatters each pair's share to both Gaussians with ``np.bincount``
 (a fixed order).
 """
 from __future__ import annotations
@@ -118,8 +118,9 @@ def isometry_bwd(saved, v_value=1.0):
         v_ds = (v_r * 4.0 * d2 / (s * s), -v_r * 4.0 * d1 / (s * s))
         for b, u, d, v_d in zip(saved["bs"], saved["us"], saved["ds"], v_ds):
             v_u = (v_d / d)[..., None] * u  # (N, k, 3)
-            v_mu = v_u.sum(axis=1)  # + for g itself
-            np.add.at(v_mu, nb.ravel(), -v_u.reshape(-1, 3))  # - for each neighbour j
+            v_mu = v_u.sum(axis=1)  # + for g itself, - for each neighbour j (bincount: a fixed order)
+            flat = v_u.reshape(-1, 3)
+            v_mu -= np.stack([np.bincount(nb.ravel(), weights=flat[:, c], minlength=n) for c in range(3)], axis=1)
             v_A0 += v_mu
             v_C += b[None, :, None] * v_mu[:, None, :]
     return v_A0.astype(dt, copy=False), v_C.astype(dt, copy=False)
