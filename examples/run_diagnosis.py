@@ -2,7 +2,7 @@
 
 For each run folder (trained on a scene written by ``d2gs make-scene`` or ``d2gs experiment``:
 its folder holds ``suite_config.json``, from which the true world is rebuilt, and the true depth
-maps of ``docs/dataset_format.md §3``, cast from the world for a scene written before them), three
+maps of ``docs/dataset_format.md §3``, cast from the world for a scene written before them), four
 diagnoses:
 
 1. **Novel views, by what went wrong** (docs/method.md §10 aligns the test views as ``d2gs eval``
@@ -28,6 +28,15 @@ diagnoses:
    projected into every frame: the median tracking error (px) over Gaussians and frames, and its
    90th percentile. A motion model that follows the mover has errors near the blur's width or
    less; one that does not, tens of pixels.
+4. **How far the model's depth moves a novel view's pixels.** For each test view and the
+   training frame of its time (the nearest): each static pixel of that frame with a true depth,
+   lifted at the true depth and at the model's rendered depth (in the truth's units, the
+   alignment's scale), both projected into the test view through the true relative pose. The
+   ``parallax`` (px) is how far the true point moves between the two views; the ``shift`` (px)
+   is how far apart the two projections land: what the depth error alone costs the novel view.
+   Also the signed relative depth error's median, 10th and 90th percentiles: a shift from
+   depths scattered about the truth (Gaussians layered in front of and behind a surface) or
+   from a world too near or too far as a whole.
 
     python examples/run_diagnosis.py RUN [RUN ...] [--out diagnosis.json]
 
@@ -108,6 +117,23 @@ def _table(acc):
     return out
 
 
+def depth_shift(uv, true_depth, model_depth, K, rel):
+    """(parallax (P,), shift (P,)) in pixels of the pixels ``uv`` (P, 2) of one view, lifted at
+    ``true_depth`` and at ``model_depth`` (P,) and projected through ``rel`` (4, 4: that camera
+    to another, same intrinsics K): how far each true point moves between the two views, and how
+    far its projection at the model's depth lands from the true one (diagnosis 4)."""
+    rays = np.linalg.solve(K, np.vstack([uv.T, np.ones(len(uv))]))
+
+    def project(z):
+        Y = rel[:3, :3] @ (rays * z) + rel[:3, 3:4]
+        q = K @ Y
+        return (q[:2] / q[2]).T
+
+    p_true = project(np.asarray(true_depth, np.float64))
+    return np.linalg.norm(p_true - uv, axis=1), np.linalg.norm(project(np.asarray(model_depth, np.float64)) - p_true,
+                                                                 axis=1)
+
+
 def diagnose(run_dir) -> dict:
     from d2gs_np.data import suite
     from d2gs_np.data.io import load_scene
@@ -156,6 +182,26 @@ def diagnose(run_dir) -> dict:
         cls = _classify(f.gt_cam_T_world, f, s * full["expected_depth"], moving, scene.frames, False)
         _tally(dvs, cls, ((full["image"] - f.sharp) ** 2).sum(-1))
     res["nvs_classes"], res["dvs_classes"] = _table(nvs), _table(dvs)
+
+    # 4. how far the model's static depth moves each test view's pixels
+    times = np.array([f.time for f in scene.frames])
+    shifts = []
+    for f in scene.test_frames:
+        k = int(np.argmin(np.abs(times - f.time)))
+        g = scene.frames[k]
+        model_depth = s * _render(model, params, mids[k], g.time, g)["expected_depth"]
+        ok = np.isfinite(g.depth) & (g.depth > 0) & np.isfinite(model_depth) & (model_depth > 0)
+        if g.mask is not None:
+            ok &= ~g.mask
+        rows, cols = np.nonzero(ok)
+        uv = np.stack([cols + 0.5, rows + 0.5], axis=1)
+        par, shift = depth_shift(uv, g.depth[ok], model_depth[ok], g.K, f.cam_T_world @ np.linalg.inv(gt[k]))
+        rel = model_depth[ok] / g.depth[ok] - 1.0
+        shifts.append({"time": float(f.time), "frame": k, "parallax_px": float(np.median(par)),
+                       "shift_px": float(np.median(shift)), "shift_over_1px": float(np.mean(shift > 1.0)),
+                       "depth_error_median": float(np.median(rel)), "depth_error_p10": float(np.percentile(rel, 10)),
+                       "depth_error_p90": float(np.percentile(rel, 90))})
+    res["nvs_depth_shift"] = shifts
     res["dynamic_on_static"] = dyn_changed / static_px if static_px else None
 
     # 2. the static set alone in the moving pixels, against the world without its movers
@@ -228,6 +274,16 @@ def _print(rows):
               f"{track:>18s}")
 
 
+def _print_shifts(rows):
+    print(f"{'run':40s} {'t':>5s} {'parallax px':>11s} {'shift px':>8s} {'> 1 px %':>8s} "
+          f"{'depth err med / p10 / p90':>26s}   (static pixels, novel views)")
+    for r in rows:
+        for v in r["nvs_depth_shift"]:
+            print(f"{Path(r['run']).name[:40]:40s} {v['time']:5.2f} {v['parallax_px']:11.1f} {v['shift_px']:8.2f} "
+                  f"{100 * v['shift_over_1px']:8.0f} {v['depth_error_median']:+8.3f} / {v['depth_error_p10']:+.3f} / "
+                  f"{v['depth_error_p90']:+.3f}")
+
+
 def main(argv=None):
     ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
     ap.add_argument("runs", nargs="+", help="run folders trained on suite scenes")
@@ -235,6 +291,7 @@ def main(argv=None):
     args = ap.parse_args(argv)
     rows = [diagnose(r) for r in args.runs]
     _print(rows)
+    _print_shifts(rows)
     if args.out:
         Path(args.out).write_text(json.dumps(rows, indent=1) + "\n")
     return rows

@@ -40,6 +40,24 @@ def test_classes_by_hand():
     assert (cls[cls >= 1] == 1).all() and (cls == 0).sum() == 2  # nothing seen; moving stays moving
 
 
+def test_depth_shift_by_hand():
+    mod = load_example("run_diagnosis.py")
+    K = make_intrinsics(40.0, 40.0, 3.0, 2.0)
+    uv = np.array([[1.5, 0.5], [3.5, 2.5], [5.5, 3.5]])
+    z = np.full(3, 4.0)
+    side = np.eye(4)
+    side[0, 3] = -0.2  # the second camera 0.2 to the right: a point at depth 4 moves f b / z = 2 px
+    par, shift = mod.depth_shift(uv, z, z, K, side)
+    np.testing.assert_allclose(par, 2.0, rtol=1e-12)
+    assert np.all(shift == 0.0)  # the right depth lands where the truth does
+    par, shift = mod.depth_shift(uv, z, 1.1 * z, K, side)  # 10 % too far: moves 2 / 1.1 px
+    np.testing.assert_allclose(shift, 2.0 - 2.0 / 1.1, rtol=1e-12)
+    turn = np.eye(4)
+    turn[:3, :3] = np.array([[np.cos(0.05), 0.0, np.sin(0.05)], [0.0, 1.0, 0.0], [-np.sin(0.05), 0.0, np.cos(0.05)]])
+    par, shift = mod.depth_shift(uv, z, 0.5 * z, K, turn)  # a turn alone: no parallax, depth does not matter
+    assert np.all(par > 1.0) and np.abs(shift).max() < 1e-12
+
+
 @pytest.fixture(scope="module")
 def runs(tmp_path_factory):
     root = tmp_path_factory.mktemp("diag")
@@ -66,6 +84,11 @@ def test_a_test_view_on_the_path_is_seen_and_one_far_beside_it_is_partly_unseen(
     # 1 % depth tolerance at depth edges); 40 % of the scene depth beside it, part of it is new
     assert on["nvs_classes"]["unseen"]["pixel_share"] < 0.01
     assert far["nvs_classes"]["unseen"]["pixel_share"] > 0.05
+    # on the path a test view is its frame's own camera: nothing moves, whatever the depth; beside it, it does
+    for v in on["nvs_depth_shift"]:
+        assert v["parallax_px"] < 1e-6 and v["shift_px"] < 1e-6
+    assert all(v["parallax_px"] > 1.0 for v in far["nvs_depth_shift"])
+    assert len(far["nvs_depth_shift"]) == KW["num_test_views"]
 
 
 def test_a_run_on_a_scene_without_the_true_world_is_refused(tmp_path):
