@@ -25,6 +25,7 @@ from __future__ import annotations
 import numpy as np
 
 from d2gs_np.base.checks import check_number
+from d2gs_np.losses.smoothness import check_neighbours
 from d2gs_np.scene.config import DeformConfig
 from d2gs_np.scene.deformation import deform_basis
 
@@ -68,13 +69,7 @@ def isometry_fwd(base_means, coef_means, neighbours, t, eps, floor, config: Defo
     if base_means.shape != (n, 3) or coef_means.shape != (n, config.num_coefs, 3):
         raise ValueError(f"base_means must be (N, 3) and coef_means (N, {config.num_coefs}, 3) for one N; got "
                          f"{base_means.shape} and {coef_means.shape}")
-    if not isinstance(neighbours, np.ndarray) or neighbours.ndim != 2 or neighbours.shape[0] != n:
-        got = neighbours.shape if isinstance(neighbours, np.ndarray) else type(neighbours).__name__
-        raise ValueError(f"neighbours must be an ({n}, k) index array for the {n} Gaussians; got {got}; rebuild it "
-                         "with losses.smoothness.knn after the number of Gaussians changed")
-    if neighbours.size and (not np.issubdtype(neighbours.dtype, np.integer) or neighbours.min() < 0
-                            or neighbours.max() >= n):
-        raise ValueError(f"neighbours must hold integer indices in [0, {n}); rebuild it with knn")
+    check_neighbours(neighbours, n)
     check_number(t, "t", hint="a time")
     check_number(eps, "eps", 0.0, lo_open=True, hint="a time offset")
     check_number(floor, "floor", 0.0, lo_open=True, hint="a length in the scene's units")

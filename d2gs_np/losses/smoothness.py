@@ -38,7 +38,7 @@ from d2gs_np.constants import TS_NORM_EPS
 from d2gs_np.scene.config import DeformConfig
 from d2gs_np.scene.deformation import deform_basis
 
-__all__ = ["smooth_norm", "knn", "time_fwd", "time_bwd", "spatial_fwd", "spatial_bwd"]
+__all__ = ["smooth_norm", "knn", "check_neighbours", "time_fwd", "time_bwd", "spatial_fwd", "spatial_bwd"]
 
 
 def smooth_norm(u):
@@ -130,6 +130,12 @@ def spatial_fwd(coefs, neighbours, t, config: DeformConfig):
     Returns (value, a Python float; saved).
     """
     n = _check(coefs, t, config)
+    check_neighbours(neighbours, n)
+    return _spatial_fwd(coefs, neighbours, float(t), config, n)
+
+
+def check_neighbours(neighbours, n):
+    """Refuse neighbour lists that are not an (n, k) integer array of indices into n Gaussians."""
     if not isinstance(neighbours, np.ndarray) or neighbours.ndim != 2 or neighbours.shape[0] != n:
         got = neighbours.shape if isinstance(neighbours, np.ndarray) else type(neighbours).__name__
         raise ValueError(f"neighbours must be an ({n}, k) index array for the {n} Gaussians; got {got}; "
@@ -137,7 +143,6 @@ def spatial_fwd(coefs, neighbours, t, config: DeformConfig):
     if neighbours.size and (not np.issubdtype(neighbours.dtype, np.integer) or neighbours.min() < 0
                             or neighbours.max() >= n):
         raise ValueError(f"neighbours must hold integer indices in [0, {n}); rebuild it with knn")
-    return _spatial_fwd(coefs, neighbours, float(t), config, n)
 
 
 def _spatial_fwd(coefs, neighbours, t, config, n):

@@ -7,7 +7,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from d2gs_np.data.synthetic import make_scene
 from d2gs_np.losses.isometry import isometry_fwd, pair_floor
 from d2gs_np.losses.smoothness import knn
 from d2gs_np.scene.deformation import deform_basis
@@ -16,23 +15,12 @@ from d2gs_np.train.terms import TermInputs, loss_terms
 from d2gs_np.train.trainer import Trainer
 from run_fixtures import copy_run_for_resume
 
-TINY = dict(width=48, height=27, num_frames=6)
 
 
 def _config(iters, weight, **train):
     base = dict(iters=iters, quiet=True, eval_every=0, log_every=1, checkpoint_every=0, prune_every=0)
     base.update(train)
     return ExperimentConfig(train=TrainConfig(**base), loss=LossConfig(lambda_iso=weight, lambda_freq=0.0))
-
-
-@pytest.fixture(scope="module")
-def dynamic_scene():
-    return make_scene("dynamic", 0, **TINY)
-
-
-@pytest.fixture(scope="module")
-def static_scene():
-    return make_scene("static", 0, **TINY)
 
 
 class _Stage:

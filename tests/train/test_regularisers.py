@@ -7,7 +7,6 @@ import dataclasses
 import numpy as np
 import pytest
 
-from d2gs_np.data.synthetic import make_scene
 from d2gs_np.losses.smoothness import knn
 from d2gs_np.train.config import METHOD_REGULARISER_WEIGHTS, ExperimentConfig, LossConfig, TrainConfig
 from d2gs_np.train.plugins import NeighbourRefresh
@@ -15,7 +14,6 @@ from d2gs_np.train.terms import TermInputs, loss_terms
 from d2gs_np.train.trainer import Trainer
 from run_fixtures import copy_run_for_resume
 
-TINY = dict(width=48, height=27, num_frames=6)
 # Central FD of a term's weighted value, h = 1e-6, on model parameters of size ~0.1-1: the terms
 # are smooth there (no coincident neighbours, opacities away from the clamp), rounding of values
 # ~1 gives ~1e-10; 1e-8 still catches a wrong factor or a missing weight on gradients ~1e-3..1.
@@ -30,16 +28,6 @@ def _config(iters=12, loss=None, **train):
 
 
 ALL_ON = LossConfig(**METHOD_REGULARISER_WEIGHTS)
-
-
-@pytest.fixture(scope="module")
-def dynamic_scene():
-    return make_scene("dynamic", 0, **TINY)
-
-
-@pytest.fixture(scope="module")
-def static_scene():
-    return make_scene("static", 0, **TINY)
 
 
 def test_terms_enter_by_their_weights():
