@@ -344,7 +344,7 @@ def _normal_equations_kernel(J, w, r):
 
 def _normal_equations(J, w, r):
     """H = J^T W J, g = J^T W r (a Numba loop over the sparse rows: LAPACK/BLAS calls on these
-    small matrices took 0.1-0.3 s each on a machine whose cores are shared, ~1000 x their cost)."""
+    small matrices cost far more than their arithmetic where the cores are shared)."""
     return _normal_equations_kernel(np.ascontiguousarray(J), np.ascontiguousarray(w), np.ascontiguousarray(r))
 
 

@@ -16,7 +16,7 @@ class RenderConfig:
     antialiased: scale opacity by sqrt(det_orig / det_dilated) (off by default).
     tile_size: side of the square screen tiles in pixels.
     raster_float32: with float64 inputs, run the binning, the compositing and its backward
-        (about 85% of a forward + backward) in float32; the projection, its backward and every
+        (most of a forward + backward) in float32; the projection, its backward and every
         output and gradient stay float64. A speed option for training (the rasteriser's loops
         vectorise over twice the lanes); its error against the float64 render is measured in
         tests/render/test_raster_float32.py and examples/bench_render.py. No effect on float32

@@ -21,9 +21,9 @@ Static points
    outside it; isolated outlier depths dropped first). Choice: a few hundred triangulated
    points leave photographic detail to be grown by densification, which a CPU budget of a few
    thousand steps cannot afford; seeded at its pixel and depth, detail starts at its place, as
-   in depth-initialised 3DGS variants. Interpolated from the triangulated points the seeds sat
-   well in front of the true depth; at the stereo depth they are within about 1 %
-   (docs/results.md §9).
+   in depth-initialised 3DGS variants. The stereo depth, not the interpolation from the
+   triangulated points, because the interpolated seeds sit in front of the surfaces
+   (figures: docs/results.md §9).
 4. Random fill: ``random_fill_points`` points, each on the ray through a random static pixel
    (uniform in the pixel) of a random frame, at the depth interpolated (as in step 3) from the
    triangulated and dense points that frame sees (``fill_on_surface``), else at a depth
@@ -44,13 +44,11 @@ figures: docs/results.md §9, measured by ``python examples/init_diagnostics.py 
 (a) the sweep's distinctness check compared the best cost with hypotheses two steps away, a
 fraction of a source pixel on cube_sign, inside the minimum's own basin on blurred frames, and
 rejected most pixels; with ``StereoConfig.distinct_px = 1`` it looks 1 source pixel away.
-(b) With noisy poses many of cube_sign's two-view points sat far in front of the true depth and
-stretched the sweep; ``depth_range_mad = 3`` clips the range to the median x exp(+-3 sigma) of
-the log depths (``robust_depth_range``). Where the poses themselves are off (the demo keeps its
-noisy given poses: the bundle adjustment finds too few tracks), the seeds' depths stay wrong
+(b) With noisy poses two-view points far in front of the true depth stretch the sweep;
+``depth_range_mad = 3`` clips the range to the median x exp(+-3 sigma) of the log depths
+(``robust_depth_range``). Where the poses themselves are off, the seeds' depths stay wrong
 whatever the checks. Both fixes are off by default (``distinct_px = 0``, ``depth_range_mad = 0``:
-the earlier rules, exactly): in 600 s runs they raised the deblurred views on cube_sign and the
-demo but lowered the novel views with true poses.
+the earlier rules, exactly; why: docs/method.md §8).
 
 Sparse points given with the scene (``Scene.points3d``, the optional ``ply_file_path`` of
 docs/dataset_format.md §4, written by ``d2gs import-video``) replace steps 1-2's triangulation:
