@@ -225,8 +225,8 @@ class PoseSolverConfig:
     ``accept``: "converged" writes a call's poses only when the solver converged (relative cost
     decrease or step below tolerance, not stopped by ``max_iters`` or the damping limit) with a
     full-rank normal matrix (every free frame observed); "always" writes every call's result.
-    The calls that moved the poses away from the truth all stopped at max_iters, while nearly
-    every converged call lowered ATE (docs/results.md §11)."""
+    "converged" because an unconverged call is the one that can move the poses away from the
+    truth (the calls measured: docs/results.md §11)."""
 
     mode: str = "auto"
     every: int = 150  # schedule steps between solver calls (R; the paper's 500 is for GPU-length runs)
