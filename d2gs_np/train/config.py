@@ -299,6 +299,12 @@ class DensifyConfig:
     dynamic_pixels_per_gaussian: float = 17.0
     absgrad: bool = False  # densify on the absolute-sum statistic (module docstring)
     grad_threshold_abs_ndc: float = 8e-4  # its threshold (gsplat's advice for absgrad)
+    # > 0: every this many schedule steps inside [start, stop) every opacity is lowered to at most
+    # opacity_reset_value and its Adam moments zeroed (3DGS's opacity reset, every 3000 of its
+    # 30 000 steps): what the loss does not raise again is pruned. 0, the default: off
+    # (docs/method.md §8, densification).
+    opacity_reset_every: int = 0
+    opacity_reset_value: float = 0.01  # 3DGS's
 
     def __post_init__(self):
         for name in ("start_fraction", "stop_fraction"):
@@ -317,6 +323,9 @@ class DensifyConfig:
         check_number(self.split_factor, "DensifyConfig.split_factor", 1.0, lo_open=True)
         check_bool(self.enabled, "DensifyConfig.enabled")
         check_bool(self.absgrad, "DensifyConfig.absgrad")
+        check_int(self.opacity_reset_every, "DensifyConfig.opacity_reset_every", 0, hint="schedule steps, 0 = off")
+        check_number(self.opacity_reset_value, "DensifyConfig.opacity_reset_value", 0.0, 1.0, lo_open=True,
+                     hi_open=True)
 
 
 @dataclass(frozen=True)

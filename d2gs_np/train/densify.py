@@ -87,6 +87,28 @@ def mean_grad(rows, prefix):
     return rows[GRAD_SUM][prefix] / np.maximum(rows[GRAD_COUNT][prefix], 1.0)
 
 
+def reset_opacity(params, adam_state, value):
+    """3DGS's opacity reset: every opacity lowered to at most ``value`` (in (0, 1)), the Adam moments
+    of the opacity blocks zeroed and their step counts kept (as 3DGS replaces the optimiser's tensor).
+    Returns (params, adam_state, number lowered); the inputs are not modified."""
+    if not 0.0 < value < 1.0:
+        raise ValueError(f"reset_opacity: value must lie in (0, 1); got {value}")
+    ceiling = math.log(value) - math.log1p(-value)  # logit(value)
+    params, adam_state = dict(params), {slot: dict(blocks) for slot, blocks in adam_state.items()}
+    lowered = 0
+    for prefix in SETS:
+        name = f"{prefix}.opacity_logits"
+        if name not in params:
+            continue
+        x = params[name]
+        lowered += int(np.count_nonzero(x > ceiling))
+        params[name] = np.minimum(x, np.asarray(ceiling, dtype=x.dtype))
+        for slot in ("m", "v"):
+            if name in adam_state.get(slot, {}):
+                adam_state[slot][name] = np.zeros_like(adam_state[slot][name])
+    return params, adam_state, lowered
+
+
 def densify(params, adam_state, rows, config: DensifyConfig, extent, width, rng, dynamic_cap: int = 0):
     """Clone / split (see the module docstring), through ``train.rows.resize_rows`` so the Adam
     state and every per-row statistic follow; then the gradient statistics restart from zero.

@@ -27,6 +27,7 @@ The default list (``train/setup.py``, ``default_plugins``), in order:
    removes rows);
 3. ``Prune``: transparent, oversized and escaped Gaussians (``train/prune.py``);
 4. ``Densify``: clone and split (``train/densify.py``);
+   then ``OpacityReset`` when ``densify.opacity_reset_every`` > 0 (3DGS's opacity reset);
 5. ``PoseSolver`` (name "pose_solver", ``train/pose_solver.py``, docs/method.md §5) when the
    config and the scene call for it (``use_pose_solver``).
 Plugins a loss term needs (``term.plugins``: ``NeighbourRefresh`` of L_ts, ``DepthMemory`` of
@@ -51,14 +52,15 @@ from d2gs_np.scene.deformation import deform_basis
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
 from d2gs_np.train import prune as prune_rules
 from d2gs_np.train.config import ExperimentConfig
-from d2gs_np.train.densify import add_grad_stats, densify, dynamic_gaussian_cap, gaussian_cap, init_grad_stats
+from d2gs_np.train.densify import (add_grad_stats, densify, dynamic_gaussian_cap, gaussian_cap, init_grad_stats,
+                                   reset_opacity)
 from d2gs_np.train.log import psnr_from_mse
 from d2gs_np.train.learning_rates import size_extent
 from d2gs_np.train.rows import SETS, num_rows
 from d2gs_np.train.state import TrainState, entered_period
 
 __all__ = ["RunContext", "Plugin", "plugin_states", "load_plugin_states", "HeldOutPSNR", "GradientStatistics", "Prune",
-           "Densify", "NeighbourRefresh", "DepthMemory"]
+           "Densify", "OpacityReset", "NeighbourRefresh", "DepthMemory"]
 
 PLUGINS_KEY = "plugins/"  # a plugin's arrays in a checkpoint: plugins/<name>/<key>
 
@@ -281,6 +283,29 @@ class Densify(Plugin):
             self.note(f"step {state.step}: densified (cloned {info['cloned']}, split {info['split']}{dyn}) -> "
                       f"{state.model.num_gaussians()} Gaussians")
         return state
+
+
+class OpacityReset(Plugin):
+    """Every ``densify.opacity_reset_every`` schedule steps inside densification's [start, stop):
+    every opacity lowered to at most ``densify.opacity_reset_value``, its Adam moments zeroed
+    (``train/densify.py``, ``reset_opacity``; 3DGS's opacity reset). Gaussians the loss does not
+    raise again fall to the prune's floor: floaters and faint layers that help a few views only."""
+
+    name = "opacity_reset"
+
+    def __init__(self, config: ExperimentConfig, note=None):
+        self.config = config
+        self.note = note if note is not None else (lambda m: None)
+
+    def on_step(self, state):
+        dc, total = self.config.densify, self.config.train.iters
+        if not (dc.opacity_reset_every and entered_period(state, dc.opacity_reset_every)
+                and dc.start_fraction * total <= state.sched < dc.stop_fraction * total):
+            return state
+        params, adam_state, lowered = reset_opacity(state.params, state.adam, dc.opacity_reset_value)
+        self.note(f"step {state.step}: opacity reset to {dc.opacity_reset_value:g} ({lowered} of "
+                  f"{state.model.num_gaussians()} lowered)")
+        return state.replace(model=state.model.replace(params=params), adam=adam_state)
 
 
 class NeighbourRefresh(Plugin):

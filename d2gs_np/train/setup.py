@@ -42,7 +42,7 @@ from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.learning_rates import camera_row_scales, learning_rates, position_extent, scene_extent
 from d2gs_np.train.log import RunLog
 from d2gs_np.train.model import Model
-from d2gs_np.train.plugins import (Densify, GradientStatistics, HeldOutPSNR, Prune, RunContext,
+from d2gs_np.train.plugins import (Densify, GradientStatistics, HeldOutPSNR, OpacityReset, Prune, RunContext,
                                    load_plugin_states)
 from d2gs_np.train.pose_solver import PoseSolver, use_pose_solver
 from d2gs_np.train.run_folder import check_run_folder, check_scene_of_run, latest_checkpoint
@@ -252,6 +252,8 @@ def default_plugins(context: RunContext, adjusted_then: str = "") -> list:
         moving = sum(int(np.count_nonzero(f.mask)) for f in scene.frames if f.mask is not None)
         plugins.append(Densify(config, context.extent, max(f.width for f in scene.frames), pixels,
                                 context.note, moving_pixels=moving))
+        if config.densify.opacity_reset_every:
+            plugins.append(OpacityReset(config, context.note))
     if use_pose_solver(scene, config, context.note, adjusted_then):
         plugins.append(PoseSolver(scene, config, context.run_dir, context.note))
     return plugins

@@ -204,3 +204,40 @@ def test_absgrad_reads_the_absolute_sums_against_its_own_threshold():
         assert any(np.array_equal(p["static.means"][0 if not flag else 1], m) for m in out["static.means"][6:])
     with pytest.raises(ValueError, match="absgrad must be true or false"):
         DensifyConfig(absgrad="yes")
+
+
+def test_opacity_reset_lowers_only_what_is_above_the_value_and_zeroes_the_moments():
+    from d2gs_np.train.densify import reset_opacity
+
+    rng = np.random.default_rng(3)
+    p = _params(rng)
+    p["static.opacity_logits"][:] = np.array([-12.0, -4.6, 0.0, 3.0, 30.0, -40.0])  # 6e-6 .. 1 - 1e-13
+    p["dynamic.opacity_logits"][:] = np.array([800.0, -800.0, -4.0])  # saturated both ways: no overflow
+    state = adam.adam_init(p)
+    for slot in ("m", "v"):
+        for name in state[slot]:
+            state[slot][name] = rng.uniform(0.1, 1.0, size=state[slot][name].shape)
+    state["step"] = {k: 17 for k in state["step"]}
+    before = {k: v.copy() for k, v in p.items()}
+    out, st, lowered = reset_opacity(p, state, 0.01)
+    for prefix in ("static", "dynamic"):
+        o = 1.0 / (1.0 + np.exp(-np.clip(out[f"{prefix}.opacity_logits"], -500, 500)))
+        o0 = 1.0 / (1.0 + np.exp(-np.clip(before[f"{prefix}.opacity_logits"], -500, 500)))
+        assert np.all(np.isfinite(out[f"{prefix}.opacity_logits"]))
+        # above 0.01: set to 0.01 (to rounding of logit and sigmoid, 1e-15 relative); at or below: unchanged
+        np.testing.assert_allclose(o, np.minimum(o0, 0.01), rtol=1e-12, atol=0)
+        assert not st["m"][f"{prefix}.opacity_logits"].any() and not st["v"][f"{prefix}.opacity_logits"].any()
+        assert st["step"][f"{prefix}.opacity_logits"] == 17  # 3DGS keeps the step count
+    assert lowered == int(np.sum(before["static.opacity_logits"] > -4.59512)) + 2  # logit(0.01) = -4.59512
+    # every other block and the inputs untouched
+    for name in p:
+        np.testing.assert_array_equal(p[name], before[name])
+        if "opacity" not in name:
+            np.testing.assert_array_equal(out[name], before[name])
+            np.testing.assert_array_equal(st["m"][name], state["m"][name])
+    with pytest.raises(ValueError, match="value must lie in"):
+        reset_opacity(p, state, 1.0)
+    with pytest.raises(ValueError, match="opacity_reset_every"):
+        DensifyConfig(opacity_reset_every=-1)
+    with pytest.raises(ValueError, match="opacity_reset_value"):
+        DensifyConfig(opacity_reset_value=0.0)

@@ -332,6 +332,31 @@ def test_the_moving_pixels_cap_the_dynamic_set_and_the_log_says_so(dynamic_scene
     assert any(f"the dynamic set up to {d0 + 2} ({moving} moving pixels" in n for n in capped.log.notes)
 
 
+def test_opacity_reset_fires_inside_the_densification_window_only_and_resumes_exactly(dynamic_scene, tmp_path):
+    from d2gs_np.train.config import DensifyConfig
+
+    # schedule steps 1..12, densification from 3 to 9: resets at 4 and 8 (not 12, past the window)
+    dens = DensifyConfig(enabled=True, every=3, start_fraction=0.25, stop_fraction=0.75, grad_threshold_ndc=1e-6,
+                         opacity_reset_every=4, opacity_reset_value=0.02)
+    cfg = _config(iters=12, checkpoint_every=6).replace(densify=dens)
+    full = Trainer(dynamic_scene, cfg, tmp_path / "full")
+    full.run()
+    resets = [n for n in full.log.notes if "opacity reset to 0.02" in n]
+    assert [n.split(":")[0] for n in resets] == ["step 4", "step 8"], resets
+    assert all(int(n.split("(")[1].split(" ")[0]) > 0 for n in resets), "the trained opacities rise above 0.02"
+    copy_run_for_resume(tmp_path / "full", tmp_path / "part")
+    resumed = Trainer(dynamic_scene, cfg, tmp_path / "part", resume=True)
+    resumed.run()
+    for name in full.params:
+        np.testing.assert_array_equal(resumed.params[name], full.params[name], err_msg=name)
+    off = Trainer(dynamic_scene, _config(iters=12).replace(densify=dataclasses.replace(dens, opacity_reset_every=0)),
+                  tmp_path / "off")
+    off.run()
+    assert not any("opacity reset" in n for n in off.log.notes)
+    a, b = off.params["static.opacity_logits"], full.params["static.opacity_logits"]
+    assert a.shape != b.shape or not np.array_equal(a, b), "the resets changed nothing"
+
+
 def test_resume_is_exact_with_densification(dynamic_scene, tmp_path):
     from d2gs_np.train.config import DensifyConfig
 
