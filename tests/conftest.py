@@ -53,9 +53,9 @@ SLOW_TESTS = {
         "runs examples/suite.py end to end (two training cells)",
     "video/test_import.py::test_image_folder_import_registers_the_blurry_suite_frames": _SUITE_IMPORT,
     "video/test_import.py::test_video_file_round_trip": _SUITE_IMPORT + ", from an encoded video",
-    "video/test_import.py::test_motion_masks_find_the_mover": _SUITE_IMPORT,
-    "video/test_import.py::test_movers_neither_pull_the_poses_nor_escape_the_masks": _SUITE_IMPORT,
-    "video/test_import.py::test_a_large_mover_does_not_take_the_place_of_the_static_world": _SUITE_IMPORT,
+    "video/test_import_movers.py::test_motion_masks_find_the_mover": _SUITE_IMPORT,
+    "video/test_import_movers.py::test_movers_neither_pull_the_poses_nor_escape_the_masks": _SUITE_IMPORT,
+    "video/test_import_movers.py::test_a_large_mover_does_not_take_the_place_of_the_static_world": _SUITE_IMPORT,
     "video/test_import.py::test_sparse_points_seed_the_initialisation":
         "ray-casts the 24-frame suite clip and initialises points from it twice",
     "video/test_import.py::test_untextured_and_unregistrable_frames_are_named":

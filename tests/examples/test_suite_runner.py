@@ -6,6 +6,14 @@ import pytest
 from example_fixtures import load_example
 
 
+def _no_stretch(tmp_path):
+    """A config that ends each cell with its 3-step schedule: a budgeted run otherwise trains on to
+    spend its budget (TrainConfig.stretch_to_budget), a minute per cell that tests nothing here."""
+    path = tmp_path / "no_stretch.json"
+    path.write_text(json.dumps({"train": {"stretch_to_budget": False}}))
+    return ["--config", str(path)]
+
+
 def _cell(out, experiment, variant):
     from d2gs_np.experiments.sweep import EXPERIMENTS, cell_folder
 
@@ -20,8 +28,9 @@ def suite_runner():
 
 @pytest.mark.slow
 def test_suite_runner_writes_the_table_and_resumes(tmp_path, suite_runner):
-    args = ["--out", str(tmp_path), "--scenes", "wall_disk", "--variants", "sharp", "blur", "noblur",
-            "--iters", "3", "--budget", "60", "--size", "0.15", "--threads", "1"]
+    args = ["--out", str(tmp_path / "out"), "--scenes", "wall_disk", "--variants", "sharp", "blur", "noblur",
+            "--iters", "3", "--budget", "60", "--size", "0.15", "--threads", "1", *_no_stretch(tmp_path)]
+    tmp_path = tmp_path / "out"
     assert suite_runner.main(args) == 0
     md = (tmp_path / "suite_by_scene.md").read_text()
     row = next(line for line in md.splitlines() if line.startswith("| wall_disk"))
@@ -68,8 +77,9 @@ def test_ablation_variants_turn_on_one_regulariser_each(suite_runner, tmp_path):
 
 @pytest.mark.slow
 def test_ablation_writes_its_table(tmp_path, suite_runner):
-    args = ["--out", str(tmp_path), "--scenes", "wall_disk", "--variants", "render_only", "all",
-            "--iters", "3", "--budget", "60", "--size", "0.15", "--threads", "1"]
+    args = ["--out", str(tmp_path / "out"), "--scenes", "wall_disk", "--variants", "render_only", "all",
+            "--iters", "3", "--budget", "60", "--size", "0.15", "--threads", "1", *_no_stretch(tmp_path)]
+    tmp_path = tmp_path / "out"
     assert suite_runner.main(args) == 0
     md = (tmp_path / "ablation_by_scene.md").read_text()
     rows = [line for line in md.splitlines() if line.startswith("| wall_disk")]

@@ -1,5 +1,4 @@
 """d2gs import-video: decoding, registration, masks, errors, the seeding hook (docs/dataset_format.md §8)."""
-import functools
 import json
 
 import cv2
@@ -15,24 +14,7 @@ from d2gs_np.video.decode import read_frames
 from d2gs_np.video.importer import ImportConfig, import_video
 from d2gs_np.video.sfm import register_video
 
-SMALL = dict(subframes=4, num_test_views=0)  # the suite size (240x135, 24 frames), cheaper blur
-W, H = 240, 135
-
-
-@functools.lru_cache(maxsize=None)
-def _scene(preset):
-    return make_suite_scene(preset, 0, **SMALL)
-
-
-def _write_folder(scene, path):
-    path.mkdir()
-    for k, f in enumerate(scene.frames):
-        cv2.imwrite(str(path / f"f{k:03d}.png"), np.round(f.image[:, :, ::-1] * 255).astype(np.uint8))
-    return path
-
-
-def _depth(preset):
-    return build_suite_world(resolve(preset, 0, **SMALL)).depth
+from import_fixtures import SMALL, H, W, depth as _depth, suite_scene as _scene, write_folder as _write_folder
 
 
 def test_image_folder_import_registers_the_blurry_suite_frames(tmp_path):
@@ -72,32 +54,6 @@ def test_video_file_round_trip(tmp_path):
     gt = np.stack([f.gt_cam_T_world for f in sc.frames])
     assert ate(np.stack([f.cam_T_world for f in out.frames]), gt) / _depth("photo_room") < 0.03
     assert not any(f.mask.any() for f in out.frames)
-
-
-def test_motion_masks_find_the_mover(tmp_path):
-    sc = _scene("wall_disk")
-    import_video(_write_folder(sc, tmp_path / "frames"), tmp_path / "scene", log=None)
-    out = load_scene(tmp_path / "scene")
-    gt = np.stack([f.mask for f in sc.frames])
-    pr = np.stack([f.mask for f in out.frames])
-    iou = (gt & pr).sum() / (gt | pr).sum()
-    assert iou > 0.5, iou
-
-
-def test_movers_neither_pull_the_poses_nor_escape_the_masks(tmp_path):
-    """cube_sign: a tumbling cube and a swinging sign, 13 % of the pixels. With SIFT tracks this import
-    was refused at this size (frames 11-23 could not be registered); with KLT tracks and the former
-    masks (flow-disagreement gate, no point pruning, no second pass) it gave ATE 0.47 % but IoU 0.48;
-    now 1.6 % and 0.63."""
-    sc = _scene("cube_sign")
-    rep = import_video(_write_folder(sc, tmp_path / "frames"), tmp_path / "scene", log=None)
-    out = load_scene(tmp_path / "scene")
-    gt = np.stack([f.gt_cam_T_world for f in sc.frames])
-    assert ate(np.stack([f.cam_T_world for f in out.frames]), gt) / _depth("cube_sign") < 0.02
-    g = np.stack([f.mask for f in sc.frames])
-    p = np.stack([f.mask for f in out.frames])
-    assert (g & p).sum() / (g | p).sum() > 0.5
-    assert rep["num_points"] == len(out.points3d)
 
 
 def test_pure_rotation_is_detected_and_falls_back(tmp_path):
@@ -187,25 +143,6 @@ def test_sparse_points_seed_the_initialisation(tmp_path):
     back = load_scene(tmp_path / "s")
     np.testing.assert_allclose(back.points3d, pts)
     np.testing.assert_allclose(back.points3d_colors, np.round(0.25 * 255) / 255)
-
-
-def test_a_large_mover_does_not_take_the_place_of_the_static_world(tmp_path):
-    """big_mover: a textured panel over half the frame sways before smooth photographs. Its tracks are
-    triangulated as static points by a registration whose camera absorbs the sway (two layers: any two
-    image motions are explained by a camera rotation plus translation; at the suite size, ATE 6.9 % of
-    the depth and mask IoU 0.27 without the check). The static-world check (importer.static_motion)
-    splits the tracks into two groups, registers the one owning the frame border and replaces the
-    registration. (tests/video/test_segment.py shows the same on a synthetic two-layer world, with
-    the first registration's error beside it.)"""
-    sc = _scene("big_mover")
-    rep = import_video(_write_folder(sc, tmp_path / "frames"), tmp_path / "scene", log=None)
-    out = load_scene(tmp_path / "scene")
-    gt = np.stack([f.gt_cam_T_world for f in sc.frames])
-    err = ate(np.stack([f.cam_T_world for f in out.frames]), gt) / _depth("big_mover")
-    g = np.stack([f.mask for f in sc.frames])
-    p = np.stack([f.mask for f in out.frames])
-    iou = (g & p).sum() / (g | p).sum()
-    assert rep["static_motion"]["switched"] and err < 0.02 and iou > 0.5, (err, iou, rep["static_motion"])
 
 
 def test_register_video_with_given_tracks_is_the_same_registration():
