@@ -203,15 +203,19 @@ EXPERIMENTS = {
         Variant("stereo"),
         Variant("oracle", config={"init": {"static_depth": "scene", "dynamic_depth": "scene"}}),
     ),
-    # 3DGS's opacity reset during densification (issue #40: faint layers in front of the static world,
-    # docs/method.md §8): off, every 500 schedule steps of the 2000 (at 500 and 1000), once at 1000;
-    # with the given (noisy) and the true poses.
+    # Opacity resets during densification (issue #40: faint layers in front of the static world,
+    # docs/method.md §8): off; 3DGS's (to 0.01 every 500 schedule steps of the 2000, at 500 and 1000,
+    # pruned at 0.005); splatfacto's, which BAD-Gaussians trains with (to 0.2, culled below 0.1 at
+    # every prune); with the given (noisy) and the true poses.
     "opacity-reset": (
         Variant("none", config={"densify": {"opacity_reset_every": 0}}),
         Variant("reset", config={"densify": {"opacity_reset_every": 500}}),
-        Variant("reset_once", config={"densify": {"opacity_reset_every": 1000}}),
+        Variant("cull_reset", config={"densify": {"opacity_reset_every": 500, "opacity_reset_value": 0.2},
+                                      "train": {"prune_opacity": 0.1}}),
         Variant("none_true", scene=_TRUE_POSES, config={"densify": {"opacity_reset_every": 0}}),
-        Variant("reset_true", scene=_TRUE_POSES, config={"densify": {"opacity_reset_every": 500}}),
+        Variant("cull_reset_true", scene=_TRUE_POSES,
+                config={"densify": {"opacity_reset_every": 500, "opacity_reset_value": 0.2},
+                        "train": {"prune_opacity": 0.1}}),
     ),
     # A background drawn at random each step against the fixed black one, over which a model can
     # stay semi-transparent (issue #40, docs/method.md §10), with the given (noisy) and true poses.
