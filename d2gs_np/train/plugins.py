@@ -244,6 +244,11 @@ class Prune(Plugin):
         return state, removed
 
 
+def densifying(state, densify_config, total: int) -> bool:
+    """Whether the schedule step lies in densification's window [start, stop) of ``total`` steps."""
+    return densify_config.start_fraction * total <= state.sched < densify_config.stop_fraction * total
+
+
 class Densify(Plugin):
     """Every ``densify.every`` steps inside [start, stop) of the run: clone and split
     (``train/densify.py``) up to the clip's cap (``gaussian_cap`` of its ``pixels``, observed
@@ -271,7 +276,7 @@ class Densify(Plugin):
 
     def on_step(self, state):
         dc, total = self.densify_config, self.config.train.iters
-        if not (entered_period(state, dc.every) and dc.start_fraction * total <= state.sched < dc.stop_fraction * total):
+        if not (entered_period(state, dc.every) and densifying(state, dc, total)):
             return state
         rng = np.random.default_rng((self.config.train.seed, state.step, 7))
         params, adam_state, rows, info = densify(state.params, state.adam, state.rows, dc, self.extent, self.width, rng,
@@ -300,7 +305,7 @@ class OpacityReset(Plugin):
     def on_step(self, state):
         dc, total = self.config.densify, self.config.train.iters
         if not (dc.opacity_reset_every and entered_period(state, dc.opacity_reset_every)
-                and dc.start_fraction * total <= state.sched < dc.stop_fraction * total):
+                and densifying(state, dc, total)):
             return state
         params, adam_state, lowered = reset_opacity(state.params, state.adam, dc.opacity_reset_value)
         self.note(f"step {state.step}: opacity reset to {dc.opacity_reset_value:g} ({lowered} of "
