@@ -84,7 +84,7 @@ def plane_sweep_depth(ref_image, ref_pose, ref_K, sources, near, far, config: St
     rays = np.stack([(u - Kr[0, 2]) / Kr[0, 0], (v - Kr[1, 2]) / Kr[1, 1], np.ones_like(u)], axis=-1)
 
     D, S = config.num_depths, len(sources)
-    cost = np.full((D, S, H, W), np.nan, dtype=np.float32)
+    cost = np.full((D, H, W, S), np.nan, dtype=np.float32)  # sources last: the combine below sorts along them
     span = np.full((S, H, W), np.nan)  # source pixels between the first and the last hypothesis
     for s, (simg, spose, sK, smask) in enumerate(sources):
         simg = np.asarray(simg, dtype=np.float32)
@@ -116,15 +116,16 @@ def plane_sweep_depth(ref_image, ref_pose, ref_K, sources, near, far, config: St
             den = _box(okm.astype(np.float32), config.window)
             with np.errstate(invalid="ignore", divide="ignore"):
                 c = np.where(den > 0.999, num / np.maximum(den, 1e-6), np.nan)  # the whole window seen
-            cost[i, s] = c
+            cost[i, :, :, s] = c
 
     # best half of the sources, at least min_sources
-    n_valid = np.isfinite(cost).sum(axis=1)  # (D, H, W)
-    srt = np.sort(np.where(np.isfinite(cost), cost, np.inf), axis=1)
+    finite = np.isfinite(cost)
+    n_valid = finite.sum(axis=-1)  # (D, H, W)
+    srt = np.sort(np.where(finite, cost, np.inf), axis=-1)
     keep_n = np.maximum((n_valid + 1) // 2, np.minimum(config.min_sources, n_valid))
-    csum = np.cumsum(np.where(np.isfinite(srt), srt, 0.0), axis=1)
+    csum = np.cumsum(np.where(np.isfinite(srt), srt, 0.0), axis=-1)
     idx = np.clip(keep_n - 1, 0, max(S - 1, 0))
-    total = np.take_along_axis(csum, idx[:, None], axis=1)[:, 0]
+    total = np.take_along_axis(csum, idx[..., None], axis=-1)[..., 0]
     combined = np.where(n_valid >= config.min_sources, total / np.maximum(keep_n, 1), np.inf)  # (D, H, W)
 
     best = np.argmin(combined, axis=0)  # (H, W)

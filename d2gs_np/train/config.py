@@ -9,6 +9,7 @@ from __future__ import annotations
 
 import dataclasses
 import json
+import numbers
 import typing
 from dataclasses import dataclass, field
 from pathlib import Path
@@ -67,11 +68,17 @@ class LossConfig:
     # (Dynamic 3D Gaussians' isometry); off by default. Its neighbours are L_ts's (ts_neighbours, ts_knn_every)
     lambda_iso: float = 0.0
     iso_time_offset: float = 0.25
+    # L_stereo (train.terms.StereoPrior): L_depth's form against a plane sweep over the model's own
+    # renders (train/render_stereo.py), made at these fractions of the schedule. Not in the paper; off
+    lambda_stereo: float = 0.0
+    stereo_tolerance: float = 0.05  # the sweep's own relative accuracy on sharp renders
+    stereo_at: tuple = (0.25, 0.5)
+    stereo_depths: int = 64  # the sweep's hypotheses (InitConfig.stereo's other settings); renders are sharp
 
     def __post_init__(self):
         check_number(self.lambda_ssim, "LossConfig.lambda_ssim", 0.0, 1.0)
         for name in ("lambda_ts", "ts_time_weight", "ts_spatial_weight", "lambda_gs", "lambda_freq", "lambda_reproj",
-                     "lambda_depth_prior", "lambda_continuity", "lambda_iso"):
+                     "lambda_depth_prior", "lambda_continuity", "lambda_iso", "lambda_stereo"):
             check_number(getattr(self, name), f"LossConfig.{name}", 0.0, hint="0 = term off")
         check_number(self.depth_prior_tolerance, "LossConfig.depth_prior_tolerance", 0.0,
                      hint="the prior's relative accuracy, e.g. 0.1; 0 pulls every pixel")
@@ -81,6 +88,14 @@ class LossConfig:
                      hint="a time offset in the clip's normalised time, e.g. 0.25")
         for name in ("ts_neighbours", "ts_knn_every"):
             check_int(getattr(self, name), f"LossConfig.{name}", 1)
+        check_int(self.stereo_depths, "LossConfig.stereo_depths", 3, hint="a parabola needs three")
+        check_number(self.stereo_tolerance, "LossConfig.stereo_tolerance", 0.0,
+                     hint="the sweep's relative accuracy, e.g. 0.05; 0 pulls every pixel")
+        at = self.stereo_at
+        if (not isinstance(at, tuple) or not at
+                or not all(isinstance(a, numbers.Real) and not isinstance(a, bool) and 0.0 < a < 1.0 for a in at)):
+            raise ValueError(f"LossConfig.stereo_at must be a non-empty tuple of schedule fractions in (0, 1), "
+                             f"e.g. (0.25, 0.5); got {at!r}")
         check_bool(self.freq_static_only, "LossConfig.freq_static_only")
         check_number(self.freq_cutoff, "LossConfig.freq_cutoff", 0.0, 2.0 ** 0.5, lo_open=True, hi_open=True,
                      hint="normalised radial frequency up to sqrt 2, the method's 0.1")

@@ -119,7 +119,8 @@ def set_up_run(scene: Scene, config: ExperimentConfig, run_dir, plugins=(), resu
 
     # 4. loss terms (the log has a column per term) and step plugins, in order
     terms = loss_terms(config.loss, components, log.note, scene=scene, run_dir=run_dir,
-                       pose_solver=config.pose_solver, prior_space=config.init.depth_prior_space)
+                       pose_solver=config.pose_solver, prior_space=config.init.depth_prior_space,
+                       init=config.init, iters=config.train.iters)
     log.add_columns([f"loss_{t.name}" for t in terms])
     plugins = (default_plugins(context, components.adjusted_then)
                + [p for t in terms for p in getattr(t, "plugins", ())]

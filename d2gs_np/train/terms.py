@@ -22,6 +22,7 @@ in Eq. 18) first. A regulariser enters with its weight from ``LossConfig`` when 
 """
 from __future__ import annotations
 
+import dataclasses
 from typing import NamedTuple, Optional
 
 import numpy as np
@@ -42,13 +43,15 @@ from d2gs_np.losses.reprojection import cycle_bwd, cycle_fwd
 from d2gs_np.losses.smoothness import _spatial_fwd, _time_fwd, spatial_bwd, time_bwd
 from d2gs_np.losses.ssim import SSIM_WINDOW
 from d2gs_np.constants import GN_MIN_DEPTH, POSE_DEPTH_ALPHA_MIN
+from d2gs_np.scene.config import InitConfig
 from d2gs_np.scene.gaussians import DEFORM_FIELDS, DYNAMIC, STATIC
 from d2gs_np.train.config import LossConfig
 from d2gs_np.train.plugins import DepthMemory, NeighbourRefresh
+from d2gs_np.train.render_stereo import RenderStereo
 from d2gs_np.train.schedule import downsample_area
 
 __all__ = ["TermInputs", "TermGrads", "Photometric", "Smoothness", "OpacityEntropy", "Frequency", "Reprojection",
-           "DepthPrior", "ExposureContinuity", "Isometry", "loss_terms", "terms_fwd_bwd"]
+           "DepthPrior", "StereoPrior", "ExposureContinuity", "Isometry", "loss_terms", "terms_fwd_bwd"]
 
 
 class TermInputs(NamedTuple):
@@ -322,6 +325,29 @@ class DepthPrior:
         return TermGrads(render={"expected_depth": depth_prior_bwd(saved, self.weight)}, params={})
 
 
+class StereoPrior(DepthPrior):
+    """L_stereo: L_depth's "depth" form against depth maps the run makes for itself, the plane sweep
+    over the model's own renders (``train/render_stereo.py``, docs/method.md §6), made by its
+    ``RenderStereo`` plugin at ``at`` (fractions of ``total`` schedule steps). 0 before the first
+    maps; the maps' NaN pixels (untrusted, moving) pull nothing."""
+
+    name = "stereo"
+
+    def __init__(self, weight, tolerance, masks, stereo, skips, dilation_px, at, total, note=None):
+        super().__init__(weight, [], "depth", tolerance)
+        self.plugins = [RenderStereo(masks, stereo, skips, dilation_px, at, total, self.set_maps, note)]
+
+    def set_maps(self, maps):
+        """Pull to ``maps`` (per frame (H, W), NaN without an estimate) from now on."""
+        self._priors = [np.asarray(m, np.float64) for m in maps]
+        self._sized.clear()
+
+    def fwd(self, x: TermInputs):
+        if not self._priors:
+            return 0.0, None
+        return super().fwd(x)
+
+
 class ExposureContinuity:
     """L_cont: the step frame's exposure and its neighbours' in time lie on one constant-velocity
     path (docs/method.md §6; ``losses/continuity.py``): the residuals of the (at most two) pairs of
@@ -361,14 +387,16 @@ class ExposureContinuity:
 
 
 def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_dir=None, pose_solver=None,
-               prior_space="depth") -> list:
+               prior_space="depth", init=None, iters=None) -> list:
     """The loss terms of a run, photometric first (module docstring). ``components``
     (``train/components.py``): what the run models; L_ts is left out without a dynamic set (and
     ``note`` says so). L_reproj needs the ``scene`` (its frames and masks, for the matches), the
     run folder (the matches' cache) and the ``PoseSolverConfig`` (matching settings, beta and the
     robust scale of the solver's residuals); without a scene of two frames or more it is left
     out and ``note`` says so. L_depth needs the scene's depth priors (``prior_space``: what they
-    hold, ``InitConfig.depth_prior_space``); without them it is left out and ``note`` says so."""
+    hold, ``InitConfig.depth_prior_space``); without them it is left out and ``note`` says so. L_stereo
+    needs the ``InitConfig`` (its sweep's settings, frame skips, mask dilation) and the run's
+    schedule steps ``iters``."""
     say = note if note is not None else (lambda m: None)
     terms = [Photometric(config.lambda_ssim)]
     if config.lambda_ts > 0:
@@ -412,6 +440,19 @@ def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_d
                    else "the correlation of the rendered disparity")
             say(f"L_depth: weight {config.lambda_depth_prior:g}, {how} against the scene's depth priors (held as "
                 f"{prior_space}) on every frame")
+    if config.lambda_stereo > 0:
+        if scene is None or scene.num_frames < 2:
+            say("L_stereo: left out (it needs a scene of two frames or more), although loss.lambda_stereo > 0")
+        else:
+            total = int(iters) if iters is not None else 1
+            init = init if init is not None else InitConfig()
+            sweep = dataclasses.replace(init.stereo, enabled=True, num_depths=config.stereo_depths)
+            terms.append(StereoPrior(config.lambda_stereo, config.stereo_tolerance, [f.mask for f in scene.frames],
+                                     sweep, init.frame_skips, init.features.mask_dilation_px,
+                                     config.stereo_at, total, note))
+            say(f"L_stereo: weight {config.lambda_stereo:g}, the log depth ratios beyond {config.stereo_tolerance:g} "
+                f"against a plane sweep over the model's own renders, made at "
+                f"{', '.join(f'{a:g}' for a in config.stereo_at)} of the schedule")
     if config.lambda_continuity > 0:
         blur = components is None or components.blur
         if not blur or scene is None or scene.num_frames < 2:
