@@ -218,12 +218,15 @@ EXPERIMENTS = {
                         "train": {"prune_opacity": 0.1}}),
     ),
     # L_stereo, the plane sweep over the model's own renders as a depth prior (issue #40, docs/method.md
-    # §6): made at a quarter and half of the schedule; with the given (noisy) and the true poses.
+    # §6): made at a quarter and half of the schedule, its depth ratios ("stereo") or its depth itself
+    # ("metric"); with the given (noisy) and the true poses.
     "render-stereo": (
         Variant("none", config={"loss": {"lambda_stereo": 0.0}}),
         Variant("stereo", config={"loss": {"lambda_stereo": 0.1}}),
         Variant("none_true", scene=_TRUE_POSES, config={"loss": {"lambda_stereo": 0.0}}),
         Variant("stereo_true", scene=_TRUE_POSES, config={"loss": {"lambda_stereo": 0.1}}),
+        Variant("metric", config={"loss": {"lambda_stereo": 0.1, "stereo_space": "metric"}}),
+        Variant("metric_true", scene=_TRUE_POSES, config={"loss": {"lambda_stereo": 0.1, "stereo_space": "metric"}}),
     ),
     # A background drawn at random each step against the fixed black one, over which a model can
     # stay semi-transparent (issue #40, docs/method.md §10), with the given (noisy) and true poses.

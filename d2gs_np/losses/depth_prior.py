@@ -11,6 +11,9 @@ exactly that, per frame, and needs no alignment:
   side, not to a shift, so the depth ratios the prior holds (near against far) are what the
   render is pulled to, and only where it departs from them by more than the prior's own
   accuracy (tau = 0.1: 10 %; 0 pulls every pixel).
+- ``"metric"`` (a depth in the scene's own units, e.g. stereo over the model's renders at its
+  cameras, L_stereo): the same without the frame mean, ``L = mean max(|r| - tau, 0)``: the
+  depth itself is pulled, a bias of the whole frame included.
 - ``"disparity"`` (a single-image network: disparity up to scale and shift): 1 - the Pearson
   correlation of 1/D with P, as the sparse-view splatting methods do (FSGS, DNGaussian):
 
@@ -22,7 +25,7 @@ exactly that, per frame, and needs no alignment:
   render has rho = 0, not 0/0); they move rho by ~1e-11 relative where the disparity varies by
   per cents, and are differentiated like the rest.
 
-A pixel is valid where the prior is finite and positive ("depth"), the render's alpha is at least
+A pixel is valid where the prior is finite and positive ("depth", "metric"), the render's alpha is at least
 ``alpha_min`` (no depth is read through a transparent pixel) and the depth is above ``min_depth``;
 validity is not differentiated. Fewer than two valid pixels: value 0 and no gradient. The L1's
 kink (r_i at the frame mean) takes the subgradient 0 there.
@@ -37,7 +40,7 @@ import numpy as np
 
 __all__ = ["depth_prior_fwd", "depth_prior_bwd", "SPACES", "FLAT_FLOOR"]
 
-SPACES = ("depth", "disparity")
+SPACES = ("depth", "metric", "disparity")
 FLAT_FLOOR = 1e-12  # k: the variance floor of each side, relative to its squared mean
 
 
@@ -49,9 +52,9 @@ def _check(name, x, shape=None):
 
 
 def depth_prior_fwd(depth, prior, alpha, space="depth", alpha_min=0.5, min_depth=1e-6, mask=None, tolerance=0.0):
-    """The spread of log(D / P) about its mean ("depth") or 1 - the Pearson correlation of 1/D
-    with P ("disparity"), over the valid pixels (module docstring); ``tolerance``: tau of the
-    "depth" kind. ``depth``, ``prior``,
+    """The spread of log(D / P) about its mean ("depth"), |log(D / P)| ("metric") or 1 - the
+    Pearson correlation of 1/D with P ("disparity"), over the valid pixels (module docstring);
+    ``tolerance``: tau of the "depth" and "metric" kinds. ``depth``, ``prior``,
     ``alpha``: (h, w); the prior NaN where it has no estimate; ``mask``: optional (h, w) weights, a pixel counts only where it is > 0. Returns (value, saved);
     saved is None when fewer than two pixels are valid (value 0)."""
     _check("depth", depth)
@@ -62,7 +65,7 @@ def depth_prior_fwd(depth, prior, alpha, space="depth", alpha_min=0.5, min_depth
     d = np.asarray(depth, np.float64)
     p = np.asarray(prior, np.float64)
     valid = np.isfinite(p) & (alpha >= alpha_min) & np.isfinite(d) & (d > min_depth)
-    if space == "depth":
+    if space != "disparity":
         valid &= p > 0
     if mask is not None:
         valid &= mask > 0
@@ -70,11 +73,12 @@ def depth_prior_fwd(depth, prior, alpha, space="depth", alpha_min=0.5, min_depth
     if n < 2:
         return 0.0, None
     dv = d[valid]
-    if space == "depth":
+    if space != "disparity":
         if not tolerance >= 0.0:
             raise ValueError(f"tolerance must be >= 0 (a relative depth error); got {tolerance}")
         dev = np.log(dv) - np.log(p[valid])
-        dev -= dev.mean()
+        if space == "depth":
+            dev -= dev.mean()
         excess = np.abs(dev) - tolerance
         sign = np.where(excess > 0.0, np.sign(dev), 0.0)  # pixels within tau pull nothing
         return float(np.mean(np.maximum(excess, 0.0))), (valid, dv, sign, space, depth.dtype)
@@ -96,12 +100,12 @@ def depth_prior_bwd(saved, weight=1.0):
     zero at invalid pixels. ``saved`` None (no valid pixels): None."""
     if saved is None:
         return None
-    if saved[-2] == "depth":
-        valid, dv, sign, _, dtype = saved
+    if saved[-2] in ("depth", "metric"):
+        valid, dv, sign, space, dtype = saved
         # d/dr_i of mean_j max(|r_j - mean(r)| - tau, 0) = (sign_i - mean(sign)) / N, sign 0
-        # within tau; dr_i/dD_i = 1/D_i
+        # within tau ("metric": no mean, sign_i / N); dr_i/dD_i = 1/D_i
         out = np.zeros(valid.shape, np.float64)
-        out[valid] = weight * (sign - sign.mean()) / (sign.size * dv)
+        out[valid] = weight * (sign - (sign.mean() if space == "depth" else 0.0)) / (sign.size * dv)
         return out.astype(dtype, copy=False)
     valid, dv, xt, yt, xm, a, b, rho, space, dtype = saved
     n = xt.size

@@ -72,6 +72,9 @@ class LossConfig:
     # renders (train/render_stereo.py), made at these fractions of the schedule. Not in the paper; off
     lambda_stereo: float = 0.0
     stereo_tolerance: float = 0.05  # the sweep's own relative accuracy on sharp renders
+    # "depth": the maps' depth ratios (each frame's scale free); "metric": the depth itself, a frame-wide
+    # bias included (losses/depth_prior.py)
+    stereo_space: str = "depth"
     stereo_at: tuple = (0.25, 0.5)
     stereo_depths: int = 64  # the sweep's hypotheses (InitConfig.stereo's other settings); renders are sharp
 
@@ -89,6 +92,7 @@ class LossConfig:
         for name in ("ts_neighbours", "ts_knn_every"):
             check_int(getattr(self, name), f"LossConfig.{name}", 1)
         check_int(self.stereo_depths, "LossConfig.stereo_depths", 3, hint="a parabola needs three")
+        check_choice(self.stereo_space, "LossConfig.stereo_space", ("depth", "metric"))
         check_number(self.stereo_tolerance, "LossConfig.stereo_tolerance", 0.0,
                      hint="the sweep's relative accuracy, e.g. 0.05; 0 pulls every pixel")
         at = self.stereo_at

@@ -326,15 +326,16 @@ class DepthPrior:
 
 
 class StereoPrior(DepthPrior):
-    """L_stereo: L_depth's "depth" form against depth maps the run makes for itself, the plane sweep
-    over the model's own renders (``train/render_stereo.py``, docs/method.md §6), made by its
+    """L_stereo: L_depth's "depth" or "metric" form (``space``) against depth maps the run makes
+    for itself, the plane sweep over the model's own renders (``train/render_stereo.py``,
+    docs/method.md §6), made by its
     ``RenderStereo`` plugin at ``at`` (fractions of ``total`` schedule steps). 0 before the first
     maps; the maps' NaN pixels (untrusted, moving) pull nothing."""
 
     name = "stereo"
 
-    def __init__(self, weight, tolerance, masks, stereo, skips, dilation_px, at, total, note=None):
-        super().__init__(weight, [], "depth", tolerance)
+    def __init__(self, weight, tolerance, masks, stereo, skips, dilation_px, at, total, note=None, space="depth"):
+        super().__init__(weight, [], space, tolerance)
         self.plugins = [RenderStereo(masks, stereo, skips, dilation_px, at, total, self.set_maps, note)]
 
     def set_maps(self, maps):
@@ -449,8 +450,9 @@ def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_d
             sweep = dataclasses.replace(init.stereo, enabled=True, num_depths=config.stereo_depths)
             terms.append(StereoPrior(config.lambda_stereo, config.stereo_tolerance, [f.mask for f in scene.frames],
                                      sweep, init.frame_skips, init.features.mask_dilation_px,
-                                     config.stereo_at, total, note))
-            say(f"L_stereo: weight {config.lambda_stereo:g}, the log depth ratios beyond {config.stereo_tolerance:g} "
+                                     config.stereo_at, total, note, config.stereo_space))
+            what = "log depth ratios" if config.stereo_space == "depth" else "log depths"
+            say(f"L_stereo: weight {config.lambda_stereo:g}, the {what} beyond {config.stereo_tolerance:g} "
                 f"against a plane sweep over the model's own renders, made at "
                 f"{', '.join(f'{a:g}' for a in config.stereo_at)} of the schedule")
     if config.lambda_continuity > 0:

@@ -35,7 +35,8 @@ def _central(f, x, h):
     return g
 
 
-@pytest.mark.parametrize("space, tol", [("depth", 0.0), ("depth", 0.05), ("disparity", 0.0)])
+@pytest.mark.parametrize("space, tol", [("depth", 0.0), ("depth", 0.05), ("metric", 0.0), ("metric", 0.05),
+                                        ("disparity", 0.0)])
 def test_gradient_matches_central_differences(space, tol):
     # The render's depth and a prior that agrees with it only in part: every factor of the
     # gradient is exercised. Central differences at h = 1e-6 on depths 1.5-6: truncation ~h^2
@@ -55,11 +56,12 @@ def test_gradient_matches_central_differences(space, tol):
 
     v, saved = depth_prior_fwd(d, prior, alpha, space, mask=mask, tolerance=tol)
     assert 0.01 < v < 0.6
-    if space == "depth":
+    if space != "disparity":
         valid = np.isfinite(prior) & (alpha >= 0.5) & (mask > 0)
         r = np.log(d[valid] / prior[valid])
-        assert np.min(np.abs(np.abs(r - r.mean()) - tol)) > 1e-4  # away from the kinks
-        assert tol == 0 or 0 < np.mean(np.abs(r - r.mean()) < tol) < 1  # some pixels within tau
+        r = r - r.mean() if space == "depth" else r
+        assert np.min(np.abs(np.abs(r) - tol)) > 1e-4  # away from the kinks
+        assert tol == 0 or 0 < np.mean(np.abs(r) < tol) < 1  # some pixels within tau
     g = depth_prior_bwd(saved, weight)
     fd = _central(value, d, 1e-6)
     assert np.max(np.abs(g - fd)) < 1e-7 * np.max(np.abs(fd))
@@ -97,6 +99,22 @@ def test_a_depth_prior_fixes_the_ratios_up_to_a_scale():
     # a shift changes the ratios, so it costs: a scene whose depth range is stretched is not free
     assert depth_prior_fwd(d + 2.0, d, alpha)[0] > 0.05
     assert depth_prior_fwd(d, d + 2.0, alpha)[0] > 0.05
+
+
+def test_a_metric_prior_pulls_the_depth_itself_a_frame_wide_bias_included():
+    d = _depth(5)
+    alpha = np.ones((H, W))
+    assert depth_prior_fwd(d, d, alpha, "metric")[0] == 0.0
+    # 20 % too far everywhere: free for the "depth" kind, |log 1.2| - tau for "metric"
+    assert depth_prior_fwd(1.2 * d, d, alpha, "depth")[0] == pytest.approx(0.0, abs=1e-12)
+    v, saved = depth_prior_fwd(1.2 * d, d, alpha, "metric", tolerance=0.05)
+    assert v == pytest.approx(np.log(1.2) - 0.05, rel=1e-12)
+    g = depth_prior_bwd(saved)
+    assert np.all(g > 0)  # every pixel pulled nearer
+    np.testing.assert_allclose(g, 1.0 / (d.size * 1.2 * d), rtol=1e-12)
+    # within the tolerance: nothing
+    v, saved = depth_prior_fwd(1.04 * d, d, alpha, "metric", tolerance=0.05)
+    assert v == 0.0 and np.all(depth_prior_bwd(saved) == 0.0)
 
 
 def test_a_disparity_prior_is_matched_up_to_scale_and_shift():
