@@ -219,7 +219,8 @@ EXPERIMENTS = {
     ),
     # L_stereo, the plane sweep over the model's own renders as a depth prior (issue #40, docs/method.md
     # §6): made at a quarter and half of the schedule, its depth ratios ("stereo") or its depth itself
-    # ("metric"); with the given (noisy) and the true poses.
+    # ("metric"); or the static set re-seeded from it once, at a quarter of the schedule ("reseed");
+    # with the given (noisy) and the true poses.
     "render-stereo": (
         Variant("none", config={"loss": {"lambda_stereo": 0.0}}),
         Variant("stereo", config={"loss": {"lambda_stereo": 0.1}}),
@@ -227,6 +228,8 @@ EXPERIMENTS = {
         Variant("stereo_true", scene=_TRUE_POSES, config={"loss": {"lambda_stereo": 0.1}}),
         Variant("metric", config={"loss": {"lambda_stereo": 0.1, "stereo_space": "metric"}}),
         Variant("metric_true", scene=_TRUE_POSES, config={"loss": {"lambda_stereo": 0.1, "stereo_space": "metric"}}),
+        Variant("reseed", config={"init": {"reseed_at": 0.25}}),
+        Variant("reseed_true", scene=_TRUE_POSES, config={"init": {"reseed_at": 0.25}}),
     ),
     # A background drawn at random each step against the fixed black one, over which a model can
     # stay semi-transparent (issue #40, docs/method.md §10), with the given (noisy) and true poses.

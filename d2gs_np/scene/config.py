@@ -128,6 +128,9 @@ class InitConfig:
     # sweep, interpolated where it keeps nothing) or "scene": the scene's depth maps at each seed's
     # pixel (measured depth; on a synthetic scene the truth: an oracle, docs/method.md §8).
     static_depth: str = "stereo"
+    # Once, at this fraction of the schedule, the static set replaced by seeds from a plane sweep over
+    # the model's own sharp renders (train/render_stereo.py, Reseed); 0: never (docs/method.md §8)
+    reseed_at: float = 0.0
     # What a prior holds (scene/depth_prior.py): "depth", a depth up to one scale for the clip
     # (video depth models such as the paper's Align3R), or "disparity", inverse depth up to a scale
     # and a shift per frame (single-image networks).
@@ -163,6 +166,7 @@ class InitConfig:
         check_number(self.dynamic_depth_jitter, "InitConfig.dynamic_depth_jitter", 0.0, 1.0, hi_open=True)
         check_choice(self.dynamic_depth, "InitConfig.dynamic_depth", DYNAMIC_DEPTHS)
         check_choice(self.static_depth, "InitConfig.static_depth", STATIC_DEPTHS)
+        check_number(self.reseed_at, "InitConfig.reseed_at", 0.0, 1.0, hi_open=True, hint="0 = never")
         check_choice(self.depth_prior_space, "InitConfig.depth_prior_space", PRIOR_SPACES)
         check_int(self.depth_prior_min_points, "InitConfig.depth_prior_min_points", 3,
                   hint="a scale and shift need at least 3 points to be checked")

@@ -26,27 +26,34 @@ from __future__ import annotations
 
 import numpy as np
 
-from d2gs_np.constants import POSE_DEPTH_ALPHA_MIN
+import dataclasses
+
+from d2gs_np.constants import PIXEL_CENTER_OFFSET, POSE_DEPTH_ALPHA_MIN
 from d2gs_np.pose.features import static_detector_mask
+from d2gs_np.scene import gaussians
 from d2gs_np.scene.config import StereoConfig
+from d2gs_np.scene.gaussians import STATIC
+from d2gs_np.scene.initialize import initialize_points, interpolate_inverse_depth, pixel_scale_cap
 from d2gs_np.scene.stereo import plane_sweep_depth
 from d2gs_np.train.plugins import Plugin
 
-__all__ = ["render_stereo_depths", "RenderStereo"]
+__all__ = ["render_stereo_depths", "RenderStereo", "fill_depth_map", "reseed_static", "Reseed"]
 
 
 def render_stereo_depths(model, masks, stereo: StereoConfig, skips=(2, 4, 8), dilation_px: int = 4):
     """Plane-sweep depth (H, W) of every training frame over the model's own renders (module
     docstring); NaN where untrusted. ``masks``: per frame (H, W) bool motion masks or None.
-    Returns (list of depth maps, info: {"kept_share": per frame, "frames": N})."""
+    Returns (list of depth maps, info: {"kept_share": per frame, "frames": N, "images": the renders,
+    "rendered_depth": their expected depth, NaN where alpha < POSE_DEPTH_ALPHA_MIN})."""
     n = model.num_frames
     if len(masks) != n:
         raise ValueError(f"render_stereo_depths: {len(masks)} masks for {n} frames")
     poses = model.mid_poses()
-    images, ranges = [], []
+    images, ranges, rendered = [], [], []
     for k in range(n):
         out = model.render_outputs(k)
         images.append(np.clip(out["image"], 0.0, 1.0))
+        rendered.append(np.where(out["alpha"] >= POSE_DEPTH_ALPHA_MIN, out["expected_depth"], np.nan))
         d = out["expected_depth"][(out["alpha"] >= POSE_DEPTH_ALPHA_MIN) & np.isfinite(out["expected_depth"])
                                   & (out["expected_depth"] > 0)]
         ranges.append((float(np.percentile(d, 2)), float(np.percentile(d, 98))) if d.size >= 16 else None)
@@ -63,7 +70,7 @@ def render_stereo_depths(model, masks, stereo: StereoConfig, skips=(2, 4, 8), di
         dmap, info = plane_sweep_depth(images[k], poses[k], model.Ks[k], sources, rng[0], rng[1], stereo, moving[k])
         maps.append(dmap)
         kept.append(info["kept_share"])
-    return maps, {"kept_share": kept, "frames": n}
+    return maps, {"kept_share": kept, "frames": n, "images": images, "rendered_depth": rendered}
 
 
 class RenderStereo(Plugin):
@@ -111,3 +118,97 @@ class RenderStereo(Plugin):
             self.maps = [np.asarray(state[f"map_{k}"], np.float64) for k in range(len(self.masks))]
         if self.maps is not None:
             self.on_maps(self.maps)
+
+
+def fill_depth_map(dmap, fallback, outlier_rel=0.15, max_anchors=4000):
+    """``dmap`` (H, W) with its NaN pixels filled: inverse depth interpolated from up to
+    ``max_anchors`` evenly spread trusted pixels (``interpolate_inverse_depth``, as the seeds'
+    stereo fills its untextured pixels), else ``fallback`` (H, W) there, else the median of what is
+    known. Returns a finite, positive (H, W) map; None when nothing at all is known."""
+    out = np.array(dmap, dtype=np.float64)
+    trusted = np.argwhere(np.isfinite(out) & (out > 0))
+    miss = ~(np.isfinite(out) & (out > 0))
+    if len(trusted) >= 16 and miss.any():
+        anc = trusted[::max(1, len(trusted) // max_anchors)]
+        uv = np.stack([anc[:, 1], anc[:, 0]], axis=1) + PIXEL_CENTER_OFFSET
+        q = np.argwhere(miss)
+        quv = np.stack([q[:, 1], q[:, 0]], axis=1) + PIXEL_CENTER_OFFSET
+        out[miss] = interpolate_inverse_depth(uv, out[anc[:, 0], anc[:, 1]], quv, outlier_rel)[0]
+    miss = ~(np.isfinite(out) & (out > 0))
+    if miss.any() and fallback is not None:
+        fb = np.asarray(fallback, np.float64)
+        out[miss] = np.where(np.isfinite(fb[miss]) & (fb[miss] > 0), fb[miss], np.nan)
+    known = np.isfinite(out) & (out > 0)
+    if not known.any():
+        return None
+    out[~known] = float(np.median(out[known]))
+    return out
+
+
+def reseed_static(model, scene, config, maps, info, rng):
+    """New static-set blocks seeded as the initialisation seeds them (``initialize_points``), from
+    the model's renders in place of the blurry frames, at its mid-exposure poses, with the filled
+    render-stereo maps as the frames' depth (``InitConfig.static_depth = "scene"``): dense seeds on
+    the keyframes and the fill at those depths, coloured by the sharp renders; triangulated points
+    from the renders' matches. Returns (blocks of the static set, a summary dict)."""
+    poses = model.mid_poses()
+    depths = [fill_depth_map(m, r) for m, r in zip(maps, info["rendered_depth"])]
+    if any(d is None for d in depths):
+        return None, {"reason": "a frame renders nothing opaque"}
+    frames = [dataclasses.replace(f, image=img, cam_T_world=P, depth=d)
+              for f, img, P, d in zip(scene.frames, info["images"], poses, depths)]
+    reseeding = dataclasses.replace(scene, frames=frames)
+    init = dataclasses.replace(config.init, static_depth="scene", dynamic_points=0)
+    pts, cols, _, _, pinfo = initialize_points(reseeding, init, rng)
+    blocks = gaussians.init_params(np.ascontiguousarray(pts, np.float64), np.ascontiguousarray(cols, np.float64))
+    cap = pixel_scale_cap(pts, pinfo["static_source_frames"], frames, init.max_scale_px)
+    blocks[f"{STATIC}.log_scales"] = np.minimum(blocks[f"{STATIC}.log_scales"], cap[:, None])
+    dtype = model.params[f"{STATIC}.means"].dtype
+    blocks = {n: v.astype(dtype, copy=False) for n, v in blocks.items() if n.startswith(f"{STATIC}.")}
+    return blocks, {"points": len(pts), "triangulated": pinfo["num_static_triangulated"],
+                    "dense": pinfo["num_static_dense"], "fill": pinfo["num_static_fill"]}
+
+
+class Reseed(Plugin):
+    """Once, at the first step whose schedule step reaches ``InitConfig.reseed_at`` of the
+    schedule: the static set replaced by ``reseed_static``'s (its Adam moments and row statistics
+    new, the dynamic set and the cameras kept); name "reseed". The seeds' plane sweep runs on the
+    blurry frames; this one on the model's sharp renders (module docstring), so the new seeds start
+    where the surfaces are, as seeds at the true depth do (docs/method.md §8, the re-seed)."""
+
+    name = "reseed"
+
+    def __init__(self, scene, config, note=None):
+        self.scene, self.config = scene, config
+        self.note = note if note is not None else (lambda m: None)
+        ic = config.init
+        self.stereo = dataclasses.replace(ic.stereo, enabled=True, num_depths=config.loss.stereo_depths)
+        self.done = False
+
+    def on_step(self, state):
+        ic, total = self.config.init, self.config.train.iters
+        if self.done or state.sched < ic.reseed_at * total:
+            return state
+        self.done = True
+        masks = [f.mask for f in self.scene.frames]
+        maps, info = render_stereo_depths(state.model, masks, self.stereo, ic.frame_skips,
+                                          ic.features.mask_dilation_px)
+        rng = np.random.default_rng((self.config.train.seed, state.step, 11))
+        blocks, summary = reseed_static(state.model, self.scene, self.config, maps, info, rng)
+        if blocks is None:
+            self.note(f"step {state.step}: static set not re-seeded ({summary['reason']})")
+            return state
+        old = gaussians.num_static(state.params)
+        keep = np.r_[np.zeros(old, bool), np.ones(summary["points"], bool)]
+        state = state.resize_rows(STATIC, keep=keep, new=blocks)
+        kept = np.asarray(info["kept_share"])
+        self.note(f"step {state.step}: static set re-seeded from a plane sweep over the renders ({old} -> "
+                  f"{summary['points']} Gaussians: {summary['triangulated']} triangulated, {summary['dense']} "
+                  f"dense, {summary['fill']} fill; the sweep kept {100 * kept.mean():.0f} % of the pixels)")
+        return state
+
+    def state_dict(self):
+        return {"done": self.done}
+
+    def load_state_dict(self, state):
+        self.done = bool(state.get("done", False))

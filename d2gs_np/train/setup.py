@@ -42,6 +42,7 @@ from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.learning_rates import camera_row_scales, learning_rates, position_extent, scene_extent
 from d2gs_np.train.log import RunLog
 from d2gs_np.train.model import Model
+from d2gs_np.train.render_stereo import Reseed
 from d2gs_np.train.plugins import (Densify, GradientStatistics, HeldOutPSNR, OpacityReset, Prune, RunContext,
                                    load_plugin_states)
 from d2gs_np.train.pose_solver import PoseSolver, use_pose_solver
@@ -255,6 +256,8 @@ def default_plugins(context: RunContext, adjusted_then: str = "") -> list:
                                 context.note, moving_pixels=moving))
         if config.densify.opacity_reset_every:
             plugins.append(OpacityReset(config, context.note))
+    if config.init.reseed_at > 0 and scene.num_frames > 1:
+        plugins.append(Reseed(scene, config, context.note))
     if use_pose_solver(scene, config, context.note, adjusted_then):
         plugins.append(PoseSolver(scene, config, context.run_dir, context.note))
     return plugins
