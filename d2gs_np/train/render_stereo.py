@@ -104,19 +104,14 @@ class RenderStereo(Plugin):
     def state_dict(self):
         out = {"made": self.made}
         if self.maps is not None:
-            out["maps"] = np.stack(self.maps) if len({m.shape for m in self.maps}) == 1 else None
-            if out["maps"] is None:
-                del out["maps"]
-                out.update({f"map_{k}": m for k, m in enumerate(self.maps)})
+            out.update({f"map_{k}": m for k, m in enumerate(self.maps)})
         return out
 
     def load_state_dict(self, state):
         self.made = int(state.get("made", 0))
-        if "maps" in state:
-            self.maps = [np.asarray(m, np.float64) for m in state["maps"]]
-        elif any(k.startswith("map_") for k in state):
-            self.maps = [np.asarray(state[f"map_{k}"], np.float64) for k in range(len(self.masks))]
-        if self.maps is not None:
+        keys = sorted((k for k in state if k.startswith("map_")), key=lambda k: int(k[len("map_"):]))
+        if keys:
+            self.maps = [np.asarray(state[k], np.float64) for k in keys]
             self.on_maps(self.maps)
 
 
