@@ -328,9 +328,8 @@ class DepthPrior:
 class StereoPrior(DepthPrior):
     """L_stereo: L_depth's "depth" or "metric" form (``space``) against depth maps the run makes
     for itself, the plane sweep over the model's own renders (``train/render_stereo.py``,
-    docs/method.md §6), made by its
-    ``RenderStereo`` plugin at ``at`` (fractions of ``total`` schedule steps). 0 before the first
-    maps; the maps' NaN pixels (untrusted, moving) pull nothing."""
+    docs/method.md §6), made by its ``RenderStereo`` plugin at ``at`` (fractions of ``total``
+    schedule steps). 0 before the first maps; the maps' NaN pixels (untrusted, moving) pull nothing."""
 
     name = "stereo"
 
@@ -445,7 +444,10 @@ def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_d
         if scene is None or scene.num_frames < 2:
             say("L_stereo: left out (it needs a scene of two frames or more), although loss.lambda_stereo > 0")
         else:
-            total = int(iters) if iters is not None else 1
+            if iters is None:
+                raise ValueError("loss_terms: L_stereo (loss.lambda_stereo > 0) needs the run's schedule steps: "
+                                 "pass iters=config.train.iters")
+            total = int(iters)
             init = init if init is not None else InitConfig()
             sweep = dataclasses.replace(init.stereo, enabled=True, num_depths=config.stereo_depths)
             terms.append(StereoPrior(config.lambda_stereo, config.stereo_tolerance, [f.mask for f in scene.frames],

@@ -171,6 +171,8 @@ def test_loss_terms_build_it_and_leave_it_out_of_a_one_frame_clip(room):
     assert [t.name for t in terms] == ["photometric", "stereo"]
     assert [p.name for p in terms[1].plugins] == ["render_stereo"] and terms[1].plugins[0].total == 40
     assert terms[1].plugins[0].stereo.num_depths == 64 and any("L_stereo: weight 0.1" in n for n in notes)
+    with pytest.raises(ValueError, match="needs the run's schedule steps"):
+        loss_terms(LossConfig(lambda_stereo=0.1), scene=scene)
     one = dataclasses.replace(scene, frames=scene.frames[:1])
     terms = loss_terms(LossConfig(lambda_stereo=0.1, lambda_freq=0.0), note=notes.append, scene=one)
     assert [t.name for t in terms] == ["photometric"] and "L_stereo: left out" in notes[-1]
