@@ -94,7 +94,7 @@ from d2gs_np.scene.config import InitConfig
 from d2gs_np.scene.depth_prior import align_depth_prior, align_depth_scale
 from d2gs_np.scene.stereo import plane_sweep_depth
 
-__all__ = ["initialize_points", "triangulate_matches", "sample_image_bilinear", "pixel_scale_cap",
+__all__ = ["initialize_points", "triangulate_matches", "depth_from_trusted", "sample_image_bilinear", "pixel_scale_cap",
            "robust_depth_range", "few_points_disagree"]
 
 # Homogeneous triangulation results with |w| below this (relative to the largest coordinate)
@@ -246,6 +246,18 @@ def interpolate_inverse_depth(uv, z, query, outlier_rel=0.15, neighbours=8):
     return out, kept
 
 
+def depth_from_trusted(dmap, query, outlier_rel, max_anchors=4000):
+    """Depth (Q,) at pixels ``query`` (Q, 2) interpolated (``interpolate_inverse_depth``) from the
+    finite pixels of ``dmap`` (H, W), at most ``max_anchors`` of them evenly spread (the anchors of
+    the untextured pixels); None with fewer than 16 finite pixels."""
+    trusted = np.argwhere(np.isfinite(dmap))
+    if len(trusted) < 16:
+        return None
+    anc = trusted[::max(1, len(trusted) // max_anchors)]
+    anc_uv = np.stack([anc[:, 1] + PIXEL_CENTER_OFFSET, anc[:, 0] + PIXEL_CENTER_OFFSET], axis=1)
+    return interpolate_inverse_depth(anc_uv, dmap[anc[:, 0], anc[:, 1]], query, outlier_rel)[0]
+
+
 def depth_from_points(points, frame, query, outlier_rel, max_points=None):
     """Depth (Q,) at pixels ``query`` (Q, 2) of ``frame``, interpolated (``interpolate_inverse_depth``)
     from the ``points`` (M, 3) it sees in front of it and inside the image; at most ``max_points``
@@ -300,14 +312,11 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
             depth = dmap[rows, cols_]
             own = np.isfinite(depth)
             info["stereo_seeds"] += int(own.sum())
-            trusted = np.argwhere(np.isfinite(dmap))
-            if len(trusted) >= 16 and not np.all(np.isfinite(depth)):
-                # anchors for the untextured pixels: a spread-out subset of the trusted ones
-                step = max(1, len(trusted) // 4000)
-                anc = trusted[::step]
-                anc_uv = np.stack([anc[:, 1] + PIXEL_CENTER_OFFSET, anc[:, 0] + PIXEL_CENTER_OFFSET], axis=1)
-                miss = ~np.isfinite(depth)
-                depth[miss], _ = interpolate_inverse_depth(anc_uv, dmap[anc[:, 0], anc[:, 1]], pix[miss], outlier_rel)
+            miss = ~np.isfinite(depth)
+            if miss.any():
+                filled = depth_from_trusted(dmap, pix[miss], outlier_rel)
+                if filled is not None:
+                    depth[miss] = filled
         if depth_maps is not None:
             given = depth_maps[k][rows, cols_]
             use = np.isfinite(given) & (given > 0)

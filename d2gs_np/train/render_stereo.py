@@ -33,7 +33,7 @@ from d2gs_np.pose.features import static_detector_mask
 from d2gs_np.scene import gaussians
 from d2gs_np.scene.config import StereoConfig
 from d2gs_np.scene.gaussians import STATIC
-from d2gs_np.scene.initialize import initialize_points, interpolate_inverse_depth, pixel_scale_cap
+from d2gs_np.scene.initialize import depth_from_trusted, initialize_points, pixel_scale_cap
 from d2gs_np.scene.stereo import plane_sweep_depth
 from d2gs_np.train.plugins import Plugin
 
@@ -119,16 +119,17 @@ def fill_depth_map(dmap, fallback, outlier_rel=0.15, max_anchors=4000):
     """``dmap`` (H, W) with its NaN pixels filled: inverse depth interpolated from up to
     ``max_anchors`` evenly spread trusted pixels (``interpolate_inverse_depth``, as the seeds'
     stereo fills its untextured pixels), else ``fallback`` (H, W) there, else the median of what is
-    known. Returns a finite, positive (H, W) map; None when nothing at all is known."""
+    known (``scene.initialize.depth_from_trusted``). Returns a finite, positive (H, W) map; None
+    when nothing at all is known."""
     out = np.array(dmap, dtype=np.float64)
-    trusted = np.argwhere(np.isfinite(out) & (out > 0))
-    miss = ~(np.isfinite(out) & (out > 0))
-    if len(trusted) >= 16 and miss.any():
-        anc = trusted[::max(1, len(trusted) // max_anchors)]
-        uv = np.stack([anc[:, 1], anc[:, 0]], axis=1) + PIXEL_CENTER_OFFSET
+    out[~(np.isfinite(out) & (out > 0))] = np.nan
+    miss = np.isnan(out)
+    if miss.any():
         q = np.argwhere(miss)
-        quv = np.stack([q[:, 1], q[:, 0]], axis=1) + PIXEL_CENTER_OFFSET
-        out[miss] = interpolate_inverse_depth(uv, out[anc[:, 0], anc[:, 1]], quv, outlier_rel)[0]
+        filled = depth_from_trusted(out, np.stack([q[:, 1], q[:, 0]], axis=1) + PIXEL_CENTER_OFFSET, outlier_rel,
+                                    max_anchors)
+        if filled is not None:
+            out[miss] = filled
     miss = ~(np.isfinite(out) & (out > 0))
     if miss.any() and fallback is not None:
         fb = np.asarray(fallback, np.float64)
