@@ -25,10 +25,11 @@ from __future__ import annotations
 import numpy as np
 
 from d2gs_np.constants import TRAJECTORY_SPREAD_MIN_REL
-from d2gs_np.geometry.camera import camera_center, check_rigid
+from d2gs_np.geometry.camera import camera_center
+from d2gs_np.geometry.se3 import check_rigid, se3_inverse
 from d2gs_np.geometry.so3 import so3_log
 
-__all__ = ["umeyama", "align_trajectory", "sim3_inverse", "sim3_apply_to_poses", "ate", "rpe"]
+__all__ = ["umeyama", "align_trajectory", "sim3_inverse", "sim3_apply_to_poses", "frame_relative_poses", "ate", "rpe"]
 
 
 def _check_points(x, name):
@@ -162,6 +163,29 @@ def sim3_apply_to_poses(s, R, t, cam_T_world):
     out[..., :3, 3] = -np.einsum("...ij,...j->...i", R_cw_new, c_new)
     out[..., 3, 3] = 1.0
     return out
+
+
+def frame_relative_poses(view_cam_T_world, ref_cam_T_world, est_cam_T_world, scale=1.0):
+    """Views carried onto an estimated trajectory as they sit beside a reference one.
+
+    view_cam_T_world (M, 4, 4): views in the reference frame; ref_cam_T_world, est_cam_T_world
+    (M, 4, 4): for each view, the reference and the estimated pose of the camera it sits beside;
+    scale: reference units per estimated unit (ref ~= scale R est + t, e.g. ``align_trajectory``'s
+    s). Returns (M, 4, 4) rigid poses Delta' est, Delta = view inv(ref) (the view in its camera's
+    coordinates) with its translation divided by ``scale``: a stereo rig's second camera follows
+    the first wherever the estimate put it (docs/method.md §10, ``nvs_rig``). Any similarity of
+    the estimate's world cancels, so no global alignment enters."""
+    view, ref, est = (np.asarray(T, dtype=np.float64) for T in (view_cam_T_world, ref_cam_T_world, est_cam_T_world))
+    if not (view.shape == ref.shape == est.shape and view.ndim == 3):
+        raise ValueError(f"view, ref and est poses must all have shape (M, 4, 4); got {view.shape}, {ref.shape} "
+                         f"and {est.shape}")
+    if not (np.isfinite(scale) and scale > 0):
+        raise ValueError(f"scale must be a positive finite number; got {scale}")
+    for T, name in ((view, "view_cam_T_world"), (ref, "ref_cam_T_world"), (est, "est_cam_T_world")):
+        check_rigid(T, name)
+    delta = view @ se3_inverse(ref)
+    delta[:, :3, 3] /= scale
+    return delta @ est
 
 
 def ate(est_cam_T_world, gt_cam_T_world):

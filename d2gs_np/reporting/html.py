@@ -275,6 +275,8 @@ _METRIC_ROWS = (
     ("novel views, each test view (time: PSNR [dB])", ("nvs", "views"), "views"),
     ("novel views: SSIM", ("nvs", "ssim"), ".3f"),
     ("novel views: FLIP (lower is better)", ("nvs", "flip"), ".4f"),
+    ("novel views placed beside their frame's camera (DyBluRF's protocol): PSNR [dB]", ("nvs_rig", "psnr"), ".2f"),
+    ("novel views beside their frame's camera, moving pixels: PSNR [dB]", ("nvs_rig", "moving_psnr"), ".2f"),
     ("novel views, test poses refined: PSNR [dB]", ("nvs_pose_opt", "psnr"), ".2f"),
     ("novel views, test poses refined, moving pixels: PSNR [dB]", ("nvs_pose_opt", "moving_psnr"), ".2f"),
     ("depth AbsRel, deblurred views (lower is better)", ("dvs", "depth", "absrel"), ".4f"),

@@ -131,7 +131,7 @@ def test_view_metrics_score_each_test_view_and_its_seen_and_unseen_pixels():
     from types import SimpleNamespace
 
     from d2gs_np.evaluation import metrics
-    from d2gs_np.evaluation.runs import _seen_psnr, _view_metrics
+    from d2gs_np.evaluation.runs import _seen_psnr, _seen_split, _view_metrics, seen_by_training
 
     rng = np.random.default_rng(0)
     views = [_plane_view(0.0), _plane_view(-1.0)]
@@ -144,7 +144,8 @@ def test_view_metrics_score_each_test_view_and_its_seen_and_unseen_pixels():
     renders[0][:, :10] += 0.1  # error only where view 0 is unseen
     renders[1] += 0.01 * rng.standard_normal(renders[1].shape)
     pairs = list(zip(renders, truth))
-    out = _view_metrics(pairs, scene)
+    split = _seen_split(pairs, [seen_by_training(v.cam_T_world, v, scene.frames) for v in views])
+    out = _view_metrics(pairs, scene, split)
     assert [v["time"] for v in out] == [0.5, 0.9]
     for v, (a, b) in zip(out, pairs):
         assert v["psnr"] == pytest.approx(metrics.psnr(a, b), abs=1e-12)
@@ -155,7 +156,7 @@ def test_view_metrics_score_each_test_view_and_its_seen_and_unseen_pixels():
     cap = out[0]["unseen_psnr"] - 10 * np.log10(out[0]["unseen_share"])
     assert cap == pytest.approx(out[0]["psnr"], abs=1e-9)
     # pooled over the views, the per-view sums give _seen_psnr's figures
-    pooled = _seen_psnr(pairs, scene)
+    pooled = _seen_psnr(split)
     n_seen = [(1 - v["unseen_share"]) * 240 for v in out]
     mse_seen = sum(n * 10 ** (-v["seen_psnr"] / 10) for n, v in zip(n_seen, out) if v["seen_psnr"] is not None)
     assert pooled["seen_psnr"] == pytest.approx(-10 * np.log10(mse_seen / sum(n_seen)), abs=1e-9)

@@ -219,3 +219,17 @@ def test_the_table_shows_the_moving_and_the_static_pixels_apart():
     assert (row["dvs_moving_psnr"], row["input_static_psnr"], row["nvs_moving_psnr"]) == (21.25, 26.5, 18.0)
     line = table([dict(scene="s", seed=0, variant="v", status="ok", **row)]).splitlines()[2]
     assert "22.75 -> 21.25" in line and "26.50 -> 28.50" in line
+
+
+def test_the_table_shows_both_novel_view_protocols():
+    from d2gs_np.experiments.sweep import flatten, table
+
+    metrics = {"nvs": {"psnr": 21.5}, "nvs_rig": {"psnr": 24.25, "moving_psnr": 19.5}}
+    row = flatten(metrics)
+    assert (row["nvs_psnr"], row["nvs_rig_psnr"], row["nvs_rig_moving_psnr"]) == (21.5, 24.25, 19.5)
+    head, _, line = table([dict(scene="s", seed=0, variant="v", status="ok", **row)]).splitlines()
+    cells = [c.strip() for c in line.split("|")]
+    names = [c.strip() for c in head.split("|")]
+    assert len(cells) == len(names)
+    assert cells[names.index("NVS PSNR dB")] == "21.50"
+    assert cells[names.index("NVS beside its frame dB")] == "24.25"
