@@ -568,7 +568,9 @@ def build_parser() -> argparse.ArgumentParser:
     e = sub.add_parser("eval", help="evaluate a run; writes RUN/metrics.json (docs/method.md §10)",
                        description="Evaluate a run against its scene's ground truth and write RUN/metrics.json: "
                                    "deblurring and novel view synthesis, trajectory errors (docs/method.md §10, "
-                                   "docs/dataset_format.md §6).")
+                                   "docs/dataset_format.md §6). Novel views are scored with the test poses "
+                                   "through a global alignment (nvs) and beside the camera of their frame, "
+                                   "DyBluRF's protocol (nvs_rig).")
     e.add_argument("run")
     e.add_argument("--scene", default=None,
                    help="scene folder (default: the one the run was trained on); it must hold the frames the run "
