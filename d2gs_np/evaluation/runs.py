@@ -214,7 +214,7 @@ def _novel_views(run: LoadedRun, scene, mids, reference, test_pose_steps=0) -> d
     model = run.model
     poses = [metrics.sim3_apply_to_poses(s, R, t, f.cam_T_world) for f in views]
     out["nvs"] = _score_views(model, poses, scene, s, seen)
-    frame_of = _frame_of_views(scene)
+    frame_of = frame_of_views(scene)
     if frame_of is None:
         out["nvs_rig"] = {"skipped": "a test view's time is no training frame's time: no frame to place it beside"}
     else:
@@ -261,7 +261,7 @@ def _score_views(model, poses, scene, s, seen=None) -> dict:
 FRAME_TIME_TOL = 1e-6  # normalised time within which a test view belongs to a training frame
 
 
-def _frame_of_views(scene):
+def frame_of_views(scene):
     """Index of the training frame at each test view's time, or None when some view has none."""
     times = np.array([f.time for f in scene.frames])
     out = []

@@ -1,0 +1,119 @@
+"""Where a run's novel views land, and the camera baselines behind it (docs/results.md §4, "Novel
+views beside their frame's camera", session 43).
+
+For each test view, the image shift between the model's render and the true view on the static
+pixels (OpenCV's DIS optical flow, render -> truth; 10 px borders left out): its median vector and
+the median distance of the pixels' shifts from it, with the test pose through the global alignment
+(`nvs`) and beside its frame's camera (`nvs_rig`), and the same for the training frame of its time
+against its sharp frame. A near-uniform shift is the view's pose or the parallax of its offset;
+a wide spread, geometry. Then the camera baselines between frames k and k + gap (gaps 1, 4, 8), in
+the first camera's axes, of the given, the bundle-adjusted and the trained poses against the true
+ones: median length ratio (after the alignment's scale) and median direction error in degrees.
+
+    python examples/nvs_registration.py RUN [RUN ...]
+"""
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+GAPS = (1, 4, 8)
+BORDER_PX = 10  # flow at the image border is extrapolated: left out
+
+
+def view_shift(render, truth, mask=None, border=BORDER_PX):
+    """(median shift (2,) in px, x then y, render -> truth; median distance of the pixels' shifts
+    from it) over the pixels off ``mask`` (moving pixels) and off the border."""
+    import cv2
+
+    grey = [cv2.cvtColor((np.clip(a, 0, 1) * 255).round().astype(np.uint8), cv2.COLOR_RGB2GRAY) for a in (render, truth)]
+    flow = cv2.DISOpticalFlow_create(cv2.DISOPTICAL_FLOW_PRESET_MEDIUM).calc(grey[0], grey[1], None)
+    keep = np.ones(grey[0].shape, bool) if mask is None else ~np.asarray(mask, bool)
+    keep[:border], keep[-border:], keep[:, :border], keep[:, -border:] = False, False, False, False
+    v = flow[keep]
+    if len(v) == 0:
+        raise ValueError(f"no pixel left to measure: the image is {grey[0].shape} and the border {border} px")
+    mu = np.median(v, axis=0)
+    return mu, float(np.median(np.linalg.norm(v - mu, axis=1)))
+
+
+def baseline_errors(est_cam_T_world, gt_cam_T_world, depth=None, gaps=GAPS):
+    """{gap: (median |b_est| / |b_true|, median angle between them in degrees)} of the baselines
+    between frames k and k + gap in camera k's axes, the estimate's scaled by the alignment of
+    ``evaluation.runs.align_with_orientations`` (at ``depth``). Gaps the clip is too short for are
+    left out."""
+    from d2gs_np.evaluation.runs import align_with_orientations
+    from d2gs_np.geometry.camera import camera_center
+
+    est, gt = np.asarray(est_cam_T_world, np.float64), np.asarray(gt_cam_T_world, np.float64)
+    s = align_with_orientations(est, gt, depth)[0]
+    ce, cg = camera_center(est), camera_center(gt)
+    out = {}
+    for d in gaps:
+        if d >= len(gt):
+            continue
+        bt = np.einsum("nij,nj->ni", gt[:-d, :3, :3], cg[d:] - cg[:-d])
+        be = s * np.einsum("nij,nj->ni", est[:-d, :3, :3], ce[d:] - ce[:-d])
+        nt, ne = np.linalg.norm(bt, axis=1), np.linalg.norm(be, axis=1)
+        cos = np.clip(np.sum(bt * be, axis=1) / (nt * ne), -1.0, 1.0)
+        out[d] = (float(np.median(ne / nt)), float(np.degrees(np.median(np.arccos(cos)))))
+    return out
+
+
+def _fmt_shift(shift):
+    mu, spread = shift
+    return f"({mu[0]:+.2f}, {mu[1]:+.2f}) ± {spread:.2f}"
+
+
+def report(run_dir) -> str:
+    from d2gs_np.data.io import load_scene
+    from d2gs_np.evaluation import metrics
+    from d2gs_np.evaluation.runs import frame_of_views, align_with_orientations, load_run
+    from d2gs_np.geometry.trajectory import frame_relative_poses
+
+    run = load_run(run_dir)
+    scene = load_scene(run.meta["scene_root"])
+    if not scene.has_gt_poses or not scene.test_frames:
+        raise SystemExit(f"{run_dir}: its scene has no true poses or no test views to measure against")
+    model, frames = run.model, scene.frames
+    mids = model.mid_poses()
+    gt = np.stack([f.gt_cam_T_world for f in frames])
+    fwd = align_with_orientations(mids, gt, scene.scene_scale)
+    s, R, t = metrics.sim3_inverse(*fwd)
+    k = frame_of_views(scene)
+    rig = None if k is None else frame_relative_poses(np.stack([f.cam_T_world for f in scene.test_frames]), gt[k],
+                                                      mids[k], scale=fwd[0])
+    lines = [f"{run_dir}", "| test view t | shift, aligned px | shift, beside its frame px | its frame's render px |",
+             "|---|---|---|---|"]
+    for j, f in enumerate(scene.test_frames):
+        aligned = view_shift(model.render(metrics.sim3_apply_to_poses(s, R, t, f.cam_T_world), f.time, f.K, f.width,
+                                          f.height), f.image, f.mask)
+        beside = "–" if rig is None else _fmt_shift(view_shift(model.render(rig[j], f.time, f.K, f.width, f.height),
+                                                               f.image, f.mask))
+        own = "–"
+        if k is not None and frames[k[j]].sharp is not None:
+            fr = frames[k[j]]
+            own = _fmt_shift(view_shift(model.render(mids[k[j]], fr.time, fr.K, fr.width, fr.height), fr.sharp, fr.mask))
+        lines.append(f"| {f.time:.2f} | {_fmt_shift(aligned)} | {beside} | {own} |")
+    lines += ["", "| poses | " + " | ".join(f"gap {d}: length ratio, direction error" for d in GAPS) + " |",
+              "|---" * (len(GAPS) + 1) + "|"]
+    adjusted = model.poses_init if model.poses_init is not None else None
+    for name, P in (("given", model.poses_est), ("bundle-adjusted", adjusted), ("trained", mids)):
+        if P is None:
+            continue
+        e = baseline_errors(P, gt, scene.scene_scale)
+        lines.append(f"| {name} | " + " | ".join(f"x{e[d][0]:.2f}, {e[d][1]:.0f}°" if d in e else "–" for d in GAPS)
+                     + " |")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__, formatter_class=argparse.RawDescriptionHelpFormatter)
+    ap.add_argument("runs", nargs="+", help="run folders of scenes with true poses and test views (the suite's)")
+    args = ap.parse_args(argv)
+    print("\n\n".join(report(r) for r in args.runs))
+
+
+if __name__ == "__main__":
+    main()
