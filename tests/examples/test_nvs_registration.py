@@ -65,3 +65,19 @@ def test_baselines_turned_are_measured():
     for ratio, angle in err.values():
         assert ratio == pytest.approx(1.0, rel=0.05) and angle == pytest.approx(30.0, abs=3.0)
     assert set(reg.baseline_errors(est, gt, gaps=(1, 20))) == {1}  # a gap longer than the clip is left out
+
+
+def test_the_sharp_tracks_adjustment_leaves_the_scene_as_it_was():
+    from d2gs_np.geometry.se3 import check_rigid
+    from run_fixtures import tiny_dynamic_scene
+
+    scene = tiny_dynamic_scene(trusted=False)
+    before = [f.image.copy() for f in scene.frames]
+    P = reg._adjusted_on_sharp(scene)
+    assert P is None or (P.shape == (len(scene.frames), 4, 4) and check_rigid(P, "P") is None)
+    for f, b in zip(scene.frames, before):
+        assert np.array_equal(f.image, b) and not np.array_equal(f.image, f.sharp)  # still the blurry inputs
+    for f in scene.frames:
+        f.sharp = None
+    with pytest.raises(SystemExit, match="sharp frames"):
+        reg._adjusted_on_sharp(scene)
