@@ -334,9 +334,10 @@ def _seen_psnr(split) -> dict:
 
 def _view_metrics(pairs, scene, split=None) -> list:
     """Each test view's time and PSNR; with true depth maps and poses also its seen and unseen
-    PSNR and unseen share (``split``: the views' ``_seen_split``). A test view beside the path's end sees a strip no training frame saw, so
-    its PSNR is capped whatever the model does elsewhere: at ``unseen_psnr - 10
-    log10(unseen_share)`` with its unseen pixels as rendered (docs/method.md §10)."""
+    PSNR and unseen share (``split``: the views' ``_seen_split``). A test view beside the path's
+    end sees a strip no training frame saw, so its PSNR is capped whatever the model does
+    elsewhere: at ``unseen_psnr - 10 log10(unseen_share)`` with its unseen pixels as rendered
+    (docs/method.md §10)."""
     views = []
     for k, ((a, b), f) in enumerate(zip(pairs, scene.test_frames)):
         p = float(metrics.psnr(a, b))

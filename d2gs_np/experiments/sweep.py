@@ -558,15 +558,17 @@ def table(records) -> str:
             f"{_fmt(r.get('input_static_psnr'))} -> {_fmt(r.get('dvs_static_psnr'))} | "
             f"{_fmt(r.get('nvs_psnr'))} | "
             f"{_fmt(r.get('nvs_ssim'), '.3f')} | {_fmt(r.get('nvs_rig_psnr'))} | "
-            f"{_fmt(r.get('ate_initial'), '.4f')} -> {_fmt(r.get('ate'), '.4f')} | {_fmt(r.get('num_gaussians'), 'd')} | {_fmt(r.get('steps'), 'd')} | {_fmt(r.get('train_seconds'), '.0f')} |")
+            f"{_fmt(r.get('ate_initial'), '.4f')} -> {_fmt(r.get('ate'), '.4f')} | {_fmt(r.get('num_gaussians'), 'd')} | "
+            f"{_fmt(r.get('steps'), 'd')} | {_fmt(r.get('train_seconds'), '.0f')} |")
     return "\n".join(lines)
 
 
 def write_outputs(name, out, records, command=""):
     out = Path(out)
     fields = ["scene", "seed", "variant", "status", "attempts", "input_psnr", "dvs_psnr", "dvs_ssim", "nvs_psnr",
-              "nvs_ssim", "nvs_moving_psnr", "nvs_rig_psnr", "nvs_rig_moving_psnr", "input_flip", "dvs_flip", "nvs_flip", "ate_initial", "ate_bundle", "ate", "num_gaussians", "steps", "train_seconds", "wall_seconds", "run",
-              "error"]
+              "nvs_ssim", "nvs_moving_psnr", "nvs_rig_psnr", "nvs_rig_moving_psnr", "input_flip", "dvs_flip",
+              "nvs_flip", "ate_initial", "ate_bundle", "ate", "num_gaussians", "steps", "train_seconds",
+              "wall_seconds", "run", "error"]
     with open(out / f"{name}.csv", "w", newline="") as fh:
         w = csv.DictWriter(fh, fieldnames=fields, extrasaction="ignore")
         w.writeheader()
