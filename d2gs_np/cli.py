@@ -602,15 +602,17 @@ def build_parser() -> argparse.ArgumentParser:
     rp.add_argument("--frames", type=_COUNT, default=3, help="frames shown per run (default 3)")
     rp.set_defaults(func=_cmd_report)
 
+    from d2gs_np.experiments.sweep import EXPERIMENTS  # light: the sweep imports Dask only to run
+
+    names = " | ".join(EXPERIMENTS)
     ex = sub.add_parser("experiment", help="run a sweep of training runs on Dask and write one table "
                         "(docs/method.md §10)",
-                        description="Run an experiment (baselines, ablation, progressive, virtual-views, suite, suite-ablation) over scenes "
-                                    "and seeds: every cell an independent run in OUT/runs/NAME, in parallel on Dask's "
+                        description=f"Run an experiment ({names}) over scenes and seeds: every cell an independent run in OUT/runs/NAME, in parallel on Dask's "
                                     "local process pool or on a dask.distributed cluster (--scheduler). Finished "
                                     "cells are never recomputed; failed ones are retried, then reported. Writes "
                                     "OUT/NAME.md, NAME.csv and NAME_error_vs_time.png. Baselines and metrics: "
                                     "docs/method.md §10.")
-    ex.add_argument("name", help="baselines | ablation | progressive | virtual-views | suite | suite-ablation")
+    ex.add_argument("name", help=names)
     ex.add_argument("--out", required=True, help="output folder (scenes, runs, table)")
     ex.add_argument("--scenes", nargs="+", required=True, help="suite scenes or regression presets")
     ex.add_argument("--seeds", nargs="+", type=_SEED, default=[0])

@@ -239,6 +239,21 @@ EXPERIMENTS = {
         Variant("black_true", scene=_TRUE_POSES),
         Variant("random_true", scene=_TRUE_POSES, config={"train": {"random_background": True}}),
     ),
+    # Position steps by depth (issue #44, docs/method.md §8): the same world-unit step for every
+    # Gaussian against steps shortened for Gaussians nearer than the frame's median static depth,
+    # with the given (noisy) and the true poses, and with a mover seeded and held at the depth prior.
+    "position-depth": (
+        Variant("world"),
+        Variant("near", config={"train": {"lr": {"means_depth": "near"}}}),
+        Variant("world_true", scene=_TRUE_POSES),
+        Variant("near_true", scene=_TRUE_POSES, config={"train": {"lr": {"means_depth": "near"}}}),
+        Variant("prior_world", scene={"depth_prior": "video"},
+                config={"init": {"dynamic_depth": "prior"},
+                        "loss": {"lambda_depth_prior": 0.1, "depth_prior_tolerance": 0.1}}),
+        Variant("prior_near", scene={"depth_prior": "video"},
+                config={"init": {"dynamic_depth": "prior"}, "train": {"lr": {"means_depth": "near"}},
+                        "loss": {"lambda_depth_prior": 0.1, "depth_prior_tolerance": 0.1}}),
+    ),
     "suite": (
         Variant("sharp", scene=_SHARP),
         Variant("blur", scene=_TRUE_POSES),

@@ -147,12 +147,21 @@ class LearningRates:
     # mean). A hand-held camera moves little against the depth it sees, so camera units make the
     # position steps too small for a CPU budget (docs/results.md §7).
     means_unit: str = "scene"
+    # How a position step depends on the Gaussian's depth: "world", the same length for every
+    # Gaussian (3DGS); "near", a Gaussian nearer than the step frame's median static depth takes
+    # it shortened by its depth over that median (at least means_depth_floor), so its step in
+    # pixels is the median's, not up to 1 / depth times it (train.learning_rates.position_row_factors).
+    means_depth: str = "world"
+    means_depth_floor: float = 0.1
 
     def __post_init__(self):
         check_choice(self.means_unit, "LearningRates.means_unit", ("camera", "scene"))
+        check_choice(self.means_depth, "LearningRates.means_depth", ("world", "near"))
+        check_number(self.means_depth_floor, "LearningRates.means_depth_floor", 0.0, 1.0, lo_open=True,
+                     hint="the shortest factor on a near Gaussian's position step, e.g. 0.1")
         check_number(self.final_ratio, "LearningRates.final_ratio", 0.0, 1.0, lo_open=True, hint="1: constant rates")
         for f in dataclasses.fields(self):
-            if f.name not in ("means_unit", "final_ratio"):
+            if f.name not in ("means_unit", "final_ratio", "means_depth", "means_depth_floor"):
                 check_number(getattr(self, f.name), f"LearningRates.{f.name}", 0.0, hint="0 freezes the block")
         for message in self.implausible():
             warn(message, ConfigWarning, stacklevel=3)
@@ -160,7 +169,8 @@ class LearningRates:
     def implausible(self) -> list:
         """Warnings (one line each) on rates that are possible but implausible: above LR_PLAUSIBLE_MAX."""
         high = [f"LearningRates.{f.name} = {getattr(self, f.name):g}" for f in dataclasses.fields(self)
-                if f.name not in ("means_unit", "final_ratio") and getattr(self, f.name) > LR_PLAUSIBLE_MAX]
+                if f.name not in ("means_unit", "final_ratio", "means_depth", "means_depth_floor")
+                and getattr(self, f.name) > LR_PLAUSIBLE_MAX]
         if not high:
             return []
         return [f"{name_items(high)} above {LR_PLAUSIBLE_MAX:g}: Adam moves a parameter by about its learning rate "

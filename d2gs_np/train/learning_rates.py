@@ -30,13 +30,17 @@ import numpy as np
 from d2gs_np.blur.exposure import EXPOSURE_BLOCK
 from d2gs_np.optim import adam
 from d2gs_np.blur.endpoints import CAMERA, POSENET, XI_END, XI_MID, XI_START
+from d2gs_np.scene.gaussians import DYNAMIC, STATIC
 from d2gs_np.train.config import LearningRates
 
-__all__ = ["PER_FRAME_BLOCKS", "scene_extent", "size_extent", "position_extent", "block_learning_rate",
+__all__ = ["PER_FRAME_BLOCKS", "POSITION_BLOCKS", "position_row_factors", "scene_extent", "size_extent", "position_extent", "block_learning_rate",
            "learning_rates", "camera_row_scales", "centre_endpoint_grads", "optimiser_step"]
 
 PER_FRAME_BLOCKS = (XI_START, XI_END, XI_MID)  # one row per frame: row-sparse Adam
-_RATE_FIELDS = {f.name for f in dataclasses.fields(LearningRates)} - {"final_ratio", "means_unit"}
+_RATE_FIELDS = {f.name for f in dataclasses.fields(LearningRates)} - {"final_ratio", "means_unit", "means_depth",
+                                                                       "means_depth_floor"}
+# The blocks whose rows are Gaussian positions (or their deformation's position coefficients).
+POSITION_BLOCKS = (f"{STATIC}.means", f"{DYNAMIC}.means", f"{DYNAMIC}.deform_means")
 
 
 def scene_extent(poses, scene_scale=None) -> float:
@@ -150,14 +154,48 @@ def centre_endpoint_grads(grads):
     return {**grads, XI_END: g, XI_START: -g}
 
 
+def position_row_factors(params, cam_T_world, floor: float) -> dict:
+    """Per-Gaussian factors on the position steps (``LearningRates.means_depth = "near"``): for
+    each block of ``POSITION_BLOCKS`` in ``params``, (N,) factors clip(z / z_med, floor, 1), z each
+    Gaussian's (base) depth in the camera ``cam_T_world`` (4, 4) and z_med the median depth of the
+    static Gaussians in front of it. A step of length s moves a Gaussian at depth z by about
+    f s / z pixels: the factor gives a near Gaussian the pixel step of one at the median depth;
+    those at or beyond it, and behind the camera (z <= 0: floor), as a world-unit rule would.
+    No static Gaussian in front: all factors 1."""
+    R, t = np.asarray(cam_T_world[:3, :3], np.float64), np.asarray(cam_T_world[:3, 3], np.float64)
+    depth = {p: np.asarray(params[f"{p}.means"], np.float64) @ R[2] + t[2]
+             for p in (STATIC, DYNAMIC) if f"{p}.means" in params}
+    zs = depth.get(STATIC, np.zeros(0))
+    zs = zs[zs > 0]
+    out = {}
+    for name in POSITION_BLOCKS:
+        if name not in params:
+            continue
+        z = depth[name.split(".", 1)[0]]
+        if zs.size == 0:
+            out[name] = np.ones(len(z))
+        else:
+            out[name] = np.clip(z / float(np.median(zs)), floor, 1.0)
+    return out
+
+
 def optimiser_step(grads, adam_state, params, config: adam.AdamConfig, trainable, frame: int, lr_scale=1.0,
-                   row_scale=1.0):
+                   row_scale=1.0, position_factors=None):
     """One Adam step on the blocks whose names start with one of ``trainable`` (the stage's);
     per-frame blocks only in row ``frame``, at ``row_scale`` times their rate (the frame's
-    ``camera_row_scales``). Returns (params, adam_state), new dicts."""
+    ``camera_row_scales``); blocks in ``position_factors`` (name -> (N,) factors,
+    ``position_row_factors``) with each row's step times its factor, as if that row's rate were
+    (moments unchanged). Returns (params, adam_state), new dicts."""
     grads = {n: g for n, g in grads.items() if n.startswith(trainable) and n in params}
     sparse = {n: grads.pop(n) for n in list(grads) if n in PER_FRAME_BLOCKS}
+    old = params
     params, adam_state = adam.adam_update(grads, adam_state, params, config, lr_step_scale=lr_scale)
+    if position_factors:
+        params = dict(params)
+        for n, f in position_factors.items():
+            if n in grads:
+                f = np.asarray(f, dtype=old[n].dtype).reshape((-1,) + (1,) * (old[n].ndim - 1))
+                params[n] = old[n] + f * (params[n] - old[n])
     if sparse:
         params, adam_state = adam.adam_update_rows(sparse, {n: [frame] for n in sparse}, adam_state, params, config,
                                                    lr_step_scale=lr_scale, lr_factor=row_scale)

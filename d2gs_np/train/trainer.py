@@ -47,7 +47,7 @@ from d2gs_np.scene.gaussians import STATIC, num_static
 from d2gs_np.train.background import background_rng, composite_bwd, composite_fwd
 from d2gs_np.train.checkpoint import atomic_write_text, save_checkpoint
 from d2gs_np.train.config import ExperimentConfig
-from d2gs_np.train.learning_rates import centre_endpoint_grads, optimiser_step
+from d2gs_np.train.learning_rates import centre_endpoint_grads, optimiser_step, position_row_factors
 from d2gs_np.train.log import Stopwatch, psnr_from_mse
 from d2gs_np.train.model import Model, frame_render_bwd, frame_render_fwd
 from d2gs_np.train.plugins import plugin_states
@@ -211,8 +211,11 @@ class Trainer:
             grads[n] = grads[n] + g if n in grads else g
         if self.components.centred:
             grads = centre_endpoint_grads(grads)
+        lr = self.config.train.lr
+        factors = (position_row_factors(state.params, state.model.poses_ref[k], lr.means_depth_floor)
+                   if lr.means_depth == "near" else None)
         params, adam_state = optimiser_step(grads, state.adam, state.params, self.adam_config, plan.stage.trainable,
-                                            k, plan.lr_scale, self.camera_row_scales[k])
+                                            k, plan.lr_scale, self.camera_row_scales[k], factors)
         sq = (out["image"] - tgt.image) ** 2
         mse = float(np.mean(sq)) if ignore is None else float(np.mean(sq[~ignore]))
         screen = ScreenGrads(v_means2d=v_means2d, v_means2d_abs=v_means2d_abs, radii=out["radii"],
