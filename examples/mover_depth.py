@@ -1,0 +1,89 @@
+"""How far a run's movers land off in its novel views, from their depth (docs/results.md §4, "Position
+steps by depth", session 44).
+
+For each test view and the training frame of its time: the ratio of the model's rendered (expected)
+depth to the true depth on the frame's moving pixels (median and 10th / 90th percentiles), the
+mover's parallax between the frame's camera and the test view (focal length x baseline / the
+mover's median true depth, px), and what the ratios move the mover's pixels by in the test view:
+the median's shift, parallax x |1 - 1 / median ratio|, and the spread between the 10th and 90th
+percentiles, parallax x |1 / p10 - 1 / p90|. A mover rendered as a sharp picture in the training
+view lands smeared by that spread in the novel view. Needs a scene with true depth, motion masks and
+test views at training frames' times (the suite's).
+
+    python examples/mover_depth.py RUN [RUN ...]
+"""
+from __future__ import annotations
+
+import argparse
+
+import numpy as np
+
+
+def depth_ratios(expected_depth, true_depth, mask):
+    """(median, p10, p90) of expected / true depth over ``mask`` pixels with positive true depth."""
+    e, t, m = (np.asarray(a) for a in (expected_depth, true_depth, mask))
+    if e.shape != t.shape or m.shape != t.shape:
+        raise ValueError(f"depth maps and mask must share a shape; got {e.shape}, {t.shape}, {m.shape}")
+    keep = m.astype(bool) & (t > 0) & np.isfinite(e)
+    if not keep.any():
+        raise ValueError("no moving pixel with a true depth: nothing to measure")
+    r = e[keep] / t[keep]
+    return float(np.median(r)), float(np.percentile(r, 10)), float(np.percentile(r, 90))
+
+
+def parallax_px(focal_px: float, baseline: float, depth: float) -> float:
+    """Image shift (px) of a point at ``depth`` between two cameras ``baseline`` apart sideways."""
+    if not depth > 0:
+        raise ValueError(f"depth must be positive; got {depth}")
+    return float(focal_px) * float(baseline) / float(depth)
+
+
+def landing(parallax: float, ratios) -> tuple:
+    """(shift of the median, spread p10-p90) in px that depth ratios (median, p10, p90) give a
+    mover of ``parallax`` px: a point rendered at ratio r x its depth moves parallax x (1 - 1/r)."""
+    med, lo, hi = ratios
+    return parallax * abs(1.0 - 1.0 / med), parallax * abs(1.0 / lo - 1.0 / hi)
+
+
+def report(run_dir) -> str:
+    from d2gs_np.data.io import load_scene
+    from d2gs_np.evaluation.runs import align_with_orientations, frame_of_views, load_run
+
+    run = load_run(run_dir)
+    scene = load_scene(run.meta["scene_root"])
+    frames = frame_of_views(scene)
+    if not scene.has_gt_poses or frames is None:
+        raise SystemExit(f"{run_dir}: its scene has no true poses, or a test view at no training frame's time")
+    m = run.model
+    gt = np.stack([f.gt_cam_T_world for f in scene.frames])
+    # our depths in the truth's units: the alignment's scale maps our frame onto the truth's
+    scale = align_with_orientations(m.mid_poses(), gt, scene.scene_scale)[0]
+    lines = [f"## {run_dir}", "",
+             "| view | frame | depth ratio: median (p10, p90) | parallax px | shift of the median px | spread px |",
+             "|---|---|---|---|---|---|"]
+    for i, (v, k) in enumerate(zip(scene.test_frames, frames)):
+        f = scene.frames[k]
+        if f.mask is None or f.depth is None or not f.mask.any():
+            lines.append(f"| {i} | {k} | no moving pixels or no true depth | | | |")
+            continue
+        o = m.render_outputs(m.mid_pose(k), f.time, f.K, f.width, f.height)
+        ratios = depth_ratios(o["expected_depth"] * scale, f.depth, f.mask)
+        rel = v.cam_T_world @ np.linalg.inv(gt[k])
+        par = parallax_px(f.K[0, 0], np.linalg.norm(rel[:3, 3]), float(np.median(f.depth[f.mask.astype(bool)])))
+        shift, spread = landing(par, ratios)
+        lines.append(f"| {i} | {k} | {ratios[0]:.3f} ({ratios[1]:.3f}, {ratios[2]:.3f}) | {par:.1f} | "
+                     f"{shift:.2f} | {spread:.2f} |")
+    return "\n".join(lines)
+
+
+def main(argv=None):
+    ap = argparse.ArgumentParser(description=__doc__.split("\n\n")[0])
+    ap.add_argument("runs", nargs="+", help="run folders of scenes with true depth, masks and test views")
+    args = ap.parse_args(argv)
+    for r in args.runs:
+        print(report(r))
+        print()
+
+
+if __name__ == "__main__":
+    main()
