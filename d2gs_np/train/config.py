@@ -110,6 +110,10 @@ class LossConfig:
 METHOD_REGULARISER_WEIGHTS = {"lambda_ts": 1.0, "lambda_gs": 0.01, "lambda_freq": 0.002, "lambda_reproj": 0.001}
 
 
+# LearningRates fields that are settings, not rates (no rate checks, not in the block rules).
+NON_RATE_FIELDS = ("means_unit", "final_ratio", "means_depth", "means_depth_floor")
+
+
 @dataclass(frozen=True)
 class LearningRates:
     """Adam learning rates per block kind (3DGS's, the positions' scaled to the scene's size)."""
@@ -161,7 +165,7 @@ class LearningRates:
                      hint="the shortest factor on a near Gaussian's position step, e.g. 0.1")
         check_number(self.final_ratio, "LearningRates.final_ratio", 0.0, 1.0, lo_open=True, hint="1: constant rates")
         for f in dataclasses.fields(self):
-            if f.name not in ("means_unit", "final_ratio", "means_depth", "means_depth_floor"):
+            if f.name not in NON_RATE_FIELDS:
                 check_number(getattr(self, f.name), f"LearningRates.{f.name}", 0.0, hint="0 freezes the block")
         for message in self.implausible():
             warn(message, ConfigWarning, stacklevel=3)
@@ -169,8 +173,7 @@ class LearningRates:
     def implausible(self) -> list:
         """Warnings (one line each) on rates that are possible but implausible: above LR_PLAUSIBLE_MAX."""
         high = [f"LearningRates.{f.name} = {getattr(self, f.name):g}" for f in dataclasses.fields(self)
-                if f.name not in ("means_unit", "final_ratio", "means_depth", "means_depth_floor")
-                and getattr(self, f.name) > LR_PLAUSIBLE_MAX]
+                if f.name not in NON_RATE_FIELDS and getattr(self, f.name) > LR_PLAUSIBLE_MAX]
         if not high:
             return []
         return [f"{name_items(high)} above {LR_PLAUSIBLE_MAX:g}: Adam moves a parameter by about its learning rate "

@@ -31,14 +31,13 @@ from d2gs_np.blur.exposure import EXPOSURE_BLOCK
 from d2gs_np.optim import adam
 from d2gs_np.blur.endpoints import CAMERA, POSENET, XI_END, XI_MID, XI_START
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
-from d2gs_np.train.config import LearningRates
+from d2gs_np.train.config import NON_RATE_FIELDS, LearningRates
 
 __all__ = ["PER_FRAME_BLOCKS", "POSITION_BLOCKS", "position_row_factors", "scene_extent", "size_extent", "position_extent", "block_learning_rate",
            "learning_rates", "camera_row_scales", "centre_endpoint_grads", "optimiser_step"]
 
 PER_FRAME_BLOCKS = (XI_START, XI_END, XI_MID)  # one row per frame: row-sparse Adam
-_RATE_FIELDS = {f.name for f in dataclasses.fields(LearningRates)} - {"final_ratio", "means_unit", "means_depth",
-                                                                       "means_depth_floor"}
+_RATE_FIELDS = {f.name for f in dataclasses.fields(LearningRates)} - set(NON_RATE_FIELDS)
 # The blocks whose rows are Gaussian positions (or their deformation's position coefficients).
 POSITION_BLOCKS = (f"{STATIC}.means", f"{DYNAMIC}.means", f"{DYNAMIC}.deform_means")
 
@@ -167,15 +166,12 @@ def position_row_factors(params, cam_T_world, floor: float) -> dict:
              for p in (STATIC, DYNAMIC) if f"{p}.means" in params}
     zs = depth.get(STATIC, np.zeros(0))
     zs = zs[zs > 0]
+    z_med = float(np.median(zs)) if zs.size else None
     out = {}
     for name in POSITION_BLOCKS:
-        if name not in params:
-            continue
-        z = depth[name.split(".", 1)[0]]
-        if zs.size == 0:
-            out[name] = np.ones(len(z))
-        else:
-            out[name] = np.clip(z / float(np.median(zs)), floor, 1.0)
+        if name in params:
+            z = depth[name.split(".", 1)[0]]
+            out[name] = np.ones(len(z)) if z_med is None else np.clip(z / z_med, floor, 1.0)
     return out
 
 
