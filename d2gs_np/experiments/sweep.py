@@ -253,6 +253,12 @@ EXPERIMENTS = {
         Variant("prior_near", scene={"depth_prior": "video"},
                 config={"init": {"dynamic_depth": "prior"}, "train": {"lr": {"means_depth": "near"}},
                         "loss": {"lambda_depth_prior": 0.1, "depth_prior_tolerance": 0.1}}),
+        # a rigid mover seen from one camera at a time keeps its images at any one scale about the
+        # cameras (docs/method.md §8): held rigid over time (L_iso), one scale for the clip, which the
+        # prior's every frame then sets, instead of a scale per frame
+        Variant("prior_near_iso", scene={"depth_prior": "video"},
+                config={"init": {"dynamic_depth": "prior"}, "train": {"lr": {"means_depth": "near"}},
+                        "loss": {"lambda_depth_prior": 0.1, "depth_prior_tolerance": 0.1, "lambda_iso": 0.1}}),
     ),
     "suite": (
         Variant("sharp", scene=_SHARP),

@@ -55,3 +55,40 @@ def test_landing_matches_a_point_projected_through_two_cameras():
     shift, spread = md.landing(par, (r, r, r))
     assert shift == pytest.approx(moved, rel=1e-9) and spread == 0.0
     assert md.landing(par, (1.0, 0.9, 1.1))[1] == pytest.approx(par * (1 / 0.9 - 1 / 1.1))
+
+
+def test_best_shift_finds_the_shift_that_made_the_render():
+    rng = np.random.default_rng(3)
+    truth = rng.random((30, 40, 3))
+    mask = np.zeros((30, 40), bool)
+    mask[8:20, 10:30] = True
+    dy, dx = 2, -3  # the render is the truth moved by (-dy, -dx): shifting it back by (dy, dx) restores it
+    render = np.roll(truth, (-dy, -dx), axis=(0, 1)) + 1e-3 * rng.standard_normal(truth.shape)
+    at0, top, shift = md.best_shift(render, truth, mask, radius=4)
+    assert shift == (dy, dx)
+    # at the right shift only the added noise is left: PSNR = -10 log10(1e-6) = 60 dB within the
+    # sample variance of 240 x 3 squared normals (a few per cent, well under 0.5 dB)
+    assert top == pytest.approx(60.0, abs=0.5)
+    assert at0 < 15.0  # uniform noise images apart by a shift: MSE ~ 1/6, about 7.8 dB
+    # outside the search radius the true shift is not found, and the score at it is not claimed
+    assert md.best_shift(render, truth, mask, radius=1)[2] != (dy, dx)
+
+
+def test_best_shift_ignores_pixels_whose_source_leaves_the_image():
+    truth = np.zeros((6, 6, 1))
+    render = np.zeros((6, 6, 1))
+    mask = np.zeros((6, 6), bool)
+    mask[0, :] = True  # the top row: a shift down by 1 reads from row -1 for all of them
+    render[0, :] = 1.0  # wrong everywhere at no shift
+    at0, top, shift = md.best_shift(render, truth, mask, radius=1)
+    assert at0 == 0.0  # MSE 1
+    assert top == np.inf and shift[0] == -1  # read from row 1, which is right: the search takes it
+
+
+def test_best_shift_refuses_bad_input_by_name():
+    with pytest.raises(ValueError, match="render and truth"):
+        md.best_shift(np.ones((4, 4, 3)), np.ones((4, 5, 3)), np.ones((4, 4), bool))
+    with pytest.raises(ValueError, match="radius"):
+        md.best_shift(np.ones((4, 4, 3)), np.ones((4, 4, 3)), np.ones((4, 4), bool), radius=-1)
+    with pytest.raises(ValueError, match="no moving pixel"):
+        md.best_shift(np.ones((4, 4, 3)), np.ones((4, 4, 3)), np.zeros((4, 4), bool))
