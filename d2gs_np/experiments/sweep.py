@@ -259,6 +259,11 @@ EXPERIMENTS = {
         Variant("prior_near_iso", scene={"depth_prior": "video"},
                 config={"init": {"dynamic_depth": "prior"}, "train": {"lr": {"means_depth": "near"}},
                         "loss": {"lambda_depth_prior": 0.1, "depth_prior_tolerance": 0.1, "lambda_iso": 0.1}}),
+        # and every frame's prior pulling the mover's pixels (tolerance 0 there), so their errors average
+        Variant("prior_near_iso_tight", scene={"depth_prior": "video"},
+                config={"init": {"dynamic_depth": "prior"}, "train": {"lr": {"means_depth": "near"}},
+                        "loss": {"lambda_depth_prior": 0.1, "depth_prior_tolerance": 0.1,
+                                 "depth_prior_tolerance_moving": 0.0, "lambda_iso": 0.1}}),
     ),
     "suite": (
         Variant("sharp", scene=_SHARP),

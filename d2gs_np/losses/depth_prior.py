@@ -54,7 +54,9 @@ def _check(name, x, shape=None):
 def depth_prior_fwd(depth, prior, alpha, space="depth", alpha_min=0.5, min_depth=1e-6, mask=None, tolerance=0.0):
     """The spread of log(D / P) about its mean ("depth"), |log(D / P)| ("metric") or 1 - the
     Pearson correlation of 1/D with P ("disparity"), over the valid pixels (module docstring);
-    ``tolerance``: tau of the "depth" and "metric" kinds. ``depth``, ``prior``,
+    ``tolerance``: tau of the "depth" and "metric" kinds, one number or an (h, w) map of them (a
+    pixel's own, e.g. a tighter one on a mover's pixels; the frame mean is over every valid pixel
+    either way). ``depth``, ``prior``,
     ``alpha``: (h, w); the prior NaN where it has no estimate; ``mask``: optional (h, w) weights, a pixel counts only where it is > 0. Returns (value, saved);
     saved is None when fewer than two pixels are valid (value 0)."""
     _check("depth", depth)
@@ -62,6 +64,14 @@ def depth_prior_fwd(depth, prior, alpha, space="depth", alpha_min=0.5, min_depth
         _check(name, a, depth.shape)
     if space not in SPACES:
         raise ValueError(f"space must be one of {SPACES}; got {space!r}")
+    tol = np.asarray(tolerance, np.float64)
+    if tol.ndim == 2:
+        _check("tolerance", tol, depth.shape)
+    elif tol.ndim != 0:
+        raise ValueError(f"tolerance must be one number or an (h, w) map; got shape {tol.shape}")
+    if not np.all(tol >= 0.0):  # NaN fails too
+        raise ValueError(f"tolerance must be >= 0 (a relative depth error) at every pixel; got "
+                         f"{float(tol) if tol.ndim == 0 else 'a map holding ' + str(tol[~(tol >= 0.0)][0])}")
     d = np.asarray(depth, np.float64)
     p = np.asarray(prior, np.float64)
     valid = np.isfinite(p) & (alpha >= alpha_min) & np.isfinite(d) & (d > min_depth)
@@ -74,12 +84,12 @@ def depth_prior_fwd(depth, prior, alpha, space="depth", alpha_min=0.5, min_depth
         return 0.0, None
     dv = d[valid]
     if space != "disparity":
-        if not tolerance >= 0.0:
-            raise ValueError(f"tolerance must be >= 0 (a relative depth error); got {tolerance}")
+        if tol.ndim == 2:
+            tol = tol[valid]
         dev = np.log(dv) - np.log(p[valid])
         if space == "depth":
             dev -= dev.mean()
-        excess = np.abs(dev) - tolerance
+        excess = np.abs(dev) - tol
         sign = np.where(excess > 0.0, np.sign(dev), 0.0)  # pixels within tau pull nothing
         return float(np.mean(np.maximum(excess, 0.0))), (valid, dv, sign, space, depth.dtype)
     x = 1.0 / dv

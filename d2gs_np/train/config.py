@@ -60,6 +60,9 @@ class LossConfig:
     lambda_depth_prior: float = 0.0
     # a depth prior's log-ratio departures within this (relative) pull nothing: its own accuracy
     depth_prior_tolerance: float = 0.1
+    # the same on the frame's moving pixels (its motion mask); None: depth_prior_tolerance. A mover's
+    # depth is free up to a scale (docs/method.md §8), so its pixels may be held tighter than the static
+    depth_prior_tolerance_moving: Optional[float] = None
     # L_cont (train.terms.ExposureContinuity): neighbouring exposures on one constant-velocity camera
     # path, in squared pixels. Not in the paper (DyBluRF ties neighbouring exposures); off by default
     lambda_continuity: float = 0.0
@@ -85,6 +88,9 @@ class LossConfig:
             check_number(getattr(self, name), f"LossConfig.{name}", 0.0, hint="0 = term off")
         check_number(self.depth_prior_tolerance, "LossConfig.depth_prior_tolerance", 0.0,
                      hint="the prior's relative accuracy, e.g. 0.1; 0 pulls every pixel")
+        if self.depth_prior_tolerance_moving is not None:
+            check_number(self.depth_prior_tolerance_moving, "LossConfig.depth_prior_tolerance_moving", 0.0,
+                         hint="a relative accuracy on the moving pixels, e.g. 0.0; null: depth_prior_tolerance")
         check_number(self.ts_time_offset, "LossConfig.ts_time_offset", 0.0, lo_open=True,
                      hint="a time offset, the method's 0.08")
         check_number(self.iso_time_offset, "LossConfig.iso_time_offset", 0.0, 1.0, lo_open=True,

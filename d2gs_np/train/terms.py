@@ -287,8 +287,9 @@ class DepthPrior:
 
     name = "depth_prior"
 
-    def __init__(self, weight, priors, space, tolerance=0.0, max_entries=256):
+    def __init__(self, weight, priors, space, tolerance=0.0, max_entries=256, tolerance_moving=None):
         self.weight, self.space, self.tolerance = weight, space, float(tolerance)
+        self.tolerance_moving = None if tolerance_moving is None else float(tolerance_moving)
         self._priors = list(priors)
         self._sized = OrderedDict()
         self._max_entries = int(max_entries)
@@ -316,8 +317,11 @@ class DepthPrior:
     def fwd(self, x: TermInputs):
         depth = x.out["expected_depth"]
         h, w = depth.shape
+        tol = self.tolerance
+        if self.tolerance_moving is not None and x.motion_mask is not None:
+            tol = np.where(x.motion_mask, self.tolerance_moving, self.tolerance)
         return depth_prior_fwd(depth, self.prior(x.frame, w, h), x.out["alpha"], self.space,
-                               POSE_DEPTH_ALPHA_MIN, GN_MIN_DEPTH, x.loss_mask, self.tolerance)
+                               POSE_DEPTH_ALPHA_MIN, GN_MIN_DEPTH, x.loss_mask, tol)
 
     def bwd(self, saved) -> TermGrads:
         if saved is None:
@@ -434,9 +438,11 @@ def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_d
             say("L_depth: left out (the scene has no depth priors: depth_prior_file_path, docs/dataset_format.md "
                 "§3), although loss.lambda_depth_prior > 0")
         else:
+            tm = config.depth_prior_tolerance_moving
             terms.append(DepthPrior(config.lambda_depth_prior, [f.depth_prior for f in scene.frames], prior_space,
-                                    config.depth_prior_tolerance))
-            how = (f"the log depth ratios beyond {config.depth_prior_tolerance:g}" if prior_space == "depth"
+                                    config.depth_prior_tolerance, tolerance_moving=tm))
+            how = (f"the log depth ratios beyond {config.depth_prior_tolerance:g}"
+                   + (f" ({tm:g} on the moving pixels)" if tm is not None else "") if prior_space == "depth"
                    else "the correlation of the rendered disparity")
             say(f"L_depth: weight {config.lambda_depth_prior:g}, {how} against the scene's depth priors (held as "
                 f"{prior_space}) on every frame")

@@ -35,8 +35,12 @@ def _central(f, x, h):
     return g
 
 
+_TOL_MAP = np.where(np.arange(W)[None, :] < W // 2, 0.0, 0.05) * np.ones((H, 1))  # a pixel's own tau
+
+
 @pytest.mark.parametrize("space, tol", [("depth", 0.0), ("depth", 0.05), ("metric", 0.0), ("metric", 0.05),
-                                        ("disparity", 0.0)])
+                                        ("disparity", 0.0), ("depth", _TOL_MAP), ("metric", _TOL_MAP)],
+                         ids=["depth-0", "depth-0.05", "metric-0", "metric-0.05", "disparity", "depth-map", "metric-map"])
 def test_gradient_matches_central_differences(space, tol):
     # The render's depth and a prior that agrees with it only in part: every factor of the
     # gradient is exercised. Central differences at h = 1e-6 on depths 1.5-6: truncation ~h^2
@@ -60,8 +64,9 @@ def test_gradient_matches_central_differences(space, tol):
         valid = np.isfinite(prior) & (alpha >= 0.5) & (mask > 0)
         r = np.log(d[valid] / prior[valid])
         r = r - r.mean() if space == "depth" else r
-        assert np.min(np.abs(np.abs(r) - tol)) > 1e-4  # away from the kinks
-        assert tol == 0 or 0 < np.mean(np.abs(r) < tol) < 1  # some pixels within tau
+        tv = np.broadcast_to(tol, (H, W))[valid]
+        assert np.min(np.abs(np.abs(r) - tv)) > 1e-4  # away from the kinks
+        assert np.all(tv == 0) or 0 < np.mean(np.abs(r) < tv) < 1  # some pixels within tau
     g = depth_prior_bwd(saved, weight)
     fd = _central(value, d, 1e-6)
     assert np.max(np.abs(g - fd)) < 1e-7 * np.max(np.abs(fd))
@@ -202,3 +207,31 @@ def test_bad_input_is_refused_with_what_to_fix():
         depth_prior_fwd(d[None], d, alpha)
     with pytest.raises(ValueError, match="space must be one of"):
         depth_prior_fwd(d, d, alpha, "inverse")
+    with pytest.raises(ValueError, match="tolerance must have the depth's shape"):
+        depth_prior_fwd(d, d, alpha, tolerance=np.zeros((H, W + 1)))
+    with pytest.raises(ValueError, match="one number or an \\(h, w\\) map"):
+        depth_prior_fwd(d, d, alpha, tolerance=np.zeros(W))
+    bad = np.zeros((H, W))
+    bad[2, 3] = np.nan
+    with pytest.raises(ValueError, match="tolerance must be >= 0 .* at every pixel; got a map holding nan"):
+        depth_prior_fwd(d, d, alpha, tolerance=bad)
+
+
+def test_a_tolerance_map_is_each_pixels_own_tolerance():
+    # a prior 6 % off on the left half, exact on the right ("metric": no frame mean): with tau 0.1
+    # on the left nothing is pulled anywhere; with tau 0 on the left exactly the left is pulled,
+    # by log 1.06 a pixel, whatever the right half's tau
+    d = _depth(4)
+    alpha = np.ones((H, W))
+    left = np.broadcast_to(np.arange(W)[None, :] < W // 2, (H, W))
+    prior = d * np.where(left, 1.06, 1.0)
+    v_loose, s_loose = depth_prior_fwd(d, prior, alpha, "metric", tolerance=np.where(left, 0.1, 0.0))
+    v_tight, s_tight = depth_prior_fwd(d, prior, alpha, "metric", tolerance=np.where(left, 0.0, 0.1))
+    assert v_loose == 0.0 and np.all(depth_prior_bwd(s_loose) == 0.0)
+    assert v_tight == pytest.approx(left.sum() * np.log(1.06) / (H * W), rel=1e-12)
+    g = depth_prior_bwd(s_tight)
+    assert np.all(g[left] < 0.0) and np.all(g[~left] == 0.0)  # the left pulled deeper, toward its prior
+    # one number and a map holding it everywhere are the same term
+    v1, s1 = depth_prior_fwd(d, prior, alpha, "depth", tolerance=0.02)
+    v2, s2 = depth_prior_fwd(d, prior, alpha, "depth", tolerance=np.full((H, W), 0.02))
+    assert v1 == v2 and np.array_equal(depth_prior_bwd(s1), depth_prior_bwd(s2))

@@ -110,3 +110,30 @@ def test_the_value_is_the_loss_functions(prior_scene, tmp_path):
                              tolerance=0.1)[0]
     assert term.tolerance == 0.1  # LossConfig.depth_prior_tolerance
     assert v == expect and out["expected_depth"].shape == (tgt.height, tgt.width)
+
+
+def test_moving_pixels_take_their_own_tolerance(prior_scene, tmp_path):
+    # LossConfig.depth_prior_tolerance_moving: the frame's motion mask picks each pixel's tau; the
+    # value is depth_prior_fwd with that map, and differs from the one-tau value where movers are
+    config = _config(1, 1.0)
+    config = dataclasses.replace(config, loss=dataclasses.replace(config.loss, depth_prior_tolerance_moving=0.0))
+    tr = Trainer(prior_scene, config, tmp_path / "m")
+    term = next(t for t in tr.terms if t.name == "depth_prior")
+    assert term.tolerance == 0.1 and term.tolerance_moving == 0.0
+    k = next(i for i, f in enumerate(prior_scene.frames) if f.mask is not None and f.mask.any())
+    tgt = tr.cache.get(k, 1.0)
+    assert tgt.mask is not None and tgt.mask.any()
+    out, _ = frame_render_fwd(tr.model, k, tgt.K, tgt.width, tgt.height)
+    prior = term.prior(k, tgt.width, tgt.height)
+    v, _ = term.fwd(TermInputs(out, tgt.image, None, tr.model, k, None, tgt.mask))
+    expect = depth_prior_fwd(out["expected_depth"], prior, out["alpha"], tolerance=np.where(tgt.mask, 0.0, 0.1))[0]
+    one = depth_prior_fwd(out["expected_depth"], prior, out["alpha"], tolerance=0.1)[0]
+    assert v == expect and v > one  # moving pixels within 10 % of the prior now cost
+    # without a mask (a frame with no moving pixels) the one tau holds
+    assert term.fwd(TermInputs(out, tgt.image, None, tr.model, k, None, None))[0] == one
+
+
+def test_a_bad_moving_tolerance_is_refused_by_name():
+    with pytest.raises(ValueError, match="LossConfig.depth_prior_tolerance_moving"):
+        LossConfig(depth_prior_tolerance_moving=-0.1)
+    assert LossConfig(depth_prior_tolerance_moving=None).depth_prior_tolerance_moving is None
