@@ -52,6 +52,8 @@ def best_shift(render, truth, mask, radius: int = 4):
     """(PSNR at no shift, the best PSNR, (dy, dx)) over the ``mask`` pixels of ``truth`` (h, w, c)
     against ``render`` moved by whole pixels, dy and dx in [-radius, radius]: the render's pixel
     (i - dy, j - dx) scored at (i, j), the mask pixels whose source leaves the image not counted."""
+    from d2gs_np.evaluation import metrics
+
     a, b, m = (np.asarray(x) for x in (render, truth, mask))
     if a.shape != b.shape or a.ndim != 3 or m.shape != a.shape[:2]:
         raise ValueError(f"render and truth must be (h, w, c) and the mask (h, w); got {a.shape}, {b.shape}, {m.shape}")
@@ -67,8 +69,8 @@ def best_shift(render, truth, mask, radius: int = 4):
         keep = (si >= 0) & (si < h) & (sj >= 0) & (sj < w)
         if not keep.any():
             return -np.inf
-        e = np.mean((a[si[keep], sj[keep]] - b[i[keep], j[keep]]) ** 2)
-        return np.inf if e == 0 else float(-10.0 * np.log10(e))
+        # the kept pixels as a one-row image, so the project's PSNR (its +inf when equal) scores them
+        return float(metrics.psnr(a[si[keep], sj[keep]][None], b[i[keep], j[keep]][None]))
     scores = {(dy, dx): psnr(dy, dx) for dy in range(-radius, radius + 1) for dx in range(-radius, radius + 1)}
     top = max(scores, key=lambda k: (scores[k], -abs(k[0]) - abs(k[1])))
     return scores[(0, 0)], scores[top], top

@@ -69,9 +69,10 @@ def depth_prior_fwd(depth, prior, alpha, space="depth", alpha_min=0.5, min_depth
         _check("tolerance", tol, depth.shape)
     elif tol.ndim != 0:
         raise ValueError(f"tolerance must be one number or an (h, w) map; got shape {tol.shape}")
-    if not np.all(tol >= 0.0):  # NaN fails too
-        raise ValueError(f"tolerance must be >= 0 (a relative depth error) at every pixel; got "
-                         f"{float(tol) if tol.ndim == 0 else 'a map holding ' + str(tol[~(tol >= 0.0)][0])}")
+    bad = tol[~(tol >= 0.0)]  # NaN is bad too
+    if bad.size:
+        got = float(tol) if tol.ndim == 0 else f"a map holding {bad[0]}"
+        raise ValueError(f"tolerance must be >= 0 (a relative depth error) at every pixel; got {got}")
     d = np.asarray(depth, np.float64)
     p = np.asarray(prior, np.float64)
     valid = np.isfinite(p) & (alpha >= alpha_min) & np.isfinite(d) & (d > min_depth)

@@ -441,9 +441,10 @@ def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_d
             tm = config.depth_prior_tolerance_moving
             terms.append(DepthPrior(config.lambda_depth_prior, [f.depth_prior for f in scene.frames], prior_space,
                                     config.depth_prior_tolerance, tolerance_moving=tm))
-            how = (f"the log depth ratios beyond {config.depth_prior_tolerance:g}"
-                   + (f" ({tm:g} on the moving pixels)" if tm is not None else "") if prior_space == "depth"
-                   else "the correlation of the rendered disparity")
+            how = "the correlation of the rendered disparity"
+            if prior_space == "depth":
+                on_movers = f" ({tm:g} on the moving pixels)" if tm is not None else ""
+                how = f"the log depth ratios beyond {config.depth_prior_tolerance:g}{on_movers}"
             say(f"L_depth: weight {config.lambda_depth_prior:g}, {how} against the scene's depth priors (held as "
                 f"{prior_space}) on every frame")
     if config.lambda_stereo > 0:
