@@ -172,6 +172,26 @@ def align_with_orientations(est_cam_T_world, gt_cam_T_world, depth=None):
     return metrics.umeyama(points(est_cam_T_world, ce, d_e), points(gt_cam_T_world, cg, d_g), with_scale=True)
 
 
+def baseline_errors(est_cam_T_world, gt_cam_T_world, depth=None, gaps=(1, 4, 8)):
+    """{gap: (median |b_est| / |b_true|, median angle between them in degrees)} of the baselines
+    between frames k and k + gap in camera k's axes, the estimate's scaled by the alignment of
+    ``align_with_orientations`` (at ``depth``). Gaps the clip is too short for are left out. Why the
+    short baselines matter to novel views: docs/results.md §4, session 43."""
+    est, gt = np.asarray(est_cam_T_world, np.float64), np.asarray(gt_cam_T_world, np.float64)
+    s = align_with_orientations(est, gt, depth)[0]
+    ce, cg = camera_center(est), camera_center(gt)
+    out = {}
+    for d in gaps:
+        if d >= len(gt):
+            continue
+        bt = np.einsum("nij,nj->ni", gt[:-d, :3, :3], cg[d:] - cg[:-d])
+        be = s * np.einsum("nij,nj->ni", est[:-d, :3, :3], ce[d:] - ce[:-d])
+        nt, ne = np.linalg.norm(bt, axis=1), np.linalg.norm(be, axis=1)
+        cos = np.clip(np.sum(bt * be, axis=1) / (nt * ne), -1.0, 1.0)
+        out[d] = (float(np.median(ne / nt)), float(np.degrees(np.median(np.arccos(cos)))))
+    return out
+
+
 def _trajectory_and_nvs(run: LoadedRun, scene, mids, test_pose_steps=0) -> dict:
     out = {}
     frames = scene.frames

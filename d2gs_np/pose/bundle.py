@@ -187,6 +187,68 @@ def pose_prior_fwd(cams, prior_cams, sigma_t, sigma_r):
     return r, J
 
 
+def path_smoothness_fwd(cams, sigma_c):
+    """Residuals of a prior that holds the camera centres on a smooth path, and their Jacobian.
+
+    Per interior camera k (1 .. C - 2) 3 rows: the centres' second difference
+    ``(c_{k-1} - 2 c_k + c_{k+1}) / sigma_c`` (world units per frame squared; c = -R^T t), for frames
+    equally spaced in time. A video's camera accelerates little from one frame to the next, while
+    pose noise that is independent per frame has a second difference sqrt(6) times its own size:
+    the rows hold the short baselines between neighbouring frames, which tracks through blurred
+    frames leave loose (docs/method.md §5). Returns (r (C - 2, 3), J (C - 2, 3, 3, 6)): J[k, :, j]
+    is the derivative of row block k with respect to camera (k + j)'s (phi, t), j = 0, 1, 2;
+    dc / d phi = -R^T hat(t) J_l(phi), dc / dt = -R^T, as in ``pose_prior_fwd``.
+    """
+    cams = np.asarray(cams, dtype=np.float64)
+    if cams.ndim != 2 or cams.shape[1] != 6:
+        raise ValueError(f"cams must have shape (C, 6); got {cams.shape}")
+    if not (np.isfinite(sigma_c) and sigma_c > 0):
+        raise ValueError(f"the path smoothness sigma must be finite and > 0; got {sigma_c}")
+    C = cams.shape[0]
+    if C < 3:
+        return np.zeros((0, 3)), np.zeros((0, 3, 3, 6))
+    phi, t = cams[:, :3], cams[:, 3:]
+    Rt = np.transpose(so3_exp(phi), (0, 2, 1))
+    c = -np.einsum("cij,cj->ci", Rt, t)
+    dc = np.concatenate([-(Rt @ hat(t) @ left_jacobian(phi)), -Rt], axis=2)  # (C, 3, 6)
+    r = (c[:-2] - 2.0 * c[1:-1] + c[2:]) / sigma_c
+    J = np.stack([dc[:-2], -2.0 * dc[1:-1], dc[2:]], axis=2) / sigma_c
+    return r, J
+
+
+def _smooth_dense(cams, free, sigma_c):
+    """``path_smoothness_fwd`` as flat rows (3 (C - 2),) and a dense Jacobian (3 (C - 2), 6F) on the
+    free cameras' columns (a fixed camera's columns are dropped)."""
+    r, J = path_smoothness_fwd(cams, sigma_c)
+    C, F = cams.shape[0], len(free)
+    slot = np.full(C, -1, dtype=np.int64)
+    slot[free] = np.arange(F)
+    Jd = np.zeros((r.shape[0], 3, 6 * F))
+    for j in range(3):
+        cols = slot[np.arange(r.shape[0]) + j]
+        ok = cols >= 0
+        for a in range(6):
+            Jd[np.flatnonzero(ok), :, 6 * cols[ok] + a] = J[ok, :, j, a]
+    return r.ravel(), Jd.reshape(-1, 6 * F)
+
+
+def _camera_rows(cams, free, prior, smooth):
+    """The rows on the cameras alone (the pose prior's, the path smoothness's) as flat residuals (R,)
+    and a dense Jacobian (R, 6F) on the free cameras' columns; None when there are none."""
+    rows = []
+    F = len(free)
+    if prior is not None and F:
+        rp, Jp = pose_prior_fwd(cams[free], np.asarray(prior[0], dtype=np.float64)[free], prior[1], prior[2])
+        Jd = np.zeros((F, 6, F, 6))
+        Jd[np.arange(F), :, np.arange(F), :] = Jp
+        rows.append((rp.ravel(), Jd.reshape(6 * F, 6 * F)))
+    if smooth is not None and F:
+        rows.append(_smooth_dense(cams, free, smooth))
+    if not rows:
+        return None
+    return np.concatenate([r for r, _ in rows]), np.concatenate([J for _, J in rows], axis=0)
+
+
 @dataclass
 class BundleProblem:
     """Observations and the starting point of a bundle adjustment."""
@@ -216,7 +278,7 @@ def _check_solver_args(solver, loss, f_scale, max_nfev, tol):
 
 
 def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, loss="soft_l1", f_scale=1.0,
-                  max_nfev=50, tol=1e-8, prior=None, solver="scipy"):
+                  max_nfev=50, tol=1e-8, prior=None, solver="scipy", smooth=None):
     """Robust least squares over free cameras, all points and (optionally) the shared focal length.
 
     fixed_cams: cameras held at their start (the gauge: fix one camera; the overall scale stays
@@ -224,6 +286,8 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
     prior: optional (prior_cams (C, 6), sigma_t, sigma_r): ``pose_prior_fwd`` rows for every free
     camera (in units of sigma, under the same robust loss); with it no camera need be fixed (the
     prior holds the gauge, the scale included).
+    smooth: optional sigma_c (world units per frame squared): ``path_smoothness_fwd`` rows on every
+    three consecutive cameras (in units of sigma_c, under the same robust loss), frames equally spaced.
     solver: "scipy" (``least_squares``, trust region reflective with LSMR; ``max_nfev`` residual
     evaluations) or "schur" (Levenberg-Marquardt on the normal equations with the points
     eliminated, ``_schur_lm``; ``max_nfev`` residual evaluations too, one per trial step). Both
@@ -257,21 +321,27 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
             raise ValueError(f"prior cams must have the shape of the problem's cams {cams0.shape}; got "
                              f"{prior_cams.shape}")
         _check_prior_sigmas(sigma_t, sigma_r)
+    if smooth is not None:
+        path_smoothness_fwd(cams0[:0], smooth)  # checks sigma_c
+        smooth = float(smooth)
     O2 = 2 * len(problem.cam_idx)
     if solver == "schur":
         return _schur_lm(problem, cams0, pts0, free, refine_focal, loss, float(f_scale), int(max_nfev), float(tol),
-                         None if prior is None else (prior_cams, float(sigma_t), float(sigma_r)), t_start)
+                         None if prior is None else (prior_cams, float(sigma_t), float(sigma_r)), t_start, smooth)
     history = {"cost": [], "seconds": []}
 
     def fun(x):
         cams, pts, f = unpack(x)
         r, saved = reprojection_fwd(cams, pts, f, problem.cx, problem.cy, problem.cam_idx, problem.pt_idx, problem.uv)
         cache["key"], cache["saved"] = x.tobytes(), saved
-        if prior is None:
-            out = r.ravel()
-        else:
+        out = [r.ravel()]
+        if prior is not None:
             rp, cache["prior_J"] = pose_prior_fwd(cams[free], prior_cams[free], sigma_t, sigma_r)
-            out = np.concatenate([r.ravel(), rp.ravel()])
+            out.append(rp.ravel())
+        if smooth is not None:
+            rs, cache["smooth_J"] = _smooth_dense(cams, free, smooth)
+            out.append(rs)
+        out = np.concatenate(out)
         # record the cost (read-only: the solver's path is unchanged)
         c = 0.5 * f_scale ** 2 * float(np.sum(robust_loss((out / f_scale) ** 2, loss)[0]))
         best = min(history["cost"][-1], c) if history["cost"] else c
@@ -282,13 +352,16 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
     def jac(x):
         if cache.get("key") != x.tobytes():
             fun(x)
-        J = reprojection_jacobian(cache["saved"], free, refine_focal)
-        if prior is None:
-            return J
-        # the prior's rows: one 6 x 6 block per free camera, on its own columns (the first 6F)
-        Jp = sp.block_diag(list(cache["prior_J"]), format="csr")
-        Jp = sp.hstack([Jp, sp.csr_matrix((Jp.shape[0], J.shape[1] - Jp.shape[1]))], format="csr")
-        return sp.vstack([J, Jp], format="csr")
+        J = [reprojection_jacobian(cache["saved"], free, refine_focal)]
+        width = J[0].shape[1]
+        if prior is not None:
+            # the prior's rows: one 6 x 6 block per free camera, on its own columns (the first 6F)
+            Jp = sp.block_diag(list(cache["prior_J"]), format="csr")
+            J.append(sp.hstack([Jp, sp.csr_matrix((Jp.shape[0], width - Jp.shape[1]))], format="csr"))
+        if smooth is not None:
+            Js = cache["smooth_J"]
+            J.append(sp.hstack([sp.csr_matrix(Js), sp.csr_matrix((Js.shape[0], width - Js.shape[1]))], format="csr"))
+        return J[0] if len(J) == 1 else sp.vstack(J, format="csr")
 
     x0 = np.concatenate([cams0[free].ravel(), pts0.ravel()] + ([np.array([problem.focal])] if refine_focal else []))
     r0 = fun(x0)
@@ -311,7 +384,7 @@ def _block_diagonal(blocks):
     return sp.bsr_matrix((blocks, np.arange(P), np.arange(P + 1)), shape=(3 * P, 3 * P)).tocsr()
 
 
-def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev, tol, prior, t_start):
+def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev, tol, prior, t_start, smooth=None):
     """Levenberg-Marquardt with the points eliminated (Schur complement onto the camera side).
 
     Unknowns x = (y, p): y = the free cameras' (phi, t) [and the focal], p = the points. Each
@@ -375,16 +448,14 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
         cams, pts, f = unpack(y, pts)
         with np.errstate(all="ignore"):
             r, saved = reprojection_fwd(cams, pts, f, cx, cy, ci, pi, uv)
-            rp = Jpr = None
-            if prior is not None:
-                rp, Jpr = pose_prior_fwd(cams[free], prior[0][free], prior[1], prior[2])
+            rows = _camera_rows(cams, free, prior, smooth)
             rho = robust_loss((r / f_scale) ** 2, loss)[0]
             cost = 0.5 * fs2 * float(np.sum(rho))
-            if rp is not None:
-                cost += 0.5 * fs2 * float(np.sum(robust_loss((rp / f_scale) ** 2, loss)[0]))
-        return finite_or_inf(cost), r, saved, rp, Jpr
+            if rows is not None:
+                cost += 0.5 * fs2 * float(np.sum(robust_loss((rows[0] / f_scale) ** 2, loss)[0]))
+        return finite_or_inf(cost), r, saved, rows
 
-    def normal_equations(r, saved, rp, Jpr):
+    def normal_equations(r, saved, rows):
         d_cam, d_pt, n = _blocks(saved)
         d_cam[~seen_free] = 0.0
         Jy = np.concatenate([d_cam, n[:, :, None]], axis=2) if refine_focal else d_cam  # (O, 2, k)
@@ -400,13 +471,12 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
             Eo = np.einsum("oia,oib->oab", WJy, d_pt)  # (O, k, 3)
             gy = np.bincount(cols_y.ravel(), np.einsum("oia,oi->oa", WJy, r).ravel(), minlength=ny)
             E = sp.csr_matrix((Eo.ravel(), (E_rows, E_cols)), shape=(ny, 3 * P))
-        if rp is not None:
-            wp = robust_loss((rp / f_scale) ** 2, loss)[1]  # (F, 6)
-            blk = np.einsum("fia,fi,fib->fab", Jpr, wp, Jpr)
-            idx = 6 * np.arange(F)[:, None] + np.arange(6)
-            A[idx[:, :, None], idx[:, None, :]] += blk
-            gy[:nc] += np.einsum("fia,fi->fa", Jpr, wp * rp).ravel()
-        return dict(Jy=Jy, Jp=d_pt, w=w, A=A, V=V, E=E, gy=gy, gp=gp, Jpr=Jpr, rp=rp)
+        if rows is not None:
+            rc, Jc = rows
+            wc = robust_loss((rc / f_scale) ** 2, loss)[1]
+            A[:nc, :nc] += Jc.T @ (wc[:, None] * Jc)
+            gy[:nc] += Jc.T @ (wc * rc)
+        return dict(Jy=Jy, Jp=d_pt, w=w, A=A, V=V, E=E, gy=gy, gp=gp, rows=rows)
 
     def damped_step(ne, lam):
         """(dy, dp) of the damped system, or None when S is not positive definite."""
@@ -444,14 +514,14 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
         Jdx = np.einsum("oia,oa->oi", ne["Jy"], dy[cols_y] if ny else np.zeros((O, k))) + \
             np.einsum("oia,oa->oi", ne["Jp"], dp.reshape(P, 3)[pi])
         quad = float(np.sum(ne["w"] * Jdx ** 2))
-        if ne["rp"] is not None:
-            Jpdx = np.einsum("fia,fa->fi", ne["Jpr"], dy[:nc].reshape(F, 6))
-            quad += float(np.sum(robust_loss((ne["rp"] / f_scale) ** 2, loss)[1] * Jpdx ** 2))
+        if ne["rows"] is not None:
+            rc, Jc = ne["rows"]
+            quad += float(np.sum(robust_loss((rc / f_scale) ** 2, loss)[1] * (Jc @ dy[:nc]) ** 2))
         return -(float(ne["gy"] @ dy) + float(ne["gp"] @ dp) + 0.5 * quad)
 
     y, pts = split(cams0, pts0, problem.focal)
     pts = pts.copy()
-    cost, r, saved, rp, Jpr = evaluate(y, pts)
+    cost, r, saved, rows = evaluate(y, pts)
     if not np.isfinite(cost):
         bad = np.flatnonzero(~np.all(np.isfinite(r), axis=1))
         raise ValueError(f"bundle_adjust: the residuals are not finite at the start ({bad.size} observations, e.g. "
@@ -461,7 +531,7 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
     nfev, iterations, status = 1, 0, 0
     cost_hist, sec_hist = [cost], [time.perf_counter() - t_start]
     damp, schedule = damping_start(SCHUR_DAMPING_INIT), Nielsen()
-    ne = normal_equations(r, saved, rp, Jpr)
+    ne = normal_equations(r, saved, rows)
     while nfev < max_nfev:
         step = damped_step(ne, damp.lam)
         if step is None:  # S not positive definite at this damping: more damping
@@ -478,7 +548,7 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
         small_step = np.sqrt(dy @ dy + dp @ dp) <= tol * (np.sqrt(y @ y + np.sum(pts * pts)) + tol)
         if accept_step(cost, new[0]):
             decrease = cost - new[0]
-            y, pts, (cost, r, saved, rp, Jpr) = y_new, pts_new, new
+            y, pts, (cost, r, saved, rows) = y_new, pts_new, new
             iterations += 1
             damp = schedule.accepted(damp, decrease, pred)
             cost_hist.append(cost)
@@ -489,7 +559,7 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
             if small_step:
                 status = 3
                 break
-            ne = normal_equations(r, saved, rp, Jpr)
+            ne = normal_equations(r, saved, rows)
         else:
             cost_hist.append(cost)
             sec_hist.append(time.perf_counter() - t_start)
@@ -511,10 +581,11 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
     return cams, pts, float(f), info
 
 
-def camera_covariance(problem: BundleProblem, cams, points, fixed_cams=(), loss="soft_l1", f_scale=1.0, prior=None):
+def camera_covariance(problem: BundleProblem, cams, points, fixed_cams=(), loss="soft_l1", f_scale=1.0, prior=None,
+                      smooth=None):
     """Covariance (6F, 6F) of the free cameras' (phi, t) at a solution (cams (C, 6), points (P, 3)),
     from the Gauss-Newton approximation of the cost ``bundle_adjust`` minimises: H = J^T W J (+ the
-    prior's J^T W J), W the robust weights rho'(z) at the solution, the points eliminated (Schur
+    prior's and the path smoothness's J^T W J), W the robust weights rho'(z) at the solution, the points eliminated (Schur
     complement), Sigma = S^-1. A residual of 1 px counts as one standard deviation, as the cost
     weighs it. Returns (Sigma, free (F,) camera indices).
 
@@ -533,12 +604,10 @@ def camera_covariance(problem: BundleProblem, cams, points, fixed_cams=(), loss=
     w = robust_loss((r / f_scale) ** 2, loss)[1].ravel()
     H = (J.T @ sp.diags(w) @ J).tocsr()
     A = H[:nc, :nc].toarray()
-    if prior is not None:
-        rp, Jp = pose_prior_fwd(cams[free], np.asarray(prior[0], dtype=np.float64)[free], prior[1], prior[2])
-        wp = robust_loss((rp / f_scale) ** 2, loss)[1]
-        blk = np.einsum("fia,fi,fib->fab", Jp, wp, Jp)
-        idx = 6 * np.arange(len(free))[:, None] + np.arange(6)
-        A[idx[:, :, None], idx[:, None, :]] += blk
+    rows = _camera_rows(cams, free, prior, smooth)
+    if rows is not None:
+        rc, Jc = rows
+        A += Jc.T @ (robust_loss((rc / f_scale) ** 2, loss)[1][:, None] * Jc)
     if P:
         # the points' blocks are 3 x 3 and independent: invert each on its range (a point seen along
         # one ray has a rank-2 block), as _schur_lm's damped step does

@@ -189,6 +189,10 @@ class PoseInitConfig:
     # (a scene whose tracks are short). sigma_t = prior_trans_rel x the median depth of the points.
     prior_rot_deg: float = 1.0
     prior_trans_rel: float = 0.02
+    # The camera centres held on a smooth path (``pose.bundle.path_smoothness_fwd``): their second
+    # difference between neighbouring frames at sigma = smooth_trans_rel x the median depth of the
+    # points per frame squared; 0: off. Why: docs/method.md §5, the path's smoothness.
+    smooth_trans_rel: float = 0.0
     max_rms_px: float = 1.5  # an adjustment with a larger residual (inliers) is not kept
     max_change_deg: float = 5.0  # nor one that turns a camera by more than this from the given pose
     max_change_rel: float = 0.1  # nor one that moves a centre by more than this x the median point depth
@@ -208,6 +212,7 @@ class PoseInitConfig:
         for name in ("min_parallax_deg", "fallback_parallax_deg", "outlier_px", "robust_px", "max_rms_px", "max_change_deg", "max_change_rel",
                      "prior_rot_deg", "prior_trans_rel"):
             check_number(getattr(self, name), f"PoseInitConfig.{name}", 0.0, lo_open=True)
+        check_number(self.smooth_trans_rel, "PoseInitConfig.smooth_trans_rel", 0.0)
 
 
 @dataclass(frozen=True)

@@ -166,6 +166,7 @@ def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = N
     pts = X[keep_pts]
     depth = float(np.median(_depths(T0, pts)))
     prior = (given, cfg.prior_trans_rel * depth, np.deg2rad(cfg.prior_rot_deg))
+    smooth = cfg.smooth_trans_rel * depth if cfg.smooth_trans_rel > 0 else None
     rounds = []
     held = np.zeros(N, dtype=bool)
     for r in range(2):
@@ -179,7 +180,8 @@ def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = N
         prob = BundleProblem(cams, pts, fx, cx, cy, o_cam, o_pt, o_uv)
         cams_new, pts_new, _, binfo = bundle_adjust(prob, fixed_cams=tuple(np.flatnonzero(held).tolist()),
                                                     loss="soft_l1", f_scale=cfg.robust_px,
-                                                    max_nfev=cfg.max_nfev, prior=prior, solver=cfg.solver)
+                                                    max_nfev=cfg.max_nfev, prior=prior, solver=cfg.solver,
+                                                    smooth=smooth)
         rounds.append({"rms_px_start": binfo["rms_px_start"], "rms_px": binfo["rms_px"],
                        "median_px": binfo["median_px"], "observations": int(len(o_cam)), "nfev": binfo["nfev"],
                        "solver": cfg.solver, "cost": binfo["cost"], "iterations": binfo["iterations"],
@@ -193,7 +195,8 @@ def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = N
     # how well the tracks determine each frame's rotation against the others (the last round's
     # problem at its solution); a held frame has the prior's uncertainty
     Sigma, free = camera_covariance(BundleProblem(cams, pts, fx, cx, cy, o_cam, o_pt, o_uv), cams, pts,
-                                    tuple(np.flatnonzero(held).tolist()), "soft_l1", cfg.robust_px, prior)
+                                    tuple(np.flatnonzero(held).tolist()), "soft_l1", cfg.robust_px, prior,
+                                    smooth)
     rot_std = np.degrees(relative_rotation_std(Sigma, free, N))
     rot_std[held] = cfg.prior_rot_deg
     info.update(rounds=rounds, observations_per_frame=per_frame.tolist(), held_frames=np.flatnonzero(held).tolist(),

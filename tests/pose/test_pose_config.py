@@ -37,6 +37,8 @@ def test_loading_the_pose_configs_imports_no_solver():
     (PoseInitConfig, dict(max_nfev=0), ValueError, "PoseInitConfig"),
     (PoseInitConfig, dict(tracks="klt"), TypeError, "PoseInitConfig"),
     (PoseInitConfig, dict(min_frame_observations=0), ValueError, "PoseInitConfig"),
+    (PoseInitConfig, dict(smooth_trans_rel=-0.01), ValueError, "PoseInitConfig.smooth_trans_rel"),
+    (PoseInitConfig, dict(smooth_trans_rel=np.inf), ValueError, "PoseInitConfig.smooth_trans_rel"),
     (GaussNewtonConfig, dict(robust="l1"), ValueError, "robust"),
     (GaussNewtonConfig, dict(beta=float("nan")), ValueError, "beta"),
     (PoseFitConfig, dict(steps=-1), ValueError, "steps"),
