@@ -2,7 +2,8 @@
 steps by depth", session 44).
 
 For each test view and the training frame of its time: the ratio of the model's rendered (expected)
-depth to the true depth on the frame's moving pixels (median and 10th / 90th percentiles), the
+depth to the true depth on the frame's moving pixels (median and 10th / 90th percentiles) and on
+its static pixels (median: a mover placed right against the static world sits at that), the
 mover's parallax between the frame's camera and the test view (focal length x baseline / the
 mover's median true depth, px), and what the ratios move the mover's pixels by in the test view:
 the median's shift, parallax x |1 - 1 / median ratio|, and the spread between the 10th and 90th
@@ -93,16 +94,18 @@ def report(run_dir, radius: int = 4) -> str:
     scale = fit[0]
     to_ours = metrics.sim3_inverse(*fit)  # carries the test poses into our frame, as d2gs eval does
     lines = [f"## {run_dir}", "",
-             "| view | frame | depth ratio: median (p10, p90) | parallax px | shift of the median px | spread px "
-             "| test view moving px dB | best shift (dy, dx) px | its dB |",
-             "|---|---|---|---|---|---|---|---|---|"]
+             "| view | frame | depth ratio: median (p10, p90) | static px' depth ratio | parallax px | shift of the median px "
+             "| spread px | test view moving px dB | best shift (dy, dx) px | its dB |",
+             "|---|---|---|---|---|---|---|---|---|---|"]
     for i, (v, k) in enumerate(zip(scene.test_frames, frames)):
         f = scene.frames[k]
         if f.mask is None or f.depth is None or not f.mask.any():
-            lines.append(f"| {i} | {k} | no moving pixels or no true depth | | | | | | |")
+            lines.append(f"| {i} | {k} | no moving pixels or no true depth | | | | | | | |")
             continue
         o = m.render_outputs(m.mid_pose(k), f.time, f.K, f.width, f.height)
         ratios = depth_ratios(o["expected_depth"] * scale, f.depth, f.mask)
+        # the static world's own ratio in the same frame: a mover placed right against the world sits at it
+        static = depth_ratios(o["expected_depth"] * scale, f.depth, ~f.mask.astype(bool))[0]
         rel = v.cam_T_world @ np.linalg.inv(gt[k])
         par = parallax_px(f.K[0, 0], np.linalg.norm(rel[:3, 3]), float(np.median(f.depth[f.mask.astype(bool)])))
         shift, spread = landing(par, ratios)
@@ -111,7 +114,7 @@ def report(run_dir, radius: int = 4) -> str:
             te = m.render(metrics.sim3_apply_to_poses(*to_ours, v.cam_T_world), v.time, v.K, v.width, v.height)
             at0, top, (dy, dx) = best_shift(te, v.image, v.mask, radius)
             cells = f"{at0:.2f} | ({dy:+d}, {dx:+d}) | {top:.2f}"
-        lines.append(f"| {i} | {k} | {ratios[0]:.3f} ({ratios[1]:.3f}, {ratios[2]:.3f}) | {par:.1f} | "
+        lines.append(f"| {i} | {k} | {ratios[0]:.3f} ({ratios[1]:.3f}, {ratios[2]:.3f}) | {static:.3f} | {par:.1f} | "
                      f"{shift:.2f} | {spread:.2f} | {cells} |")
     return "\n".join(lines)
 

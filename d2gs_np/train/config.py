@@ -80,11 +80,15 @@ class LossConfig:
     stereo_space: str = "depth"
     stereo_at: tuple = (0.25, 0.5)
     stereo_depths: int = 64  # the sweep's hypotheses (InitConfig.stereo's other settings); renders are sharp
+    # L_var (train.terms.DepthVariance): the spread of the Gaussians' depths along each ray (a veil in
+    # front of a surface, layers behind it), from one more sharp render per step. Not in the paper
+    # (Mip-NeRF 360's distortion, 2DGS's depth distortion in a splatter's form); off by default
+    lambda_depth_var: float = 0.0
 
     def __post_init__(self):
         check_number(self.lambda_ssim, "LossConfig.lambda_ssim", 0.0, 1.0)
         for name in ("lambda_ts", "ts_time_weight", "ts_spatial_weight", "lambda_gs", "lambda_freq", "lambda_reproj",
-                     "lambda_depth_prior", "lambda_continuity", "lambda_iso", "lambda_stereo"):
+                     "lambda_depth_prior", "lambda_continuity", "lambda_iso", "lambda_stereo", "lambda_depth_var"):
             check_number(getattr(self, name), f"LossConfig.{name}", 0.0, hint="0 = term off")
         check_number(self.depth_prior_tolerance, "LossConfig.depth_prior_tolerance", 0.0,
                      hint="the prior's relative accuracy, e.g. 0.1; 0 pulls every pixel")

@@ -33,12 +33,16 @@ from d2gs_np.blur.endpoints import XI_END, XI_START
 from d2gs_np.blur.exposure import EXPOSURE_BLOCK, exposure_bwd, exposure_fwd
 from d2gs_np.losses.continuity import _continuity_fwd, continuity_bwd, pixel_weights, time_pairs
 from d2gs_np.losses.depth_prior import depth_prior_bwd, depth_prior_fwd
+from d2gs_np.losses.depth_variance import depth_variance_bwd, depth_variance_fwd, z_features_bwd, z_features_fwd
 from d2gs_np.losses.entropy import _entropy_fwd, entropy_bwd
 from d2gs_np.losses.frequency import _frequency_fwd, frequency_bwd, target_spectrum
 from d2gs_np.losses.frequency import warm_up as _frequency_warm_up
 from d2gs_np.losses.isometry import _isometry_fwd, isometry_bwd, pair_floor
 from d2gs_np.losses.photometric import photometric_bwd, photometric_fwd
+from d2gs_np.geometry.camera import scale_intrinsics
 from d2gs_np.geometry.sampling import bilinear_bwd, bilinear_fwd
+from d2gs_np.render.api import _render_bwd, _render_fwd
+from d2gs_np.scene.render_inputs import RENDER_FIELDS, _render_inputs_bwd, _render_inputs_fwd
 from d2gs_np.losses.reprojection import cycle_bwd, cycle_fwd
 from d2gs_np.losses.smoothness import _spatial_fwd, _time_fwd, spatial_bwd, time_bwd
 from d2gs_np.losses.ssim import SSIM_WINDOW
@@ -46,12 +50,14 @@ from d2gs_np.constants import GN_MIN_DEPTH, POSE_DEPTH_ALPHA_MIN
 from d2gs_np.scene.config import InitConfig
 from d2gs_np.scene.gaussians import DEFORM_FIELDS, DYNAMIC, STATIC
 from d2gs_np.train.config import LossConfig
+from d2gs_np.train.model import SCENE_PREFIXES
 from d2gs_np.train.plugins import DepthMemory, NeighbourRefresh
 from d2gs_np.train.render_stereo import RenderStereo
 from d2gs_np.train.schedule import downsample_area
 
 __all__ = ["TermInputs", "TermGrads", "Photometric", "Smoothness", "OpacityEntropy", "Frequency", "Reprojection",
-           "DepthPrior", "StereoPrior", "ExposureContinuity", "Isometry", "loss_terms", "terms_fwd_bwd"]
+           "DepthPrior", "StereoPrior", "ExposureContinuity", "Isometry", "DepthVariance", "loss_terms",
+           "terms_fwd_bwd"]
 
 
 class TermInputs(NamedTuple):
@@ -329,6 +335,50 @@ class DepthPrior:
         return TermGrads(render={"expected_depth": depth_prior_bwd(saved, self.weight)}, params={})
 
 
+class DepthVariance:
+    """L_var: the squared coefficient of variation of the Gaussians' depths along each pixel's ray
+    (docs/method.md §6; ``losses/depth_variance.py``), from one more sharp render of the frame at
+    its mid-exposure pose and time, at the step's size, whose colours are each Gaussian's (z, z^2,
+    0) over black: its image holds D = sum w z and D2 = sum w z^2. The pixels are those of the step's
+    loss mask with alpha >= POSE_DEPTH_ALPHA_MIN; the set rendered is the step's (the static set
+    alone in the warm-up). Its gradient reaches the Gaussians' blocks, not the camera (the pose
+    is held for this term)."""
+
+    name = "depth_var"
+
+    def __init__(self, weight):
+        self.weight = weight
+
+    def fwd(self, x: TermInputs):
+        m, k = x.model, x.frame
+        h, w = x.out["alpha"].shape
+        prefixes = (f"{STATIC}.",) if x.stage is not None and x.stage.static_only else SCENE_PREFIXES
+        scene = {n: v for n, v in m.params.items() if n.startswith(prefixes)}
+        ri, saved_scene = _render_inputs_fwd(scene, float(m.times[k]), m.config.deform)
+        pose = m.mid_pose(k)
+        K = scale_intrinsics(m.Ks[k], w / m.widths[k], h / m.heights[k])
+        feats, z = z_features_fwd(ri["means"], pose)
+        out, saved_render = _render_fwd(ri["means"], ri["quats"], ri["scales"], ri["opacities"], feats, pose, K, w, h,
+                                        np.zeros(3, dtype=feats.dtype), m.config.render)
+        value, saved = depth_variance_fwd(out["image"][..., 0], out["image"][..., 1], out["alpha"],
+                                          POSE_DEPTH_ALPHA_MIN, GN_MIN_DEPTH, x.loss_mask)
+        return value, None if saved is None else (saved, saved_scene, saved_render, z, pose, out["image"].dtype)
+
+    def bwd(self, saved) -> TermGrads:
+        if saved is None:
+            return TermGrads(render={}, params={})
+        saved_var, saved_scene, saved_render, z, pose, dtype = saved
+        v_d, v_d2, v_a = depth_variance_bwd(saved_var, self.weight)
+        v_image = np.zeros(v_d.shape + (3,), dtype=dtype)
+        v_image[..., 0], v_image[..., 1] = v_d, v_d2
+        g = _render_bwd(saved_render, v_image, v_a.astype(dtype))
+        g = dict(g, means=g["means"] + z_features_bwd(g["colors"], z, pose).astype(g["means"].dtype), colors=None)
+        v_params, _ = _render_inputs_bwd(saved_scene, {n: g[n] for n in RENDER_FIELDS})
+        # the features stand in for the colours: the colour blocks get nothing from this term
+        return TermGrads(render={}, params={n: v for n, v in v_params.items() if not n.endswith(".colors")
+                                            and not n.endswith(".deform_colors")})
+
+
 class StereoPrior(DepthPrior):
     """L_stereo: L_depth's "depth" or "metric" form (``space``) against depth maps the run makes
     for itself, the plane sweep over the model's own renders (``train/render_stereo.py``,
@@ -409,6 +459,10 @@ def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_d
         else:
             terms.append(Smoothness(config.lambda_ts, config.ts_time_weight, config.ts_spatial_weight,
                                     config.ts_time_offset, config.ts_neighbours, config.ts_knn_every))
+    if config.lambda_depth_var > 0:
+        terms.append(DepthVariance(config.lambda_depth_var))
+        say(f"L_var: weight {config.lambda_depth_var:g}, the spread of the Gaussians' depths along each ray "
+            "(one more sharp render per step)")
     if config.lambda_iso > 0:
         if components is not None and not components.dynamic:
             say("L_iso: left out (no dynamic set, nothing moves), although loss.lambda_iso > 0")
