@@ -202,6 +202,17 @@ EXPERIMENTS = {
         Variant("oracle_true", scene=_TRUE_POSES, config={"init": {"static_depth": "scene", "dynamic_depth": "scene"}}),
         Variant("stereo"),
         Variant("oracle", config={"init": {"static_depth": "scene", "dynamic_depth": "scene"}}),
+        # the realistic counterpart of the oracle: a modelled video depth prior (data/suite.py) aligned to
+        # the static points, for every seed ("prior"), or only where the sweep disagrees with it by more
+        # than 15 % ("stereo_prior"); the movers' seeds at the prior too
+        Variant("prior_true", scene={**_TRUE_POSES, "depth_prior": "video"},
+                config={"init": {"static_depth": "prior", "dynamic_depth": "prior"}}),
+        Variant("stereo_prior_true", scene={**_TRUE_POSES, "depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}}),
+        Variant("prior", scene={"depth_prior": "video"},
+                config={"init": {"static_depth": "prior", "dynamic_depth": "prior"}}),
+        Variant("stereo_prior", scene={"depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}}),
     ),
     # Opacity resets during densification (issue #40: faint layers in front of the static world,
     # docs/method.md §8): off; 3DGS's (to 0.01 every 500 schedule steps of the 2000, at 500 and 1000,
@@ -264,6 +275,17 @@ EXPERIMENTS = {
                 config={"init": {"dynamic_depth": "prior"}, "train": {"lr": {"means_depth": "near"}},
                         "loss": {"lambda_depth_prior": 0.1, "depth_prior_tolerance": 0.1,
                                  "depth_prior_tolerance_moving": 0.0, "lambda_iso": 0.1}}),
+    ),
+    # The spread of the Gaussians' depths along each ray held down (L_var, issue #40, docs/method.md §6):
+    # off, at 0.1 and at 1 (at 1 its gradient on the static means is about the photometric loss's),
+    # with the true and the given (noisy) poses.
+    "depth-variance": (
+        Variant("none_true", scene=_TRUE_POSES),
+        Variant("var_true", scene=_TRUE_POSES, config={"loss": {"lambda_depth_var": 1.0}}),
+        Variant("var_weak_true", scene=_TRUE_POSES, config={"loss": {"lambda_depth_var": 0.1}}),
+        Variant("none"),
+        Variant("var", config={"loss": {"lambda_depth_var": 1.0}}),
+        Variant("var_weak", config={"loss": {"lambda_depth_var": 0.1}}),
     ),
     "suite": (
         Variant("sharp", scene=_SHARP),

@@ -19,7 +19,7 @@ __all__ = ["DeformConfig", "InitConfig", "StereoConfig", "MotionInitConfig", "WA
 # how a seed's pixel can follow its object's track (``MotionInitConfig.warp``)
 WARPS = ("centroid", "similarity", "homography", "flow")
 DYNAMIC_DEPTHS = ("static_median", "scene", "prior")  # InitConfig.dynamic_depth
-STATIC_DEPTHS = ("stereo", "scene")  # InitConfig.static_depth
+STATIC_DEPTHS = ("stereo", "scene", "prior", "stereo_prior")  # InitConfig.static_depth
 PRIOR_SPACES = ("depth", "disparity")  # InitConfig.depth_prior_space
 
 
@@ -126,8 +126,11 @@ class InitConfig:
     dynamic_depth: str = "static_median"
     # Where the dense seeds and the fill of the static set take their depth: "stereo" (the plane
     # sweep, interpolated where it keeps nothing) or "scene": the scene's depth maps at each seed's
-    # pixel (measured depth; on a synthetic scene the truth: an oracle, docs/method.md §8).
+    # pixel (measured depth; on a synthetic scene the truth: an oracle, docs/method.md §8); "prior":
+    # the scene's depth priors aligned as the dynamic seeds' are; "stereo_prior": the sweep where it
+    # agrees with the aligned prior within stereo_prior_tolerance (relative), the prior elsewhere.
     static_depth: str = "stereo"
+    stereo_prior_tolerance: float = 0.15
     # Once, at this fraction of the schedule, the static set replaced by seeds from a plane sweep over
     # the model's own sharp renders (train/render_stereo.py, Reseed); 0: never (docs/method.md §8)
     reseed_at: float = 0.0
@@ -168,6 +171,8 @@ class InitConfig:
         check_choice(self.static_depth, "InitConfig.static_depth", STATIC_DEPTHS)
         check_number(self.reseed_at, "InitConfig.reseed_at", 0.0, 1.0, hi_open=True, hint="0 = never")
         check_choice(self.depth_prior_space, "InitConfig.depth_prior_space", PRIOR_SPACES)
+        check_number(self.stereo_prior_tolerance, "InitConfig.stereo_prior_tolerance", 0.0,
+                     hint="a relative difference, e.g. 0.15")
         check_int(self.depth_prior_min_points, "InitConfig.depth_prior_min_points", 3,
                   hint="a scale and shift need at least 3 points to be checked")
 

@@ -75,7 +75,12 @@ Dynamic points (only if some frame has a motion mask with a True pixel; otherwis
 
 ``static_depth = "scene"`` lifts the dense seeds and the fill at the scene's own depth maps
 (measured depth; on a synthetic scene the truth: an oracle of the static geometry) instead of
-the stereo and the interpolation; the triangulated points stay as measured.
+the stereo and the interpolation; the triangulated points stay as measured. ``"prior"`` lifts
+them at the scene's depth priors aligned as the dynamic seeds' are (to the bundle adjustment's
+points when the run has them, else to the triangulated ones), where a frame's alignment succeeds;
+``"stereo_prior"`` keeps the sweep's own depth where it agrees with that prior within
+``stereo_prior_tolerance`` and takes the prior elsewhere (a sweep on blurred, sparse texture fails
+in places; a depth network's estimate is smooth and roughly right everywhere).
 
 ``info`` (for the run log) holds counts, reprojection statistics and the depth range, plus
 per-point provenance arrays (``static_source_frames``, ``dynamic_source_frames``,
@@ -273,7 +278,7 @@ def depth_from_points(points, frame, query, outlier_rel, max_points=None):
 
 
 def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, stereo=None, depth_range=None,
-               skips=(2, 4, 8), depth_maps=None):
+               skips=(2, 4, 8), depth_maps=None, prior_maps=None, prior_tolerance=None):
     """Pixel-grid points of each keyframe's static pixels at their stereo depth, else at depths
     interpolated from trusted stereo pixels or from ref_points (module docstring, step 3).
 
@@ -281,14 +286,16 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
     different pixels. ``stereo``: a StereoConfig (None or disabled: interpolation from
     ref_points only); ``depth_range``: (near, far) of the sweep; ``skips``: source frames k +- s;
     ``depth_maps``: per-frame (H, W) depths (``InitConfig.static_depth = "scene"``) that replace the
-    stereo where finite and > 0.
+    stereo where finite and > 0; ``prior_maps``: per-frame (H, W) aligned depth priors (or None per
+    frame) that replace every depth but the stereo's own within ``prior_tolerance`` (relative) of
+    them (``static_depth = "stereo_prior"``; None: everywhere, ``"prior"``).
     Returns (points (P, 3), colours (P, 3), source frames (P,), info dict); info["measured"] (P,)
     is True for the points at a stereo depth of their own pixel (not interpolated).
     """
     pts, cols, src, measured = [], [], [], []
     info = {"stereo_kept_share": [], "stereo_seeds": 0}
     use_stereo = (stereo is not None and stereo.enabled and depth_range is not None and len(frames) > 1
-                  and depth_maps is None)
+                  and depth_maps is None and not (prior_maps is not None and prior_tolerance is None))
     for i, k in enumerate(keyframes):
         f = frames[k]
         off = i % stride
@@ -317,10 +324,17 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
                 filled = depth_from_trusted(dmap, pix[miss], outlier_rel)
                 if filled is not None:
                     depth[miss] = filled
-        if depth_maps is not None:
+        if depth_maps is not None and depth_maps[k] is not None:
             given = depth_maps[k][rows, cols_]
             use = np.isfinite(given) & (given > 0)
             depth[use], own[use] = given[use], True
+        if prior_maps is not None and prior_maps[k] is not None:
+            prior = prior_maps[k][rows, cols_]
+            use = np.isfinite(prior) & (prior > 0)
+            if prior_tolerance is not None:  # the sweep's own depth stands where it agrees with the prior
+                with np.errstate(invalid="ignore"):
+                    use &= ~(own & (np.abs(depth / prior - 1.0) <= prior_tolerance))
+            depth[use], own[use] = prior[use], False
         if not np.all(np.isfinite(depth)):
             miss = ~np.isfinite(depth)
             depth[miss] = depth_from_points(ref_points, f, pix[miss], outlier_rel)
@@ -443,6 +457,10 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
     if config.static_depth == "scene" and not scene.has_depth:
         raise ValueError("InitConfig.static_depth = 'scene' needs a depth map for every training frame "
                          "(depth_file_path, docs/dataset_format.md §3); this scene has none: use 'stereo'")
+    if config.static_depth in ("prior", "stereo_prior") and not scene.has_depth_prior:
+        raise ValueError(f"InitConfig.static_depth = {config.static_depth!r} needs a depth prior for every training "
+                         "frame (depth_prior_file_path, docs/dataset_format.md §3); this scene lacks one: add them "
+                         "or use 'stereo'")
     if config.dynamic_depth == "prior" and scene.has_moving_pixels and not scene.has_depth_prior:
         raise ValueError("InitConfig.dynamic_depth = 'prior' needs a depth prior for every training frame "
                          "(depth_prior_file_path, docs/dataset_format.md §3); this scene lacks one: add them "
@@ -507,6 +525,17 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
             "check the poses and images, lower InitConfig.features.contrast_threshold, or set scene.scene_scale"
         )
 
+    # ---- 2b. the depth priors for the static seeds (static_depth = "prior" / "stereo_prior")
+    static_prior, static_prior_info = None, None
+    if config.static_depth in ("prior", "stereo_prior"):
+        if anchor_points is not None and len(anchor_points) >= config.depth_prior_min_points:
+            reference, what = np.asarray(anchor_points, dtype=np.float64), "the bundle adjustment's points"
+        else:
+            reference, what = tri_pts, "the triangulated points"
+        static_prior, static_prior_info = _aligned_priors(frames, reference, np.arange(N), config,
+                                                          fc.mask_dilation_px)
+        static_prior_info["reference"] = f"{what} ({len(reference)})"
+
     # ---- 3. dense pixel-grid seeding at interpolated depths
     dense_pts, dense_cols = np.zeros((0, 3)), np.zeros((0, 3))
     dense_src = np.zeros(0, dtype=np.int64)
@@ -516,7 +545,8 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
         dense_pts, dense_cols, dense_src, dense_info = dense_seed(
             frames, keyframes, tri_pts, config.dense_stride, config.dense_outlier_rel, fc.mask_dilation_px,
             config.stereo, (near, far), config.frame_skips,
-            [f.depth for f in frames] if config.static_depth == "scene" else None)
+            [f.depth for f in frames] if config.static_depth == "scene" else None, static_prior,
+            config.stereo_prior_tolerance if config.static_depth == "stereo_prior" else None)
 
     # ---- 4. random fill on static pixels
     static_pools = []
@@ -537,8 +567,10 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
             s = fill_src == k
             # on the surface the seeds describe, where they describe one
             d = depth_from_points(anchors, frames[k], pix[s], config.dense_outlier_rel, max_points=4000)
-            if config.static_depth == "scene":  # the scene's depth at the pixel, where it has one
-                z = _at_pixels([frames[k].depth], np.zeros(int(s.sum()), dtype=np.int64), pix[s])
+            maps = ([frames[k].depth] if config.static_depth == "scene" else
+                    [static_prior[k]] if static_prior is not None else None)
+            if maps is not None:  # the scene's depth (or the aligned prior) at the pixel, where it has one
+                z = _at_pixels(maps, np.zeros(int(s.sum()), dtype=np.int64), pix[s])
                 d = np.where(np.isfinite(z) & (z > 0), z, d)
             depth[s] = np.where(np.isfinite(d) & (d > 0), d, depth[s])
             fill_pts[s] = unproject_points(pix[s], depth[s], frames[k].cam_T_world, frames[k].K)
@@ -619,6 +651,7 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
         "dynamic": dynamic_note,
         "dynamic_frame_depths": frame_depth,
         "dynamic_depth_prior": prior_info,
+        "static_depth_prior": static_prior_info,
         "static_source_frames": np.concatenate([tri_src, dense_src, fill_src]),
         # the static points at a measured depth: triangulated, or dense at their own pixel's stereo depth
         "static_measured": np.concatenate([np.ones(len(tri_src), bool), dense_info["measured"],

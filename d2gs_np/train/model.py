@@ -108,6 +108,12 @@ class Model:
                 f"{pi['frames']} frames (init.depth_prior_space = {config.init.depth_prior_space}; median "
                 f"relative error {pi['median_rel_error']:.3f}; {pi['seeds_from_prior']} seeds from it"
                 + (f", {rest} by the static-median rule" if rest else "") + f"{failed})")
+        if info.get("static_depth_prior") is not None:
+            pi = info["static_depth_prior"]
+            failed = "".join(f"; frame {k}: {why}" for k, why in sorted(pi["failed"].items())[:3])
+            say(f"static seeds at the depth prior aligned to {pi['reference']} in {pi['aligned']} of {pi['frames']} "
+                f"frames (init.static_depth = {config.init.static_depth}; median relative error "
+                f"{pi['median_rel_error']:.3f}{failed})")
         params = gaussians.init_params(s_pts, s_col, d_pts, d_col, deform_config=config.deform, rng=rng)
         for prefix, pts, src in ((STATIC, s_pts, info["static_source_frames"]),
                                  (DYNAMIC, d_pts, info["dynamic_source_frames"])):

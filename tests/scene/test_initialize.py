@@ -232,6 +232,56 @@ def test_dynamic_depth_from_a_prior_is_the_aligned_prior_at_the_seed_pixel(scene
     assert np.median(np.abs(_seed_depth_over_truth(scene, dyn_rule, info_rule) - 1.0)) > 10 * PRIOR_SEED_REL_TOL
 
 
+def _static_seed_ratios(scene, static, info):
+    """Depth of the dense seeds and the fill over the true depth at their pixel, in their frame."""
+    n_tri = info["num_static_triangulated"]
+    src = info["static_source_frames"]
+    out = []
+    for k in np.unique(src[n_tri:]):
+        f = scene.frames[k]
+        sel = n_tri + np.flatnonzero(src[n_tri:] == k)
+        uv, z = project_points(static[sel], f.cam_T_world, f.K)
+        out.append(z / f.depth[uv[:, 1].astype(int), uv[:, 0].astype(int)])
+    return np.concatenate(out)
+
+
+def test_static_depth_from_a_prior_and_from_the_sweep_where_it_agrees(scene):
+    # an exact prior up to its scale: every dense seed and fill point on the truth within the
+    # alignment's 1 % (PRIOR_SEED_REL_TOL). A prior 8 % too far on the left half of every frame:
+    # "stereo_prior" at a 5 % tolerance takes each dense seed from the sweep where the sweep's own
+    # depth agrees with the aligned prior, from the prior everywhere else
+    with_prior = dataclasses.replace(scene, frames=[dataclasses.replace(f, depth_prior=2.5 * f.depth)
+                                                    for f in scene.frames])
+    cfg = InitConfig(static_depth="prior")
+    static, _, _, _, info = initialize_points(with_prior, cfg, np.random.default_rng(3))
+    pi = info["static_depth_prior"]
+    assert pi["aligned"] == pi["frames"] == len(scene.frames) and info["num_static_dense_stereo"] == 0
+    assert np.all(np.abs(_static_seed_ratios(scene, static, info) - 1.0) < PRIOR_SEED_REL_TOL)
+    left = np.arange(scene.frames[0].width)[None, :] < scene.frames[0].width // 2
+    bent = dataclasses.replace(scene, frames=[dataclasses.replace(f, depth_prior=2.5 * f.depth * np.where(left, 1.08, 1.0))
+                                              for f in scene.frames])
+    seeds = {}
+    for mode in ("stereo", "prior", "stereo_prior"):
+        static, _, _, _, info = initialize_points(bent, InitConfig(static_depth=mode, stereo_prior_tolerance=0.05),
+                                                  np.random.default_rng(3))
+        n0 = info["num_static_triangulated"]
+        seeds[mode] = static[n0:n0 + info["num_static_dense"]]  # the same pixel grid in every mode
+    src = info["static_source_frames"][n0:n0 + info["num_static_dense"]]
+    z = {m: np.concatenate([project_points(p[src == k], scene.frames[k].cam_T_world, scene.frames[k].K)[1]
+                            for k in np.unique(src)]) for m, p in seeds.items()}
+    agree = np.abs(z["stereo"] / z["prior"] - 1.0) <= 0.05
+    assert 0.1 < agree.mean() < 0.95  # both cases occur
+    # each seed is the sweep's where the two agree (the sweep's own pixels among them), else the prior's
+    np.testing.assert_allclose(z["stereo_prior"][~agree], z["prior"][~agree], rtol=1e-9)
+    same = np.isclose(z["stereo_prior"], z["stereo"], rtol=1e-9)
+    assert np.all(same[agree] | np.isclose(z["stereo_prior"][agree], z["prior"][agree], rtol=1e-9))
+    assert same[agree].mean() > 0.5
+    with pytest.raises(ValueError, match="static_depth = 'prior' needs a depth prior"):
+        initialize_points(scene, cfg, np.random.default_rng(3))
+    with pytest.raises(ValueError, match="InitConfig.stereo_prior_tolerance"):
+        InitConfig(stereo_prior_tolerance=-0.1)
+
+
 def _seed_depth_over_truth(scene, dyn, info):
     return seed_depth_ratio(scene.frames, dyn, info["dynamic_source_frames"], info["dynamic_source_pixels"])
 
