@@ -213,6 +213,10 @@ EXPERIMENTS = {
                 config={"init": {"static_depth": "prior", "dynamic_depth": "prior"}}),
         Variant("stereo_prior", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}}),
+        # the no-blur baseline (no blur model, no pose refinement) given the same prior seeds
+        Variant("stereo_prior_noblur", scene={"depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}, "train": {"blur": "off"},
+                        "pose_solver": {"mode": "off"}}),
     ),
     # Opacity resets during densification (issue #40: faint layers in front of the static world,
     # docs/method.md §8): off; 3DGS's (to 0.01 every 500 schedule steps of the 2000, at 500 and 1000,
