@@ -20,10 +20,10 @@ import argparse
 
 import numpy as np
 
+from d2gs_np.evaluation.runs import baseline_errors  # the tests reach it here too
+
 GAPS = (1, 4, 8)
 BORDER_PX = 10  # flow at the image border is extrapolated: left out
-
-from d2gs_np.evaluation.runs import baseline_errors  # noqa: E402  (the tests reach it here too)
 
 
 def view_shift(render, truth, mask=None, border=BORDER_PX):

@@ -5,6 +5,8 @@ z-features' gradient."""
 import numpy as np
 import pytest
 
+from render_fixtures import central_fd as _central
+
 from d2gs_np.losses.depth_variance import depth_variance_bwd, depth_variance_fwd, z_features_bwd, z_features_fwd
 
 H, W = 7, 9
@@ -17,16 +19,6 @@ def _sums(seed=0, layers=3):
     w *= rng.uniform(0.55, 0.99, (H, W, 1)) / w.sum(axis=2, keepdims=True)
     z = rng.uniform(1.0, 8.0, (H, W, layers))
     return (w * z).sum(2), (w * z * z).sum(2), w.sum(2), w, z
-
-
-def _central(f, x, h):
-    g = np.zeros_like(x)
-    for i in np.ndindex(x.shape):
-        xp, xm = x.copy(), x.copy()
-        xp[i] += h
-        xm[i] -= h
-        g[i] = (f(xp) - f(xm)) / (2 * h)
-    return g
 
 
 def test_value_is_the_weighted_variance_over_the_squared_mean():
