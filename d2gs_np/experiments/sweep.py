@@ -213,6 +213,9 @@ EXPERIMENTS = {
                 config={"init": {"static_depth": "prior", "dynamic_depth": "prior"}}),
         Variant("stereo_prior", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}}),
+        # sharp input with true poses (issue #40's first line) given the same prior seeds
+        Variant("stereo_prior_sharp", scene={**_SHARP, "depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}}),
         # the no-blur baseline (no blur model, no pose refinement) given the same prior seeds
         Variant("stereo_prior_noblur", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}, "train": {"blur": "off"},
@@ -491,7 +494,9 @@ def flatten(m: dict) -> dict:
         "dvs_moving_psnr": g("dvs", "moving_psnr"), "input_moving_psnr": g("input_blur", "moving_psnr"),
         "dvs_static_psnr": g("dvs", "static_psnr"), "input_static_psnr": g("input_blur", "static_psnr"),
         "nvs_moving_psnr": g("nvs", "moving_psnr"), "nvs_rig_psnr": g("nvs_rig", "psnr"),
-        "nvs_rig_moving_psnr": g("nvs_rig", "moving_psnr"),
+        "nvs_rig_moving_psnr": g("nvs_rig", "moving_psnr"), "nvs_seen_psnr": g("nvs", "seen_psnr"),
+        "dvs_depth_absrel_static": g("dvs", "depth", "absrel_static"),
+        "nvs_depth_absrel_static": g("nvs", "depth", "absrel_static"),
         "ate": g("trajectory", "ate"), "ate_initial": g("trajectory", "initial", "ate"),
         "ate_bundle": g("trajectory", "bundle_adjusted", "ate"),
         "num_gaussians": g("num_gaussians"), "steps": g("steps"), "train_seconds": g("train_seconds"),
@@ -598,9 +603,9 @@ def _fmt(x, spec=".2f"):
 
 def table(records) -> str:
     lines = ["| scene | seed | variant | status | input dB | DVS PSNR dB | DVS SSIM | DVS FLIP | moving px: input -> DVS dB | "
-             "static px: input -> DVS dB | NVS PSNR dB | NVS SSIM | NVS beside its frame dB | ATE initial -> trained | "
-             "Gaussians | steps | train s |",
-             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
+             "static px: input -> DVS dB | NVS PSNR dB | NVS SSIM | NVS beside its frame dB | NVS seen px dB | "
+             "static depth AbsRel DVS / NVS | ATE initial -> trained | Gaussians | steps | train s |",
+             "|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|---|"]
     for r in records:
         status = r["status"] if r["status"] == "ok" else f"FAILED: {r.get('error', '')}"
         lines.append(
@@ -609,7 +614,8 @@ def table(records) -> str:
             f"{_fmt(r.get('input_moving_psnr'))} -> {_fmt(r.get('dvs_moving_psnr'))} | "
             f"{_fmt(r.get('input_static_psnr'))} -> {_fmt(r.get('dvs_static_psnr'))} | "
             f"{_fmt(r.get('nvs_psnr'))} | "
-            f"{_fmt(r.get('nvs_ssim'), '.3f')} | {_fmt(r.get('nvs_rig_psnr'))} | "
+            f"{_fmt(r.get('nvs_ssim'), '.3f')} | {_fmt(r.get('nvs_rig_psnr'))} | {_fmt(r.get('nvs_seen_psnr'))} | "
+            f"{_fmt(r.get('dvs_depth_absrel_static'), '.3f')} / {_fmt(r.get('nvs_depth_absrel_static'), '.3f')} | "
             f"{_fmt(r.get('ate_initial'), '.4f')} -> {_fmt(r.get('ate'), '.4f')} | {_fmt(r.get('num_gaussians'), 'd')} | "
             f"{_fmt(r.get('steps'), 'd')} | {_fmt(r.get('train_seconds'), '.0f')} |")
     return "\n".join(lines)
@@ -618,7 +624,8 @@ def table(records) -> str:
 def write_outputs(name, out, records, command=""):
     out = Path(out)
     fields = ["scene", "seed", "variant", "status", "attempts", "input_psnr", "dvs_psnr", "dvs_ssim", "nvs_psnr",
-              "nvs_ssim", "nvs_moving_psnr", "nvs_rig_psnr", "nvs_rig_moving_psnr", "input_flip", "dvs_flip",
+              "nvs_ssim", "nvs_moving_psnr", "nvs_rig_psnr", "nvs_rig_moving_psnr", "nvs_seen_psnr",
+              "dvs_depth_absrel_static", "nvs_depth_absrel_static", "input_flip", "dvs_flip",
               "nvs_flip", "ate_initial", "ate_bundle", "ate", "num_gaussians", "steps", "train_seconds",
               "wall_seconds", "run", "error"]
     with open(out / f"{name}.csv", "w", newline="") as fh:

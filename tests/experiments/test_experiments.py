@@ -233,3 +233,18 @@ def test_the_table_shows_both_novel_view_protocols():
     assert len(cells) == len(names)
     assert cells[names.index("NVS PSNR dB")] == "21.50"
     assert cells[names.index("NVS beside its frame dB")] == "24.25"
+
+
+def test_the_table_shows_the_seen_pixels_and_the_static_depth_error():
+    from d2gs_np.experiments.sweep import flatten, table
+
+    metrics = {"nvs": {"psnr": 21.5, "seen_psnr": 23.75, "depth": {"absrel_static": 0.125}},
+               "dvs": {"depth": {"absrel_static": 0.0625, "absrel_moving": 0.5}}}
+    row = flatten(metrics)
+    assert (row["nvs_seen_psnr"], row["dvs_depth_absrel_static"], row["nvs_depth_absrel_static"]) == (23.75, 0.0625, 0.125)
+    head, _, line = table([dict(scene="s", seed=0, variant="v", status="ok", **row)]).splitlines()
+    cells = [c.strip() for c in line.split("|")]
+    names = [c.strip() for c in head.split("|")]
+    assert len(cells) == len(names)
+    assert cells[names.index("NVS seen px dB")] == "23.75"
+    assert cells[names.index("static depth AbsRel DVS / NVS")] == "0.062 / 0.125"
