@@ -213,6 +213,10 @@ EXPERIMENTS = {
                 config={"init": {"static_depth": "prior", "dynamic_depth": "prior"}}),
         Variant("stereo_prior", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}}),
+        # the interpolated seeds and the fill kept on the stereo's surface where it agrees with the prior
+        Variant("stereo_prior_all", scene={"depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "stereo_prior_scope": "all",
+                                 "dynamic_depth": "prior"}}),
         # sharp input with true poses (issue #40's first line) given the same prior seeds
         Variant("stereo_prior_sharp", scene={**_SHARP, "depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}}),

@@ -20,6 +20,7 @@ __all__ = ["DeformConfig", "InitConfig", "StereoConfig", "MotionInitConfig", "WA
 WARPS = ("centroid", "similarity", "homography", "flow")
 DYNAMIC_DEPTHS = ("static_median", "scene", "prior")  # InitConfig.dynamic_depth
 STATIC_DEPTHS = ("stereo", "scene", "prior", "stereo_prior")  # InitConfig.static_depth
+STEREO_PRIOR_SCOPES = ("measured", "all")  # InitConfig.stereo_prior_scope
 PRIOR_SPACES = ("depth", "disparity")  # InitConfig.depth_prior_space
 
 
@@ -131,6 +132,10 @@ class InitConfig:
     # agrees with the aligned prior within stereo_prior_tolerance (relative), the prior elsewhere.
     static_depth: str = "stereo"
     stereo_prior_tolerance: float = 0.15
+    # Which seeds' own depths "stereo_prior" checks against the prior: "measured", the sweep's own
+    # pixels only (the interpolated seeds and the fill take the prior); "all", also the depths
+    # interpolated between trusted stereo pixels and the fill's on the surface the seeds describe.
+    stereo_prior_scope: str = "measured"
     # Once, at this fraction of the schedule, the static set replaced by seeds from a plane sweep over
     # the model's own sharp renders (train/render_stereo.py, Reseed); 0: never (docs/method.md §8)
     reseed_at: float = 0.0
@@ -173,6 +178,7 @@ class InitConfig:
         check_choice(self.depth_prior_space, "InitConfig.depth_prior_space", PRIOR_SPACES)
         check_number(self.stereo_prior_tolerance, "InitConfig.stereo_prior_tolerance", 0.0,
                      hint="a relative difference, e.g. 0.15")
+        check_choice(self.stereo_prior_scope, "InitConfig.stereo_prior_scope", STEREO_PRIOR_SCOPES)
         check_int(self.depth_prior_min_points, "InitConfig.depth_prior_min_points", 3,
                   hint="a scale and shift need at least 3 points to be checked")
 

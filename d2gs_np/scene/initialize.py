@@ -80,7 +80,10 @@ them at the scene's depth priors aligned as the dynamic seeds' are (to the bundl
 points when the run has them, else to the triangulated ones), where a frame's alignment succeeds;
 ``"stereo_prior"`` keeps the sweep's own depth where it agrees with that prior within
 ``stereo_prior_tolerance`` and takes the prior elsewhere (a sweep on blurred, sparse texture fails
-in places; a depth network's estimate is smooth and roughly right everywhere).
+in places; a depth network's estimate is smooth and roughly right everywhere); with
+``stereo_prior_scope = "all"`` the depths interpolated between trusted stereo pixels and the
+fill's depth on the seeds' surface stand where they agree with the prior too (a plane the sweep
+measured at its edges is better than a prior with a per-frame error).
 
 ``info`` (for the run log) holds counts, reprojection statistics and the depth range, plus
 per-point provenance arrays (``static_source_frames``, ``dynamic_source_frames``,
@@ -278,7 +281,7 @@ def depth_from_points(points, frame, query, outlier_rel, max_points=None):
 
 
 def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, stereo=None, depth_range=None,
-               skips=(2, 4, 8), depth_maps=None, prior_maps=None, prior_tolerance=None):
+               skips=(2, 4, 8), depth_maps=None, prior_maps=None, prior_tolerance=None, prior_scope="measured"):
     """Pixel-grid points of each keyframe's static pixels at their stereo depth, else at depths
     interpolated from trusted stereo pixels or from ref_points (module docstring, step 3).
 
@@ -288,7 +291,8 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
     ``depth_maps``: per-frame (H, W) depths (``InitConfig.static_depth = "scene"``) that replace the
     stereo where finite and > 0; ``prior_maps``: per-frame (H, W) aligned depth priors (or None per
     frame) that replace every depth but the stereo's own within ``prior_tolerance`` (relative) of
-    them (``static_depth = "stereo_prior"``; None: everywhere, ``"prior"``).
+    them (``static_depth = "stereo_prior"``; None: everywhere, ``"prior"``); ``prior_scope``
+    "all": the interpolated depths within the tolerance stand too (``InitConfig.stereo_prior_scope``).
     Returns (points (P, 3), colours (P, 3), source frames (P,), info dict); info["measured"] (P,)
     is True for the points at a stereo depth of their own pixel (not interpolated).
     """
@@ -331,9 +335,10 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
         if prior_maps is not None and prior_maps[k] is not None:
             prior = prior_maps[k][rows, cols_]
             use = np.isfinite(prior) & (prior > 0)
-            if prior_tolerance is not None:  # the sweep's own depth stands where it agrees with the prior
+            if prior_tolerance is not None:  # the sweep's own (or any stereo) depth stands where it agrees
                 with np.errstate(invalid="ignore"):
-                    use &= ~(own & (np.abs(depth / prior - 1.0) <= prior_tolerance))
+                    agree = np.abs(depth / prior - 1.0) <= prior_tolerance
+                use &= ~(agree & (own if prior_scope == "measured" else np.isfinite(depth)))
             depth[use], own[use] = prior[use], False
         if not np.all(np.isfinite(depth)):
             miss = ~np.isfinite(depth)
@@ -411,7 +416,7 @@ def _aligned_priors(frames, static_pts, which, config: InitConfig, dilation_px):
         uvs.append(uv[inside])
         zs.append(z[inside])
     maps = [None] * len(frames)
-    reasons, errs = {}, []
+    reasons, errs, scale = {}, [], None
     if config.depth_prior_space == "depth":  # one scale for the clip
         scale, info = align_depth_scale([frames[int(k)].depth_prior for k in which], uvs, zs,
                                         config.depth_prior_min_points)
@@ -430,7 +435,8 @@ def _aligned_priors(frames, static_pts, which, config: InitConfig, dilation_px):
             else:
                 errs.append(info["rel_error"])
     summary = {"frames": len(which), "aligned": len(which) - len(reasons), "failed": reasons,
-               "median_rel_error": float(np.median(errs)) if errs else float("nan")}
+               "median_rel_error": float(np.median(errs)) if errs else float("nan"),
+               "scale": None if scale is None else float(scale)}  # the clip's scale ("depth" space)
     return maps, summary
 
 
@@ -546,7 +552,8 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
             frames, keyframes, tri_pts, config.dense_stride, config.dense_outlier_rel, fc.mask_dilation_px,
             config.stereo, (near, far), config.frame_skips,
             [f.depth for f in frames] if config.static_depth == "scene" else None, static_prior,
-            config.stereo_prior_tolerance if config.static_depth == "stereo_prior" else None)
+            config.stereo_prior_tolerance if config.static_depth == "stereo_prior" else None,
+            config.stereo_prior_scope)
 
     # ---- 4. random fill on static pixels
     static_pools = []
@@ -571,7 +578,11 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
                     [static_prior[k]] if static_prior is not None else None)
             if maps is not None:  # the scene's depth (or the aligned prior) at the pixel, where it has one
                 z = _at_pixels(maps, np.zeros(int(s.sum()), dtype=np.int64), pix[s])
-                d = np.where(np.isfinite(z) & (z > 0), z, d)
+                take = np.isfinite(z) & (z > 0)
+                if config.static_depth == "stereo_prior" and config.stereo_prior_scope == "all":
+                    with np.errstate(invalid="ignore", divide="ignore"):  # the surface stands where it agrees
+                        take &= ~(np.abs(d / z - 1.0) <= config.stereo_prior_tolerance)
+                d = np.where(take, z, d)
             depth[s] = np.where(np.isfinite(d) & (d > 0), d, depth[s])
             fill_pts[s] = unproject_points(pix[s], depth[s], frames[k].cam_T_world, frames[k].K)
             fill_cols[s] = sample_image_bilinear(frames[k].image, pix[s])

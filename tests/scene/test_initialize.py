@@ -282,6 +282,54 @@ def test_static_depth_from_a_prior_and_from_the_sweep_where_it_agrees(scene):
         InitConfig(stereo_prior_tolerance=-0.1)
 
 
+def _fill_depth_over_prior(frames, static, info):
+    """The fill points' depth in their frame over the frame's aligned prior at their pixel."""
+    n0 = info["num_static_triangulated"] + info["num_static_dense"]
+    src = info["static_source_frames"][n0:]
+    scale = info["static_depth_prior"]["scale"]
+    out = []
+    for k in np.unique(src):
+        f = frames[k]
+        uv, z = project_points(static[n0:][src == k], f.cam_T_world, f.K)
+        out.append(z / (scale * f.depth_prior[uv[:, 1].astype(int), uv[:, 0].astype(int)]))
+    return np.concatenate(out)
+
+
+def test_stereo_prior_scope_all_keeps_every_stereo_depth_that_agrees_with_the_prior(scene):
+    # the same prior 8 % too far on the left half: with scope "all" a dense seed keeps the
+    # stereo mode's depth (the sweep's own or interpolated between trusted pixels) wherever that
+    # agrees with the prior within the tolerance, and a fill point the seeds' surface where that
+    # agrees; everything else sits at the prior
+    left = np.arange(scene.frames[0].width)[None, :] < scene.frames[0].width // 2
+    bent = dataclasses.replace(scene, frames=[dataclasses.replace(f, depth_prior=2.5 * f.depth * np.where(left, 1.08, 1.0))
+                                              for f in scene.frames])
+    seeds, infos = {}, {}
+    for name, cfg in {"stereo": InitConfig(), "prior": InitConfig(static_depth="prior"),
+                      "measured": InitConfig(static_depth="stereo_prior", stereo_prior_tolerance=0.05),
+                      "all": InitConfig(static_depth="stereo_prior", stereo_prior_tolerance=0.05,
+                                        stereo_prior_scope="all")}.items():
+        static, _, _, _, info = initialize_points(bent, cfg, np.random.default_rng(3))
+        seeds[name], infos[name] = static, info
+    n0, nd = infos["stereo"]["num_static_triangulated"], infos["stereo"]["num_static_dense"]
+    src = infos["stereo"]["static_source_frames"][n0:n0 + nd]
+    z = {m: np.concatenate([project_points(p[n0:n0 + nd][src == k], scene.frames[k].cam_T_world, scene.frames[k].K)[1]
+                            for k in np.unique(src)]) for m, p in seeds.items()}
+    agree = np.abs(z["stereo"] / z["prior"] - 1.0) <= 0.05
+    np.testing.assert_allclose(z["all"][agree], z["stereo"][agree], rtol=1e-9)
+    np.testing.assert_allclose(z["all"][~agree], z["prior"][~agree], rtol=1e-9)
+    # the interpolated seeds that agree are what "all" adds over "measured", which puts them at the prior
+    added = agree & ~np.isclose(z["measured"], z["stereo"], rtol=1e-9)
+    assert added.sum() > 0
+    np.testing.assert_allclose(z["measured"][added], z["prior"][added], rtol=1e-9)
+    # the fill: every point at its frame's aligned prior ("measured"), or off it only within the tolerance ("all")
+    r_measured = _fill_depth_over_prior(bent.frames, seeds["measured"], infos["measured"])
+    r_all = _fill_depth_over_prior(bent.frames, seeds["all"], infos["all"])
+    assert np.all(np.abs(r_all - 1.0) <= 0.05 + 1e-9)
+    assert np.mean(np.abs(r_all - 1.0) > 1e-6) > 0.1 > np.mean(np.abs(r_measured - 1.0) > 1e-6)
+    with pytest.raises(ValueError, match="InitConfig.stereo_prior_scope"):
+        InitConfig(stereo_prior_scope="everything")
+
+
 def _seed_depth_over_truth(scene, dyn, info):
     return seed_depth_ratio(scene.frames, dyn, info["dynamic_source_frames"], info["dynamic_source_pixels"])
 
