@@ -99,6 +99,7 @@ def diagnose(scene_dir, pose_init=True, config=None):
         "keypoints_mean": info["num_keypoints_mean"], "matches_per_pair": info["mean_matches_per_pair"],
         "pairs_matched": f"{info['num_pairs_matched']}/{info['num_pairs']}",
         "triangulated": nt, "dense": nd, "dense_stereo": info["num_static_dense_stereo"],
+        "dense_stereo_over_prior": info.get("num_static_dense_stereo_over_prior", 0),
         "stereo_kept_share": info["stereo_kept_share"], "fill": info["num_static_fill"],
         "depth_range_used": [info["fill_depth_near"], info["fill_depth_far"]],
         "depth_range_source": info["fill_depth_source"],

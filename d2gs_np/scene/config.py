@@ -136,6 +136,9 @@ class InitConfig:
     # pixels only (the interpolated seeds and the fill take the prior); "all", also the depths
     # interpolated between trusted stereo pixels and the fill's on the surface the seeds describe.
     stereo_prior_scope: str = "measured"
+    # > 0: a sweep pixel that disagrees with the prior keeps its own depth still where its matching
+    # cost is at most this fraction of the cost at the prior's depth (the images prefer it); 0: off
+    stereo_prior_cost_ratio: float = 0.0
     # Once, at this fraction of the schedule, the static set replaced by seeds from a plane sweep over
     # the model's own sharp renders (train/render_stereo.py, Reseed); 0: never (docs/method.md §8)
     reseed_at: float = 0.0
@@ -179,6 +182,8 @@ class InitConfig:
         check_number(self.stereo_prior_tolerance, "InitConfig.stereo_prior_tolerance", 0.0,
                      hint="a relative difference, e.g. 0.15")
         check_choice(self.stereo_prior_scope, "InitConfig.stereo_prior_scope", STEREO_PRIOR_SCOPES)
+        check_number(self.stereo_prior_cost_ratio, "InitConfig.stereo_prior_cost_ratio", 0.0, 1.0,
+                     hint="a cost ratio in (0, 1], e.g. 0.8; 0 = off")
         check_int(self.depth_prior_min_points, "InitConfig.depth_prior_min_points", 3,
                   hint="a scale and shift need at least 3 points to be checked")
 

@@ -281,7 +281,8 @@ def depth_from_points(points, frame, query, outlier_rel, max_points=None):
 
 
 def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, stereo=None, depth_range=None,
-               skips=(2, 4, 8), depth_maps=None, prior_maps=None, prior_tolerance=None, prior_scope="measured"):
+               skips=(2, 4, 8), depth_maps=None, prior_maps=None, prior_tolerance=None, prior_scope="measured",
+               prior_cost_ratio=0.0):
     """Pixel-grid points of each keyframe's static pixels at their stereo depth, else at depths
     interpolated from trusted stereo pixels or from ref_points (module docstring, step 3).
 
@@ -292,12 +293,14 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
     stereo where finite and > 0; ``prior_maps``: per-frame (H, W) aligned depth priors (or None per
     frame) that replace every depth but the stereo's own within ``prior_tolerance`` (relative) of
     them (``static_depth = "stereo_prior"``; None: everywhere, ``"prior"``); ``prior_scope``
-    "all": the interpolated depths within the tolerance stand too (``InitConfig.stereo_prior_scope``).
+    "all": the interpolated depths within the tolerance stand too (``InitConfig.stereo_prior_scope``);
+    ``prior_cost_ratio`` > 0: the sweep's own depth stands also where its cost is at most that
+    fraction of the cost at the prior's depth (``InitConfig.stereo_prior_cost_ratio``).
     Returns (points (P, 3), colours (P, 3), source frames (P,), info dict); info["measured"] (P,)
     is True for the points at a stereo depth of their own pixel (not interpolated).
     """
     pts, cols, src, measured = [], [], [], []
-    info = {"stereo_kept_share": [], "stereo_seeds": 0}
+    info = {"stereo_kept_share": [], "stereo_seeds": 0, "stereo_kept_over_prior": 0}
     use_stereo = (stereo is not None and stereo.enabled and depth_range is not None and len(frames) > 1
                   and depth_maps is None and not (prior_maps is not None and prior_tolerance is None))
     for i, k in enumerate(keyframes):
@@ -313,12 +316,15 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
         pix = np.stack([cols_ + PIXEL_CENTER_OFFSET, rows + PIXEL_CENTER_OFFSET], axis=1).astype(np.float64)
         depth = np.full(len(pix), np.nan)
         own = np.zeros(len(pix), dtype=bool)
+        sinfo = {}
         if use_stereo:
             N = len(frames)
             others = sorted({min(max(k + d * sgn, 0), N - 1) for d in skips for sgn in (-1, 1)} - {k})
             sources = [(frames[j].image, frames[j].cam_T_world, frames[j].K, frames[j].mask) for j in others]
+            weigh = prior_tolerance is not None and prior_cost_ratio > 0 and prior_maps[k] is not None
             dmap, sinfo = plane_sweep_depth(f.image, f.cam_T_world, f.K, sources, depth_range[0], depth_range[1],
-                                            stereo, None if static is None else ~static)
+                                            stereo, None if static is None else ~static,
+                                            prior_maps[k] if weigh else None)
             info["stereo_kept_share"].append(sinfo["kept_share"])
             depth = dmap[rows, cols_]
             own = np.isfinite(depth)
@@ -339,6 +345,11 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
                 with np.errstate(invalid="ignore"):
                     agree = np.abs(depth / prior - 1.0) <= prior_tolerance
                 use &= ~(agree & (own if prior_scope == "measured" else np.isfinite(depth)))
+                if "cost_over_prior" in sinfo:  # ... or where the images prefer the sweep's depth
+                    with np.errstate(invalid="ignore"):
+                        better = own & ~agree & (sinfo["cost_over_prior"][rows, cols_] <= prior_cost_ratio)
+                    info["stereo_kept_over_prior"] += int((better & use).sum())
+                    use &= ~better
             depth[use], own[use] = prior[use], False
         if not np.all(np.isfinite(depth)):
             miss = ~np.isfinite(depth)
@@ -553,7 +564,7 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
             config.stereo, (near, far), config.frame_skips,
             [f.depth for f in frames] if config.static_depth == "scene" else None, static_prior,
             config.stereo_prior_tolerance if config.static_depth == "stereo_prior" else None,
-            config.stereo_prior_scope)
+            config.stereo_prior_scope, config.stereo_prior_cost_ratio)
 
     # ---- 4. random fill on static pixels
     static_pools = []
@@ -645,6 +656,7 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
         "num_static_triangulated": int(tri_pts.shape[0]),
         "num_static_dense": int(dense_pts.shape[0]),
         "num_static_dense_stereo": int(dense_info["stereo_seeds"]),
+        "num_static_dense_stereo_over_prior": int(dense_info.get("stereo_kept_over_prior", 0)),
         "stereo_kept_share": float(np.mean(dense_info["stereo_kept_share"])) if dense_info["stereo_kept_share"]
         else float("nan"),
         "num_static_fill": int(fill_pts.shape[0]),

@@ -58,13 +58,17 @@ def _box(x, window):
 
 
 def plane_sweep_depth(ref_image, ref_pose, ref_K, sources, near, far, config: StereoConfig = None,
-                      ref_mask=None):
+                      ref_mask=None, prior_depth=None):
     """Depth map (H, W) of a reference frame by plane sweep (module docstring); NaN where not trusted.
 
     ref_image: (H, W, 3) in [0, 1]; ref_pose: (4, 4) cam_T_world; ref_K: (3, 3).
     sources: list of (image (h, w, 3), cam_T_world (4, 4), K (3, 3), moving mask (h, w) bool or None).
     near, far: 0 < near < far, the z-depth range to search (widened by ``config.depth_margin``).
     ref_mask: (H, W) bool, True on moving pixels (no depth there), or None.
+    prior_depth: (H, W) another depth estimate (an aligned depth prior) or None: then
+    info["cost_over_prior"] (H, W) is the best cost over the cost at the hypothesis nearest the
+    prior's depth (NaN where the prior is missing or outside the hypotheses), how much better
+    the images say the sweep's depth is than the prior's.
     Returns (depth (H, W) float64 with NaN, info dict: kept share, hypotheses, sources).
     """
     config = StereoConfig() if config is None else config
@@ -170,4 +174,21 @@ def plane_sweep_depth(ref_image, ref_pose, ref_K, sources, near, far, config: St
     info = {"kept_share": float(trusted.mean()), "num_depths": D, "num_sources": S,
             "near": float(1.0 / inv[0]), "far": float(1.0 / inv[-1]),
             "rejected_share": {k: float(1.0 - v.mean()) for k, v in checks.items()}}
+    if prior_depth is not None:
+        info["cost_over_prior"] = _cost_over_prior(combined, cb, inv, np.asarray(prior_depth, dtype=np.float64))
     return depth, info
+
+
+def _cost_over_prior(combined, cb, inv, prior):
+    """(H, W) best cost over the combined cost at the hypothesis nearest ``prior`` in inverse depth;
+    NaN where the prior is missing, not positive, or outside the hypotheses (plane_sweep_depth)."""
+    D = len(inv)
+    with np.errstate(divide="ignore", invalid="ignore"):
+        q = np.where(np.isfinite(prior) & (prior > 0), 1.0 / prior, np.nan)
+        pos = (q - inv[0]) / (inv[1] - inv[0])  # fractional hypothesis index
+    inside = np.isfinite(pos) & (pos >= -0.5) & (pos <= D - 0.5)
+    i = np.clip(np.round(np.where(inside, pos, 0.0)).astype(np.int64), 0, D - 1)
+    cp = np.take_along_axis(combined, i[None], axis=0)[0]
+    with np.errstate(divide="ignore", invalid="ignore"):
+        r = np.where(inside & np.isfinite(cp) & np.isfinite(cb), cb / np.maximum(cp, 1e-12), np.nan)
+    return r

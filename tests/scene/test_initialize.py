@@ -330,6 +330,43 @@ def test_stereo_prior_scope_all_keeps_every_stereo_depth_that_agrees_with_the_pr
         InitConfig(stereo_prior_scope="everything")
 
 
+def test_stereo_prior_cost_ratio_keeps_the_sweep_where_the_images_prefer_it(scene):
+    # a prior 8 % too far on the left half, gated at 5 %: there the plain rule takes the prior,
+    # while with a cost ratio the sweep's own depths stand where their matching cost is at most
+    # 0.8 of the cost at the prior's depth; those seeds are the stereo mode's, and nearer the truth
+    left = np.arange(scene.frames[0].width)[None, :] < scene.frames[0].width // 2
+    bent = dataclasses.replace(scene, frames=[dataclasses.replace(f, depth_prior=2.5 * f.depth * np.where(left, 1.08, 1.0))
+                                              for f in scene.frames])
+    seeds, infos = {}, {}
+    for name, cfg in {"stereo": InitConfig(),
+                      "gate": InitConfig(static_depth="stereo_prior", stereo_prior_tolerance=0.05),
+                      "cost": InitConfig(static_depth="stereo_prior", stereo_prior_tolerance=0.05,
+                                         stereo_prior_cost_ratio=0.8)}.items():
+        static, _, _, _, info = initialize_points(bent, cfg, np.random.default_rng(3))
+        n0 = info["num_static_triangulated"]
+        seeds[name], infos[name] = static[n0:n0 + info["num_static_dense"]], info
+    src = infos["stereo"]["static_source_frames"][n0:n0 + infos["stereo"]["num_static_dense"]]
+    z = {m: np.concatenate([project_points(p[src == k], scene.frames[k].cam_T_world, scene.frames[k].K)[1]
+                            for k in np.unique(src)]) for m, p in seeds.items()}
+    kept = infos["cost"]["num_static_dense_stereo_over_prior"]
+    assert kept > 0 and infos["gate"]["num_static_dense_stereo_over_prior"] == 0
+    moved = ~np.isclose(z["cost"], z["gate"], rtol=1e-9)
+    assert moved.sum() == kept
+    np.testing.assert_allclose(z["cost"][moved], z["stereo"][moved], rtol=1e-9)
+    def over_truth(p):  # each seed's depth over the true depth at its pixel, in z's order
+        out = []
+        for k in np.unique(src):
+            f = scene.frames[k]
+            uv, zk = project_points(p[src == k], f.cam_T_world, f.K)
+            out.append(zk / f.depth[uv[:, 1].astype(int), uv[:, 0].astype(int)])
+        return np.concatenate(out)
+
+    truth, truth_gate = over_truth(seeds["cost"]), over_truth(seeds["gate"])
+    assert np.median(np.abs(truth[moved] - 1.0)) < 0.5 * np.median(np.abs(truth_gate[moved] - 1.0))
+    with pytest.raises(ValueError, match="InitConfig.stereo_prior_cost_ratio"):
+        InitConfig(stereo_prior_cost_ratio=1.5)
+
+
 def _seed_depth_over_truth(scene, dyn, info):
     return seed_depth_ratio(scene.frames, dyn, info["dynamic_source_frames"], info["dynamic_source_pixels"])
 

@@ -55,6 +55,32 @@ def test_depth_matches_the_ray_cast_depth(suite):
     assert np.all(depth[ok] > 0)
 
 
+def test_the_cost_over_a_prior_is_one_at_the_truth_and_low_against_a_wrong_prior(suite):
+    # the true depth as the prior: the sweep's best cost is about the cost there (ratio near 1, never
+    # above 1 as the best is the minimum); a prior 30 % too far: the images prefer the sweep's depth
+    # on the trusted pixels (ratio well below 1); a prior outside the hypotheses, or missing: NaN
+    scene, world = suite
+    f = scene.frames[4]
+    true = suite_depth_map(world, f.gt_cam_T_world, f.time, f.K, f.width, f.height)
+    depth, _ = _run(scene)
+    ok = np.isfinite(depth)
+    run = lambda prior: plane_sweep_depth(f.image, f.cam_T_world, f.K, _sources(scene, (0, 2, 6, 8)), 1.0, 8.0,
+                                          None, None, prior)[1]["cost_over_prior"]
+    at_truth, off = run(true), run(1.3 * true)
+    assert np.all(at_truth[np.isfinite(at_truth)] <= 1.0 + 1e-6)
+    # (NaN where fewer than min_sources see the window at the prior's hypothesis)
+    assert np.isfinite(at_truth[ok]).mean() > 0.9 and np.isfinite(off[ok]).mean() > 0.5
+    assert np.nanmedian(at_truth[ok]) > 0.95  # measured 1.0 (0.41 at 1.3x the truth, 0.52 at 1.15x)
+    assert np.nanmedian(off[ok]) < 0.6
+    holes = true.copy()
+    holes[:, :10] = np.nan
+    holes[:, 10:20] = 100.0  # beyond the far end of the sweep
+    r = run(holes)
+    assert np.all(np.isnan(r[:, :20])) and np.isfinite(r[:, 20:]).mean() > 0.5
+    depth_again, _ = _run(scene)
+    np.testing.assert_array_equal(depth_again, depth)  # the prior changes nothing else
+
+
 def test_more_hypotheses_are_more_accurate(suite):
     scene, world = suite
     f = scene.frames[4]
