@@ -213,6 +213,9 @@ EXPERIMENTS = {
                 config={"init": {"static_depth": "prior", "dynamic_depth": "prior"}}),
         Variant("stereo_prior", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}}),
+        # the static seeds alone from the prior, the movers' by the rule: which of the two costs big_mover's DVS
+        Variant("stereo_prior_static", scene={"depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "static_median"}}),
         # the interpolated seeds and the fill kept on the stereo's surface where it agrees with the prior
         Variant("stereo_prior_all", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "stereo_prior_scope": "all",
