@@ -18,8 +18,8 @@ __all__ = ["DeformConfig", "InitConfig", "StereoConfig", "MotionInitConfig", "WA
 
 # how a seed's pixel can follow its object's track (``MotionInitConfig.warp``)
 WARPS = ("centroid", "similarity", "homography", "flow")
-DYNAMIC_DEPTHS = ("static_median", "scene", "prior")  # InitConfig.dynamic_depth
-STATIC_DEPTHS = ("stereo", "scene", "prior", "stereo_prior")  # InitConfig.static_depth
+DYNAMIC_DEPTHS = ("static_median", "scene", "prior", "auto")  # InitConfig.dynamic_depth
+STATIC_DEPTHS = ("stereo", "scene", "prior", "stereo_prior", "auto")  # InitConfig.static_depth
 STEREO_PRIOR_SCOPES = ("measured", "all")  # InitConfig.stereo_prior_scope
 PRIOR_SPACES = ("depth", "disparity")  # InitConfig.depth_prior_space
 
@@ -124,12 +124,14 @@ class InitConfig:
     # synthetic scenes those are the truth: a run with "scene" is then an oracle (docs/method.md §8).
     # "prior": the scene's depth priors (depth_prior_file_path, e.g. a monocular network's), each
     # frame's aligned by a scale and shift to the static points seen in it (align_depth_prior).
+    # "auto": "prior" when the scene has depth priors, else "static_median" (said in the run log).
     dynamic_depth: str = "static_median"
     # Where the dense seeds and the fill of the static set take their depth: "stereo" (the plane
     # sweep, interpolated where it keeps nothing) or "scene": the scene's depth maps at each seed's
     # pixel (measured depth; on a synthetic scene the truth: an oracle, docs/method.md §8); "prior":
     # the scene's depth priors aligned as the dynamic seeds' are; "stereo_prior": the sweep where it
-    # agrees with the aligned prior within stereo_prior_tolerance (relative), the prior elsewhere.
+    # agrees with the aligned prior within stereo_prior_tolerance (relative), the prior elsewhere;
+    # "auto": "stereo_prior" when the scene has depth priors, else "stereo" (said in the run log).
     static_depth: str = "stereo"
     stereo_prior_tolerance: float = 0.15
     # Which seeds' own depths "stereo_prior" checks against the prior: "measured", the sweep's own

@@ -91,6 +91,8 @@ per-point provenance arrays (``static_source_frames``, ``dynamic_source_frames``
 """
 from __future__ import annotations
 
+import dataclasses
+
 import cv2
 import numpy as np
 
@@ -451,6 +453,19 @@ def _aligned_priors(frames, static_pts, which, config: InitConfig, dilation_px):
     return maps, summary
 
 
+def resolve_depth_sources(config: InitConfig, scene) -> InitConfig:
+    """``config`` with "auto" depth sources decided by the scene: the depth priors for the static
+    ("stereo_prior") and the dynamic ("prior") seeds when every training frame has one, else the
+    sweep ("stereo") and the static-median rule."""
+    has = bool(scene.has_depth_prior)
+    changes = {}
+    if config.static_depth == "auto":
+        changes["static_depth"] = "stereo_prior" if has else "stereo"
+    if config.dynamic_depth == "auto":
+        changes["dynamic_depth"] = "prior" if has else "static_median"
+    return dataclasses.replace(config, **changes) if changes else config
+
+
 def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=None):
     """Initial static and dynamic points of ``scene`` (see the module docstring).
 
@@ -468,6 +483,7 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
     if not isinstance(rng, np.random.Generator):
         raise TypeError(f"rng must be a np.random.Generator (np.random.default_rng(seed)); got {type(rng).__name__}")
     _check_scene(scene)
+    config = resolve_depth_sources(config, scene)
     if config.dynamic_depth == "scene" and not scene.has_depth:
         raise ValueError("InitConfig.dynamic_depth = 'scene' needs a depth map for every training frame "
                          "(depth_file_path, docs/dataset_format.md §3); this scene has none: use 'static_median'")
@@ -675,6 +691,7 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
         "dynamic_frame_depths": frame_depth,
         "dynamic_depth_prior": prior_info,
         "static_depth_prior": static_prior_info,
+        "static_depth": config.static_depth, "dynamic_depth": config.dynamic_depth,  # as decided ("auto")
         "static_source_frames": np.concatenate([tri_src, dense_src, fill_src]),
         # the static points at a measured depth: triangulated, or dense at their own pixel's stereo depth
         "static_measured": np.concatenate([np.ones(len(tri_src), bool), dense_info["measured"],

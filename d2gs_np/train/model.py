@@ -98,6 +98,10 @@ class Model:
         poses = np.stack([f.cam_T_world for f in frames]).astype(np.float64)
         t0 = time.perf_counter()
         s_pts, s_col, d_pts, d_col, info = initialize_points(scene, config.init, rng, anchor_points=anchor_points)
+        if "auto" in (config.init.static_depth, config.init.dynamic_depth):
+            say(f"seed depths decided by the scene (init.static_depth / dynamic_depth = 'auto'): static "
+                f"{info['static_depth']}, dynamic {info['dynamic_depth']}, as the scene has "
+                + ("depth priors" if scene.has_depth_prior else "no depth priors"))
         if not components.dynamic:
             d_pts, d_col = None, None
         elif info.get("dynamic_depth_prior") is not None:
@@ -112,7 +116,7 @@ class Model:
             pi = info["static_depth_prior"]
             failed = "".join(f"; frame {k}: {why}" for k, why in sorted(pi["failed"].items())[:3])
             say(f"static seeds at the depth prior aligned to {pi['reference']} in {pi['aligned']} of {pi['frames']} "
-                f"frames (init.static_depth = {config.init.static_depth}; median relative error "
+                f"frames (init.static_depth = {info['static_depth']}; median relative error "
                 f"{pi['median_rel_error']:.3f}{failed})")
         params = gaussians.init_params(s_pts, s_col, d_pts, d_col, deform_config=config.deform, rng=rng)
         for prefix, pts, src in ((STATIC, s_pts, info["static_source_frames"]),

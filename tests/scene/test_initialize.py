@@ -367,6 +367,26 @@ def test_stereo_prior_cost_ratio_keeps_the_sweep_where_the_images_prefer_it(scen
         InitConfig(stereo_prior_cost_ratio=1.5)
 
 
+def test_auto_depth_sources_take_the_priors_when_the_scene_has_them(scene):
+    # "auto" is the priors' rules ("stereo_prior", "prior") on a scene with depth priors and the
+    # sweep and the static-median rule on one without: the same points as the explicit choices
+    with_prior = dataclasses.replace(scene, frames=[dataclasses.replace(f, depth_prior=2.5 * f.depth)
+                                                    for f in scene.frames])
+    auto = InitConfig(static_depth="auto", dynamic_depth="auto", dynamic_points=200)
+    for sc, explicit in ((with_prior, dict(static_depth="stereo_prior", dynamic_depth="prior")),
+                         (scene, dict(static_depth="stereo", dynamic_depth="static_median"))):
+        a = initialize_points(sc, auto, np.random.default_rng(3))
+        b = initialize_points(sc, dataclasses.replace(auto, **explicit), np.random.default_rng(3))
+        for x, y in zip(a[:4], b[:4]):
+            np.testing.assert_array_equal(x, y)
+        assert (a[4]["static_depth"], a[4]["dynamic_depth"]) == (explicit["static_depth"], explicit["dynamic_depth"])
+    # and the priors' seeds differ from the rules' on this scene (the choice is not a no-op)
+    rule = initialize_points(with_prior, dataclasses.replace(auto, static_depth="stereo", dynamic_depth="static_median"),
+                             np.random.default_rng(3))
+    prior = initialize_points(with_prior, auto, np.random.default_rng(3))
+    assert not np.allclose(rule[2], prior[2])
+
+
 def _seed_depth_over_truth(scene, dyn, info):
     return seed_depth_ratio(scene.frames, dyn, info["dynamic_source_frames"], info["dynamic_source_pixels"])
 
