@@ -194,6 +194,12 @@ def test_non_finite_residual_at_the_start_is_a_clear_error():
     # point 0 on camera 0's plane z = 0: its projection divides by zero
     R, t = poses[0, :3, :3], poses[0, :3, 3]
     pts0[0] = R.T @ (np.array([0.5, 0.2, 0.0]) - t)
+    # R.T @ (.) rounds: move the point along the camera's axis until its depth is exactly 0
+    for _ in range(8):
+        z = (R @ pts0[0] + t)[2]
+        if z == 0.0:
+            break
+        pts0[0] -= z * R[2]
     prob = BundleProblem(poses_to_params(poses), pts0, F, CX, CY, ci, pi, uv)
     with pytest.raises(ValueError, match="not finite at the start"):
         bundle_adjust(prob, solver="schur")
