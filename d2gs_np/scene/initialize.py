@@ -282,6 +282,12 @@ def depth_from_points(points, frame, query, outlier_rel, max_points=None):
     return interpolate_inverse_depth(uv[vis], z[vis], query, outlier_rel)[0]
 
 
+def _agrees(depth, prior, tolerance):
+    """Where ``depth`` is within ``tolerance`` (relative) of ``prior``; False where either is missing."""
+    with np.errstate(invalid="ignore", divide="ignore"):
+        return np.abs(depth / prior - 1.0) <= tolerance
+
+
 def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, stereo=None, depth_range=None,
                skips=(2, 4, 8), depth_maps=None, prior_maps=None, prior_tolerance=None, prior_scope="measured",
                prior_cost_ratio=0.0):
@@ -323,7 +329,8 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
             N = len(frames)
             others = sorted({min(max(k + d * sgn, 0), N - 1) for d in skips for sgn in (-1, 1)} - {k})
             sources = [(frames[j].image, frames[j].cam_T_world, frames[j].K, frames[j].mask) for j in others]
-            weigh = prior_tolerance is not None and prior_cost_ratio > 0 and prior_maps[k] is not None
+            weigh = (prior_tolerance is not None and prior_cost_ratio > 0 and prior_maps is not None
+                     and prior_maps[k] is not None)
             dmap, sinfo = plane_sweep_depth(f.image, f.cam_T_world, f.K, sources, depth_range[0], depth_range[1],
                                             stereo, None if static is None else ~static,
                                             prior_maps[k] if weigh else None)
@@ -344,8 +351,7 @@ def dense_seed(frames, keyframes, ref_points, stride, outlier_rel, dilation_px, 
             prior = prior_maps[k][rows, cols_]
             use = np.isfinite(prior) & (prior > 0)
             if prior_tolerance is not None:  # the sweep's own (or any stereo) depth stands where it agrees
-                with np.errstate(invalid="ignore"):
-                    agree = np.abs(depth / prior - 1.0) <= prior_tolerance
+                agree = _agrees(depth, prior, prior_tolerance)
                 use &= ~(agree & (own if prior_scope == "measured" else np.isfinite(depth)))
                 if "cost_over_prior" in sinfo:  # ... or where the images prefer the sweep's depth
                     with np.errstate(invalid="ignore"):
@@ -607,8 +613,7 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
                 z = _at_pixels(maps, np.zeros(int(s.sum()), dtype=np.int64), pix[s])
                 take = np.isfinite(z) & (z > 0)
                 if config.static_depth == "stereo_prior" and config.stereo_prior_scope == "all":
-                    with np.errstate(invalid="ignore", divide="ignore"):  # the surface stands where it agrees
-                        take &= ~(np.abs(d / z - 1.0) <= config.stereo_prior_tolerance)
+                    take &= ~_agrees(d, z, config.stereo_prior_tolerance)  # the surface stands where it agrees
                 d = np.where(take, z, d)
             depth[s] = np.where(np.isfinite(d) & (d > 0), d, depth[s])
             fill_pts[s] = unproject_points(pix[s], depth[s], frames[k].cam_T_world, frames[k].K)
