@@ -46,7 +46,9 @@ Depth prior (``depth_prior``): each training frame also gets what a depth networ
 for it, modelled, not run: the true depth with its edges blurred (a Gaussian of
 ``prior_edge_px`` on the disparity; networks smooth depth boundaries, and blur widens them),
 times a smooth relative error (exp of ``prior_rel_error`` times a unit-variance random field
-smooth over an eighth of the width, drawn anew for each frame). "video": a depth up to one
+smooth over an eighth of the width, drawn anew for each frame; ``prior_shared_error`` of its
+variance instead one field for every frame, a network's bias that repeats frame to frame and
+that no fusion over the frames removes). "video": a depth up to one
 unknown scale for the clip, as video depth models give it (Align3R, which the paper uses);
 "monocular": a disparity up to an unknown scale and shift per frame, as single-image networks
 give it. Drawn from its own random stream: the images, poses and masks are those of the scene
@@ -239,6 +241,7 @@ class SuiteConfig:
     depth_prior: str = "none"  # "video" / "monocular": a modelled network's depth per frame (module docstring)
     prior_edge_px: float = 2.0  # its edge blur (Gaussian sigma, px at 240 px width; scaled with the width)
     prior_rel_error: float = 0.1  # its smooth relative error (standard deviation of the log)
+    prior_shared_error: float = 0.0  # the share of that error's variance common to every frame
     seed: int = 0
 
     def __post_init__(self):
@@ -268,6 +271,7 @@ class SuiteConfig:
         check_choice(self.depth_prior, "SuiteConfig.depth_prior", DEPTH_PRIORS)
         check_number(self.prior_edge_px, "SuiteConfig.prior_edge_px", 0.0)
         check_number(self.prior_rel_error, "SuiteConfig.prior_rel_error", 0.0)
+        check_number(self.prior_shared_error, "SuiteConfig.prior_shared_error", 0.0, 1.0)
 
 
 # ============================================================================ worlds
@@ -631,16 +635,32 @@ def generate_suite(config: SuiteConfig) -> Scene:
     if config.depth_prior != "none":
         rng = np.random.default_rng(np.random.SeedSequence([config.seed, 31]))
         clip_scale = np.exp(rng.uniform(-1.0, 1.0))
+        shared = None
+        if config.prior_shared_error > 0:  # its own stream: the per-frame draws stay those without it
+            shared = (config.prior_shared_error,
+                      _unit_field(np.random.default_rng(np.random.SeedSequence([config.seed, 32])),
+                                  config.height, config.width))
         for f in scene.frames:
             f.depth_prior = modelled_depth_prior(f.depth, rng, config.prior_edge_px * config.width / 240.0,
-                                                 config.prior_rel_error, config.depth_prior, clip_scale)
+                                                 config.prior_rel_error, config.depth_prior, clip_scale, shared)
     return scene
 
 
-def modelled_depth_prior(depth, rng, edge_px: float, rel_error: float, kind: str = "video", clip_scale=1.0):
+def _unit_field(rng, H, W):
+    """A unit-variance random field (H, W) smooth over an eighth of the width."""
+    import cv2
+
+    field = cv2.GaussianBlur(rng.normal(size=(H, W)), (0, 0), W / 8.0, borderType=cv2.BORDER_REFLECT)
+    return field / max(float(field.std()), 1e-300)
+
+
+def modelled_depth_prior(depth, rng, edge_px: float, rel_error: float, kind: str = "video", clip_scale=1.0,
+                         shared=None):
     """A modelled depth network's output for a true depth map (H, W; inf = nothing hit): the
     module docstring's model; ``kind`` "video" (depth times ``clip_scale``) or "monocular"
-    (disparity up to a scale and shift drawn here). NaN where nothing is hit; positive elsewhere."""
+    (disparity up to a scale and shift drawn here); ``shared``: (share c, unit field (H, W)), the
+    error field then sqrt(1 - c) x this frame's own + sqrt(c) x the shared one. NaN where nothing
+    is hit; positive elsewhere."""
     import cv2
 
     depth = np.asarray(depth, dtype=np.float64)
@@ -654,8 +674,11 @@ def modelled_depth_prior(depth, rng, edge_px: float, rel_error: float, kind: str
         w = cv2.GaussianBlur(hit.astype(np.float64), (0, 0), edge_px, borderType=cv2.BORDER_REFLECT)
         disp = cv2.GaussianBlur(disp, (0, 0), edge_px, borderType=cv2.BORDER_REFLECT) / np.maximum(w, 1e-12)
     if rel_error > 0:
-        field = cv2.GaussianBlur(rng.normal(size=(H, W)), (0, 0), W / 8.0, borderType=cv2.BORDER_REFLECT)
-        field /= max(float(field.std()), 1e-300)
+        field = _unit_field(rng, H, W)
+        if shared is not None and shared[0] > 0:
+            if np.shape(shared[1]) != (H, W):
+                raise ValueError(f"modelled_depth_prior: the shared field is {np.shape(shared[1])}, the depth {(H, W)}")
+            field = np.sqrt(1.0 - shared[0]) * field + np.sqrt(shared[0]) * np.asarray(shared[1])
         disp = disp * np.exp(rel_error * field)
     if kind == "video":
         return np.where(hit, clip_scale / np.where(hit, disp, 1.0), np.nan)

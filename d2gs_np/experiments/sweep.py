@@ -223,6 +223,14 @@ EXPERIMENTS = {
         # sharp input with true poses (issue #40's first line) given the same prior seeds
         Variant("stereo_prior_sharp", scene={**_SHARP, "depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}}),
+        # the static seeds' priors fused over the frames first (InitConfig.depth_prior_fusion), with the
+        # suite's prior error new in every frame and with half its variance shared by all frames
+        Variant("stereo_prior_fused", scene={"depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True}}),
+        Variant("stereo_prior_fused_shared", scene={"depth_prior": "video", "prior_shared_error": 0.5},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True}}),
+        Variant("stereo_prior_shared", scene={"depth_prior": "video", "prior_shared_error": 0.5},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}}),
         # the no-blur baseline (no blur model, no pose refinement) given the same prior seeds
         Variant("stereo_prior_noblur", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}, "train": {"blur": "off"},

@@ -148,6 +148,11 @@ class InitConfig:
     # (video depth models such as the paper's Align3R), or "disparity", inverse depth up to a scale
     # and a shift per frame (single-image networks).
     depth_prior_space: str = "depth"
+    # The static seeds' priors ("prior", "stereo_prior") fused over the frames before use: each static
+    # pixel's depth the geometric mean of what the frames that see its point give it, readings off by
+    # more than the gate (|log ratio|) left out (scene/depth_prior.py fuse_depth_maps; docs/method.md §8)
+    depth_prior_fusion: bool = False
+    depth_prior_fusion_gate: float = 0.3
     depth_prior_min_points: int = 20  # fewer usable static points: the frame's (clip's) seeds keep the static-median rule
 
     def __post_init__(self):
@@ -186,6 +191,9 @@ class InitConfig:
         check_choice(self.stereo_prior_scope, "InitConfig.stereo_prior_scope", STEREO_PRIOR_SCOPES)
         check_number(self.stereo_prior_cost_ratio, "InitConfig.stereo_prior_cost_ratio", 0.0, 1.0,
                      hint="a cost ratio in (0, 1], e.g. 0.8; 0 = off")
+        check_bool(self.depth_prior_fusion, "InitConfig.depth_prior_fusion")
+        check_number(self.depth_prior_fusion_gate, "InitConfig.depth_prior_fusion_gate", 0.0, lo_open=True,
+                     hint="a |log ratio|, e.g. 0.3")
         check_int(self.depth_prior_min_points, "InitConfig.depth_prior_min_points", 3,
                   hint="a scale and shift need at least 3 points to be checked")
 

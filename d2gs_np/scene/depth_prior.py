@@ -14,14 +14,19 @@ cannot know. Two kinds:
 Static points are taken off the dilated motion mask. The aligned maps give the movers a depth
 that the photometric loss cannot (docs/method.md §8: a mover's depth is not observable from one
 moving camera).
+
+``fuse_depth_maps``: a network's error is partly new in every frame; a static surface point seen
+in K frames has K estimates of its depth, and their geometric mean keeps only the share of the
+error the frames have in common (docs/method.md §8, the priors fused over the frames).
 """
 from __future__ import annotations
 
 import numpy as np
 
-from d2gs_np.constants import MAD_TO_SIGMA
+from d2gs_np.constants import MAD_TO_SIGMA, PIXEL_CENTER_OFFSET
+from d2gs_np.geometry.camera import project_points, unproject_points
 
-__all__ = ["fit_scale_shift", "align_depth_prior", "align_depth_scale"]
+__all__ = ["fit_scale_shift", "align_depth_prior", "align_depth_scale", "fuse_depth_maps"]
 
 
 def _prior_at_points(prior, uv, z):
@@ -117,3 +122,92 @@ def align_depth_scale(priors, uvs, zs, min_points: int = 20):
     m = float(np.median(logs))
     info.update(scale=float(np.exp(m)), rel_error=float(np.median(np.abs(np.expm1(m - logs)))))
     return info["scale"], info
+
+
+def _bilinear_log(depth, good, uv, z):
+    """(indices, values): the log of ``depth`` (H, W) interpolated bilinearly at the points
+    ``uv`` (M, 2; pixel centres at +0.5) in front of the camera (``z`` > 0) whose four
+    neighbouring pixels are all ``good``; the rest are left out."""
+    H, W = depth.shape
+    x, y = uv[:, 0] - PIXEL_CENTER_OFFSET, uv[:, 1] - PIXEL_CENTER_OFFSET
+    inside = (z > 0) & (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
+    idx = np.flatnonzero(inside)
+    x, y = x[idx], y[idx]
+    c0 = np.minimum(np.floor(x).astype(np.int64), max(W - 2, 0))
+    r0 = np.minimum(np.floor(y).astype(np.int64), max(H - 2, 0))
+    c1, r1 = np.minimum(c0 + 1, W - 1), np.minimum(r0 + 1, H - 1)
+    have = good[r0, c0] & good[r0, c1] & good[r1, c0] & good[r1, c1]
+    idx, x, y, c0, r0, c1, r1 = idx[have], x[have], y[have], c0[have], r0[have], c1[have], r1[have]
+    fx, fy = x - c0, y - r0
+    logd = np.log(np.where(good, depth, 1.0))
+    value = ((1 - fy) * ((1 - fx) * logd[r0, c0] + fx * logd[r0, c1])
+             + fy * ((1 - fx) * logd[r1, c0] + fx * logd[r1, c1]))
+    return idx, value
+
+
+def fuse_depth_maps(maps, cam_T_worlds, Ks, usable=None, gate: float = 0.3):
+    """Per-frame depth maps fused over the frames: each usable pixel of frame k lifted at its depth
+    d_k, projected into every other frame j, and d_k times exp(mean of log(map_j(p') / z_j)) over
+    the frames that see it (frame k itself counting 0), where p' and z_j are the point's pixel and
+    depth in frame j (the map read bilinearly in log depth, where its four pixels are usable). For a static surface with per-frame log errors e_j this gives the mean of the
+    e_j over the frames that see the point: the independent share of the error falls as 1 / sqrt(K).
+
+    ``maps``: list of (H, W) depth maps in one unit (NaN = no estimate) or None (a frame without
+    one: neither fused nor used); ``cam_T_worlds`` / ``Ks``: the frames' poses (4, 4) and
+    intrinsics (3, 3); ``usable``: per frame a bool (H, W) mask of the pixels that may be fused and
+    read (the static pixels; None: all); ``gate``: a frame's reading counts only within |log ratio|
+    <= gate (occlusions, other surfaces, a mover's pixel the mask missed). Unusable pixels keep
+    their value. Returns (fused maps, info): info "views" (median count of frames per fused
+    pixel, itself included) and "fused_share" (share of fused pixels seen by another frame)."""
+    if not gate > 0:
+        raise ValueError(f"fuse_depth_maps: gate must be > 0 (a |log ratio|, e.g. 0.3); got {gate!r}")
+    n = len(maps)
+    if len(cam_T_worlds) != n or len(Ks) != n or (usable is not None and len(usable) != n):
+        raise ValueError(f"fuse_depth_maps: {n} maps need as many poses, intrinsics and masks; got "
+                         f"{len(cam_T_worlds)}, {len(Ks)}, {None if usable is None else len(usable)}")
+    maps = [None if m is None else np.asarray(m, dtype=np.float64) for m in maps]
+    ok = []
+    for k, m in enumerate(maps):
+        if m is None:
+            ok.append(None)
+            continue
+        if m.ndim != 2:
+            raise ValueError(f"fuse_depth_maps: map {k} must be (H, W); got shape {m.shape}")
+        good = np.isfinite(m) & (m > 0)
+        if usable is not None and usable[k] is not None:
+            u = np.asarray(usable[k], dtype=bool)
+            if u.shape != m.shape:
+                raise ValueError(f"fuse_depth_maps: mask {k} has shape {u.shape}, its map {m.shape}")
+            good &= u
+        ok.append(good)
+    fused, views, seen = [], [], 0
+    for k, m in enumerate(maps):
+        if m is None:
+            fused.append(None)
+            continue
+        rows, cols = np.nonzero(ok[k])
+        out = m.copy()
+        if rows.size == 0:
+            fused.append(out)
+            continue
+        d = m[rows, cols]
+        pix = np.stack([cols + PIXEL_CENTER_OFFSET, rows + PIXEL_CENTER_OFFSET], axis=1).astype(np.float64)
+        X = unproject_points(pix, d, cam_T_worlds[k], Ks[k])
+        total, count = np.zeros(rows.size), np.ones(rows.size)
+        for j, mj in enumerate(maps):
+            if j == k or mj is None:
+                continue
+            uv, z = project_points(X, cam_T_worlds[j], Ks[j])
+            idx, value = _bilinear_log(mj, ok[j], uv, z)
+            log_ratio = value - np.log(z[idx])
+            near = np.abs(log_ratio) <= gate
+            total[idx[near]] += log_ratio[near]
+            count[idx[near]] += 1.0
+        out[rows, cols] = d * np.exp(total / count)
+        fused.append(out)
+        views.append(count)
+        seen += int((count > 1).sum())
+    allv = np.concatenate(views) if views else np.zeros(0)
+    info = {"views": float(np.median(allv)) if allv.size else 0.0,
+            "fused_share": float(seen / allv.size) if allv.size else 0.0}
+    return fused, info

@@ -101,7 +101,7 @@ from d2gs_np.pose.features import detect_features, match_keypoints, static_detec
 from d2gs_np.geometry.camera import camera_center, check_intrinsics, project_points, unproject_points
 from d2gs_np.geometry.se3 import check_rigid
 from d2gs_np.scene.config import InitConfig
-from d2gs_np.scene.depth_prior import align_depth_prior, align_depth_scale
+from d2gs_np.scene.depth_prior import align_depth_prior, align_depth_scale, fuse_depth_maps
 from d2gs_np.scene.stereo import plane_sweep_depth
 
 __all__ = ["initialize_points", "triangulate_matches", "depth_from_trusted", "sample_image_bilinear", "pixel_scale_cap",
@@ -574,6 +574,12 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
         static_prior, static_prior_info = _aligned_priors(frames, reference, np.arange(N), config,
                                                           fc.mask_dilation_px)
         static_prior_info["reference"] = f"{what} ({len(reference)})"
+        if config.depth_prior_fusion:  # each static pixel's depth from every frame that sees its point
+            usable = [None if f.mask is None else static_detector_mask(f.mask, fc.mask_dilation_px) > 0
+                      for f in frames]
+            static_prior, static_prior_info["fusion"] = fuse_depth_maps(
+                static_prior, [f.cam_T_world for f in frames], [f.K for f in frames], usable,
+                config.depth_prior_fusion_gate)
 
     # ---- 3. dense pixel-grid seeding at interpolated depths
     dense_pts, dense_cols = np.zeros((0, 3)), np.zeros((0, 3))

@@ -200,10 +200,30 @@ def test_a_modelled_depth_prior_leaves_the_video_as_it_was_and_follows_the_truth
         assert scale > 0 and np.max(np.abs(A @ (scale, shift) - c.depth_prior[hit])) < 1e-9
 
 
+def test_a_shared_prior_error_repeats_on_every_frame_and_leaves_the_rest_as_it_was():
+    kw = dict(depth_prior="video", prior_edge_px=0.0, prior_rel_error=0.1, **TINY)
+    own = suite.make_suite_scene("crossing", 0, **kw)
+    none = suite.make_suite_scene("crossing", 0, prior_shared_error=0.0, **kw)
+    half = suite.make_suite_scene("crossing", 0, prior_shared_error=0.5, **kw)
+    full = suite.make_suite_scene("crossing", 0, prior_shared_error=1.0, **kw)
+    logs = {n: [np.log(b.depth_prior / b.depth) for b in sc.frames] for n, sc in
+            (("own", own), ("half", half), ("full", full))}
+    for a, b in zip(own.frames, none.frames):  # a share of 0 draws nothing more: the same priors
+        np.testing.assert_array_equal(a.depth_prior, b.depth_prior)
+    hit = np.isfinite(own.frames[0].depth) & np.isfinite(own.frames[1].depth)
+
+    def corr(lg):  # the correlation of two frames' log errors over the pixels both hit
+        return np.corrcoef(lg[0][hit], lg[1][hit])[0, 1]
+    # all shared: every frame's error the same field (one clip scale), to rounding; half: between
+    assert np.max(np.abs(logs["full"][0][hit] - logs["full"][1][hit])) < 1e-12
+    assert abs(corr(logs["own"])) < corr(logs["half"]) < 0.999
+
+
 @pytest.mark.parametrize("bad, match", [
     (dict(family="moon_base"), "family"),
     (dict(depth_prior="lidar"), "SuiteConfig.depth_prior"),
     (dict(prior_rel_error=-0.1), "prior_rel_error"),
+    (dict(prior_shared_error=1.5), "prior_shared_error"),
     (dict(exposure_fraction=1.5), "exposure_fraction"),
     (dict(rot_noise_deg=-1.0), "pose noise"),
     (dict(drift=2.0), "drift"),

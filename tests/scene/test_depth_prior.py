@@ -108,3 +108,92 @@ def test_a_video_prior_gets_one_scale_for_the_clip_despite_wrong_points():
     # the median ignores the 30 % wrong: exactly 2.5 when the right points are the majority on both sides
     assert abs(scale - 2.5) < 1e-9 and info["points"] == 240
     assert align_depth_scale(priors, [u[:5] for u in uvs], [z[:5] for z in zs], min_points=20)[0] is None
+
+
+# ---- fuse_depth_maps: the priors fused over the frames
+
+def _rig(n=8, tilt=0.0):
+    """n cameras 2 % of the depth apart along x, all facing a plane at depth 5 (``tilt``: its
+    depth rising by that much per unit of x); the true depth map of each frame."""
+    from d2gs_np.geometry.camera import make_intrinsics
+    K = make_intrinsics(30.0, 30.0, W / 2, H / 2)
+    poses, depths = [], []
+    cols = np.arange(W) + 0.5
+    rows = np.arange(H) + 0.5
+    for i in range(n):
+        T = np.eye(4)
+        cx = 0.1 * (i - (n - 1) / 2)
+        T[0, 3] = -cx  # the camera at (cx, 0, 0), looking down +z
+        poses.append(T)
+        # ray through a pixel: x = cx + (u - W/2) / f * z; the plane z = 5 + tilt * x
+        a = (cols[None, :] - W / 2) / 30.0 + 0.0 * rows[:, None]
+        depths.append((5.0 + tilt * cx) / (1.0 - tilt * a))
+    return poses, [K] * n, depths
+
+
+def _smooth_noise(rng, sigma):
+    import cv2
+    f = cv2.GaussianBlur(rng.normal(size=(H, W)), (0, 0), 4.0)
+    return sigma * f / f.std()
+
+
+def test_fused_maps_keep_an_exact_plane_and_average_independent_errors():
+    from d2gs_np.scene.depth_prior import fuse_depth_maps
+    poses, Ks, depths = _rig(tilt=0.2)
+    # exact maps stay exact: the bilinear read of a slanted plane's log depth errs by its curvature
+    # over a pixel, (tilt a / f)^2 / 8 ~ 1e-6 here; 1e-5 relative is the bound
+    fused, info = fuse_depth_maps(depths, poses, Ks)
+    for f, d in zip(fused, depths):
+        assert np.nanmax(np.abs(f / d - 1.0)) < 1e-5
+    assert info["views"] == 8 and info["fused_share"] > 0.9
+    # independent smooth 10 % log errors per frame: the fused error's RMS near 0.1 / sqrt(8) ~ 0.035,
+    # for the pixels every frame sees (the middle); 0.6 x the unfused RMS bounds it with room for the
+    # edges' fewer views and the 2-sigma gate
+    rng = np.random.default_rng(1)
+    noisy = [d * np.exp(_smooth_noise(rng, 0.1)) for d in depths]
+    fused, _ = fuse_depth_maps(noisy, poses, Ks, gate=0.5)
+    mid = (slice(None), slice(W // 4, 3 * W // 4))
+    before = np.sqrt(np.mean([np.mean(np.log(n / d)[mid] ** 2) for n, d in zip(noisy, depths)]))
+    after = np.sqrt(np.mean([np.mean(np.log(f / d)[mid] ** 2) for f, d in zip(fused, depths)]))
+    assert after < 0.6 * before, (before, after)
+    # an error the frames share is not removed: the same field on every frame stays as it is
+    shared = _smooth_noise(rng, 0.1)
+    same = [d * np.exp(shared) for d in depths]
+    fused, _ = fuse_depth_maps(same, poses, Ks, gate=0.5)
+    after = np.sqrt(np.mean([np.mean(np.log(f / d)[mid] ** 2) for f, d in zip(fused, depths)]))
+    assert after > 0.8 * np.sqrt(np.mean(shared[mid] ** 2))
+
+
+def test_fusion_leaves_out_a_frame_off_by_more_than_the_gate_and_the_unusable_pixels():
+    from d2gs_np.scene.depth_prior import fuse_depth_maps
+    poses, Ks, depths = _rig(n=4)  # a fronto-parallel plane: the bilinear read is exact
+    maps = [d.copy() for d in depths]
+    maps[1] = 2.0 * maps[1]  # a frame twice too far (another surface): |log 2| > 0.3
+    maps[2] = 1.1 * maps[2]  # one 10 % too far: within the gate, averaged in
+    keep = np.ones((H, W), bool)
+    keep[:, :5] = False  # frame 0's left columns may not be fused
+    fused, _ = fuse_depth_maps(maps, poses, Ks, usable=[keep, None, None, None])
+    inner = (slice(None), slice(W // 3, 2 * W // 3))  # seen by every frame
+    np.testing.assert_allclose(fused[0][inner], depths[0][inner] * 1.1 ** (1 / 3), rtol=1e-12)
+    np.testing.assert_array_equal(fused[0][:, :5], maps[0][:, :5])
+    # a frame without a map is neither fused nor read; a NaN pixel stays NaN
+    maps[3] = None
+    maps[0][0, W // 2] = np.nan
+    fused, _ = fuse_depth_maps(maps, poses, Ks)
+    assert fused[3] is None and np.isnan(fused[0][0, W // 2])
+    np.testing.assert_allclose(fused[0][1:, inner[1]], depths[0][1:, inner[1]] * 1.1 ** 0.5, rtol=1e-12)
+
+
+def test_fusion_ignores_points_behind_another_camera_and_refuses_bad_input():
+    from d2gs_np.scene.depth_prior import fuse_depth_maps
+    poses, Ks, depths = _rig(n=2)
+    back = np.diag([-1.0, 1.0, -1.0, 1.0])  # frame 1 turned round: the plane is behind it
+    fused, info = fuse_depth_maps(depths, [poses[0], back @ poses[1]], Ks)
+    np.testing.assert_array_equal(fused[0], depths[0])
+    assert info["fused_share"] == 0.0 and np.all(np.isfinite(fused[1]))
+    with pytest.raises(ValueError, match="gate must be > 0"):
+        fuse_depth_maps(depths, poses, Ks, gate=0.0)
+    with pytest.raises(ValueError, match="need as many poses"):
+        fuse_depth_maps(depths, poses[:1], Ks)
+    with pytest.raises(ValueError, match="mask 0 has shape"):
+        fuse_depth_maps(depths, poses, Ks, usable=[np.ones((2, 2), bool), None])

@@ -282,6 +282,29 @@ def test_static_depth_from_a_prior_and_from_the_sweep_where_it_agrees(scene):
         InitConfig(stereo_prior_tolerance=-0.1)
 
 
+def test_fused_priors_put_the_static_seeds_nearer_the_truth(scene):
+    # a prior with a smooth 10 % log error drawn anew per frame (the suite's modelled video prior):
+    # fused over the 8 frames, the seeds lifted at it sit nearer the truth. Measured on this scene:
+    # median |z / z_true - 1| of the dense seeds and fill 8.7 % unfused, 3.5 % fused; 0.7 x bounds it
+    import cv2
+    rng = np.random.default_rng(5)
+
+    def bent(d):
+        f = cv2.GaussianBlur(rng.normal(size=d.shape), (0, 0), d.shape[1] / 8.0)
+        return 2.5 * d * np.exp(0.1 * f / f.std())
+    noisy = dataclasses.replace(scene, frames=[dataclasses.replace(f, depth_prior=bent(f.depth)) for f in scene.frames])
+    err = {}
+    for fuse in (False, True):
+        static, _, _, _, info = initialize_points(noisy, InitConfig(static_depth="prior", depth_prior_fusion=fuse),
+                                                  np.random.default_rng(3))
+        err[fuse] = np.median(np.abs(_static_seed_ratios(scene, static, info) - 1.0))
+    fusion = info["static_depth_prior"]["fusion"]
+    assert fusion["views"] >= 4 and fusion["fused_share"] > 0.9
+    assert err[True] < 0.7 * err[False], err
+    with pytest.raises(ValueError, match="InitConfig.depth_prior_fusion_gate"):
+        InitConfig(depth_prior_fusion_gate=0.0)
+
+
 def _fill_depth_over_prior(frames, static, info):
     """The fill points' depth in their frame over the frame's aligned prior at their pixel."""
     n0 = info["num_static_triangulated"] + info["num_static_dense"]
