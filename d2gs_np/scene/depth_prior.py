@@ -124,11 +124,11 @@ def align_depth_scale(priors, uvs, zs, min_points: int = 20):
     return info["scale"], info
 
 
-def _bilinear_log(depth, good, uv, z):
-    """(indices, values): the log of ``depth`` (H, W) interpolated bilinearly at the points
-    ``uv`` (M, 2; pixel centres at +0.5) in front of the camera (``z`` > 0) whose four
+def _bilinear(logd, good, uv, z):
+    """(indices, values): the map ``logd`` (H, W; a log depth) interpolated bilinearly at the
+    points ``uv`` (M, 2; pixel centres at +0.5) in front of the camera (``z`` > 0) whose four
     neighbouring pixels are all ``good``; the rest are left out."""
-    H, W = depth.shape
+    H, W = logd.shape
     x, y = uv[:, 0] - PIXEL_CENTER_OFFSET, uv[:, 1] - PIXEL_CENTER_OFFSET
     inside = (z > 0) & (x >= 0) & (x <= W - 1) & (y >= 0) & (y <= H - 1)
     idx = np.flatnonzero(inside)
@@ -139,7 +139,6 @@ def _bilinear_log(depth, good, uv, z):
     have = good[r0, c0] & good[r0, c1] & good[r1, c0] & good[r1, c1]
     idx, x, y, c0, r0, c1, r1 = idx[have], x[have], y[have], c0[have], r0[have], c1[have], r1[have]
     fx, fy = x - c0, y - r0
-    logd = np.log(np.where(good, depth, 1.0))
     value = ((1 - fy) * ((1 - fx) * logd[r0, c0] + fx * logd[r0, c1])
              + fy * ((1 - fx) * logd[r1, c0] + fx * logd[r1, c1]))
     return idx, value
@@ -149,8 +148,9 @@ def fuse_depth_maps(maps, cam_T_worlds, Ks, usable=None, gate: float = 0.3):
     """Per-frame depth maps fused over the frames: each usable pixel of frame k lifted at its depth
     d_k, projected into every other frame j, and d_k times exp(mean of log(map_j(p') / z_j)) over
     the frames that see it (frame k itself counting 0), where p' and z_j are the point's pixel and
-    depth in frame j (the map read bilinearly in log depth, where its four pixels are usable). For a static surface with per-frame log errors e_j this gives the mean of the
-    e_j over the frames that see the point: the independent share of the error falls as 1 / sqrt(K).
+    depth in frame j (the map read bilinearly in log depth, where its four pixels are usable).
+    For a static surface with per-frame log errors e_j this gives the mean of the e_j over the
+    frames that see the point: the independent share of the error falls as 1 / sqrt(K).
 
     ``maps``: list of (H, W) depth maps in one unit (NaN = no estimate) or None (a frame without
     one: neither fused nor used); ``cam_T_worlds`` / ``Ks``: the frames' poses (4, 4) and
@@ -180,6 +180,7 @@ def fuse_depth_maps(maps, cam_T_worlds, Ks, usable=None, gate: float = 0.3):
                 raise ValueError(f"fuse_depth_maps: mask {k} has shape {u.shape}, its map {m.shape}")
             good &= u
         ok.append(good)
+    logs = [None if m is None else np.log(np.where(g, m, 1.0)) for m, g in zip(maps, ok)]  # once per frame
     fused, views, seen = [], [], 0
     for k, m in enumerate(maps):
         if m is None:
@@ -194,11 +195,11 @@ def fuse_depth_maps(maps, cam_T_worlds, Ks, usable=None, gate: float = 0.3):
         pix = np.stack([cols + PIXEL_CENTER_OFFSET, rows + PIXEL_CENTER_OFFSET], axis=1).astype(np.float64)
         X = unproject_points(pix, d, cam_T_worlds[k], Ks[k])
         total, count = np.zeros(rows.size), np.ones(rows.size)
-        for j, mj in enumerate(maps):
-            if j == k or mj is None:
+        for j, lj in enumerate(logs):
+            if j == k or lj is None:
                 continue
             uv, z = project_points(X, cam_T_worlds[j], Ks[j])
-            idx, value = _bilinear_log(mj, ok[j], uv, z)
+            idx, value = _bilinear(lj, ok[j], uv, z)
             log_ratio = value - np.log(z[idx])
             near = np.abs(log_ratio) <= gate
             total[idx[near]] += log_ratio[near]

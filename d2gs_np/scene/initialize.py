@@ -565,6 +565,9 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
         )
 
     # ---- 2b. the depth priors for the static seeds (static_depth = "prior" / "stereo_prior")
+    # each frame's static pixels off the dilated motion mask (None: no mask, all static)
+    static_allowed = [None if f.mask is None else static_detector_mask(f.mask, fc.mask_dilation_px) > 0
+                      for f in frames]
     static_prior, static_prior_info = None, None
     if config.static_depth in ("prior", "stereo_prior"):
         if anchor_points is not None and len(anchor_points) >= config.depth_prior_min_points:
@@ -575,10 +578,8 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
                                                           fc.mask_dilation_px)
         static_prior_info["reference"] = f"{what} ({len(reference)})"
         if config.depth_prior_fusion:  # each static pixel's depth from every frame that sees its point
-            usable = [None if f.mask is None else static_detector_mask(f.mask, fc.mask_dilation_px) > 0
-                      for f in frames]
             static_prior, static_prior_info["fusion"] = fuse_depth_maps(
-                static_prior, [f.cam_T_world for f in frames], [f.K for f in frames], usable,
+                static_prior, [f.cam_T_world for f in frames], [f.K for f in frames], static_allowed,
                 config.depth_prior_fusion_gate)
 
     # ---- 3. dense pixel-grid seeding at interpolated depths
@@ -595,11 +596,8 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
             config.stereo_prior_scope, config.stereo_prior_cost_ratio)
 
     # ---- 4. random fill on static pixels
-    static_pools = []
-    for f in frames:
-        allowed = np.ones(f.height * f.width, dtype=bool) if f.mask is None else (
-            static_detector_mask(f.mask, fc.mask_dilation_px).ravel() > 0)
-        static_pools.append(np.flatnonzero(allowed))
+    static_pools = [np.arange(f.height * f.width) if a is None else np.flatnonzero(a.ravel())
+                    for f, a in zip(frames, static_allowed)]
     n_fill = config.random_fill_points if sum(len(p) for p in static_pools) > 0 else 0
     fill_pts, fill_cols = np.zeros((0, 3)), np.zeros((0, 3))
     fill_src = np.zeros(0, dtype=np.int64)
