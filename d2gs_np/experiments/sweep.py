@@ -231,6 +231,13 @@ EXPERIMENTS = {
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True}}),
         Variant("stereo_prior_shared", scene={"depth_prior": "video", "prior_shared_error": 0.5},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}}),
+        # the same priors as rows of the bundle adjustment before training too (PoseInitConfig.depth_prior_weight)
+        Variant("stereo_prior_ba", scene={"depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"},
+                        "pose_init": {"depth_prior_weight": 1.0}}),
+        Variant("stereo_prior_fused_ba", scene={"depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
+                        "pose_init": {"depth_prior_weight": 1.0}}),
         # the no-blur baseline (no blur model, no pose refinement) given the same prior seeds
         Variant("stereo_prior_noblur", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}, "train": {"blur": "off"},

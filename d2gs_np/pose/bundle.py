@@ -37,7 +37,8 @@ from d2gs_np.pose.linalg import cholesky_solve
 from d2gs_np.pose.lm import (LOSSES, Nielsen, accept_step, at_damping_limit, damping_start, finite_or_inf,
                              robust_loss)
 
-__all__ = ["reprojection_fwd", "reprojection_bwd", "reprojection_jacobian", "pose_prior_fwd", "BundleProblem",
+__all__ = ["reprojection_fwd", "reprojection_bwd", "reprojection_jacobian", "pose_prior_fwd", "depth_prior_rows",
+           "BundleProblem",
            "bundle_adjust", "camera_covariance", "relative_rotation_std", "poses_to_params", "params_to_poses"]
 
 # The Schur solver's first Levenberg-Marquardt lambda (relative to diag(H)). The robust problems of
@@ -151,6 +152,29 @@ def reprojection_jacobian(saved, free_cams, with_focal):
         ncols += 1
     return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))),
                          shape=(2 * O, ncols))
+
+
+def depth_prior_rows(saved, log_prior, log_scale, weight):
+    """Rows that hold each observation's depth at a depth prior of one scale for the clip:
+    ``weight (log z_o - log_scale - log_prior_o)`` (pixels per unit of log depth, beside the
+    reprojection's pixels), where z_o is the point's depth in the observing camera (``saved`` of
+    ``reprojection_fwd``) and log_prior_o the prior's log depth at the observed pixel; a row whose
+    prior is not finite is 0 with a zero derivative. Returns (r (O,), d_cam (O, 6), d_pt (O, 3)):
+    the derivatives with respect to the observation's camera (phi, t) and point, from
+    d log z / dx = e_3 / z and the reprojection's dx/dphi, dx/dt = I, dx/dX = R."""
+    phi, R, RX, x = saved[0], saved[1], saved[2], saved[3]
+    lp = np.asarray(log_prior, dtype=np.float64)
+    if lp.shape != (x.shape[0],):
+        raise ValueError(f"log_prior must have one entry per observation ({x.shape[0]},); got {lp.shape}")
+    if not (np.isfinite(log_scale) and np.isfinite(weight) and weight > 0):
+        raise ValueError(f"the depth prior's log scale must be finite and its weight > 0; got {log_scale}, {weight}")
+    has = np.isfinite(lp) & (x[:, 2] > 0)
+    z = np.where(has, x[:, 2], 1.0)
+    r = np.where(has, weight * (np.log(z) - log_scale - np.where(has, lp, 0.0)), 0.0)
+    g = np.where(has, weight / z, 0.0)[:, None]  # weight d log z / d x_2
+    d_cam = np.concatenate([(-hat(RX) @ left_jacobian(phi))[:, 2, :] * g, np.zeros((len(z), 2)), g], axis=1)
+    d_pt = R[:, 2, :] * g
+    return r, d_cam, d_pt
 
 
 def _check_prior_sigmas(sigma_t, sigma_r):
@@ -278,7 +302,7 @@ def _check_solver_args(solver, loss, f_scale, max_nfev, tol):
 
 
 def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, loss="soft_l1", f_scale=1.0,
-                  max_nfev=50, tol=1e-8, prior=None, solver="scipy", smooth=None):
+                  max_nfev=50, tol=1e-8, prior=None, solver="scipy", smooth=None, depth=None):
     """Robust least squares over free cameras, all points and (optionally) the shared focal length.
 
     fixed_cams: cameras held at their start (the gauge: fix one camera; the overall scale stays
@@ -288,6 +312,9 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
     prior holds the gauge, the scale included).
     smooth: optional sigma_c (world units per frame squared): ``path_smoothness_fwd`` rows on every
     three consecutive cameras (in units of sigma_c, under the same robust loss), frames equally spaced.
+    depth: optional (log_prior (O,), log_scale, weight): ``depth_prior_rows`` on every observation
+    whose prior is finite (under the same robust loss), the scale held; the rms / median residuals
+    and ``residual_px`` stay the reprojection's.
     solver: "scipy" (``least_squares``, trust region reflective with LSMR; ``max_nfev`` residual
     evaluations) or "schur" (Levenberg-Marquardt on the normal equations with the points
     eliminated, ``_schur_lm``; ``max_nfev`` residual evaluations too, one per trial step). Both
@@ -325,9 +352,15 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
         path_smoothness_fwd(cams0[:0], smooth)  # checks sigma_c
         smooth = float(smooth)
     O2 = 2 * len(problem.cam_idx)
+    if depth is not None:
+        depth = (np.asarray(depth[0], dtype=np.float64), float(depth[1]), float(depth[2]))
+        if depth[0].shape != (len(problem.cam_idx),):
+            raise ValueError(f"the depth prior needs one log depth per observation ({len(problem.cam_idx)},); "
+                             f"got {depth[0].shape}")
     if solver == "schur":
         return _schur_lm(problem, cams0, pts0, free, refine_focal, loss, float(f_scale), int(max_nfev), float(tol),
-                         None if prior is None else (prior_cams, float(sigma_t), float(sigma_r)), t_start, smooth)
+                         None if prior is None else (prior_cams, float(sigma_t), float(sigma_r)), t_start, smooth,
+                         depth)
     history = {"cost": [], "seconds": []}
 
     def fun(x):
@@ -341,6 +374,9 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
         if smooth is not None:
             rs, cache["smooth_J"] = _smooth_dense(cams, free, smooth)
             out.append(rs)
+        if depth is not None:
+            rd, cache["depth_cam"], cache["depth_pt"] = depth_prior_rows(saved, *depth)
+            out.append(rd)
         out = np.concatenate(out)
         # record the cost (read-only: the solver's path is unchanged)
         c = 0.5 * f_scale ** 2 * float(np.sum(robust_loss((out / f_scale) ** 2, loss)[0]))
@@ -361,6 +397,9 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
         if smooth is not None:
             Js = cache["smooth_J"]
             J.append(sp.hstack([sp.csr_matrix(Js), sp.csr_matrix((Js.shape[0], width - Js.shape[1]))], format="csr"))
+        if depth is not None:
+            J.append(_depth_jacobian(cache["depth_cam"], cache["depth_pt"], problem.cam_idx, problem.pt_idx, free, C,
+                                     width))
         return J[0] if len(J) == 1 else sp.vstack(J, format="csr")
 
     x0 = np.concatenate([cams0[free].ravel(), pts0.ravel()] + ([np.array([problem.focal])] if refine_focal else []))
@@ -371,11 +410,28 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
     r = res.fun[:O2].reshape(-1, 2)
     err = np.linalg.norm(r, axis=1)
     info = {"cost": float(res.cost), "nfev": int(res.nfev), "status": int(res.status),
-            "rms_px_start": float(np.sqrt(np.mean(r0[:O2] ** 2))) if O2 else 0.0, "median_px": float(np.median(err)) if err.size else 0.0,
+            # rms of the observations' pixel distances, at the start as at the end
+            "rms_px_start": float(np.sqrt(np.mean(np.sum(r0[:O2].reshape(-1, 2) ** 2, axis=1)))) if O2 else 0.0,
+            "median_px": float(np.median(err)) if err.size else 0.0,
             "rms_px": float(np.sqrt(np.mean(err ** 2))) if err.size else 0.0, "residual_px": err,
             "solver": "scipy", "iterations": int(res.njev) if res.njev is not None else int(res.nfev),
             "cost_history": history["cost"], "seconds_history": history["seconds"]}
     return cams, pts, float(f), info
+
+
+def _depth_jacobian(d_cam, d_pt, cam_idx, pt_idx, free, C, width):
+    """The depth prior's rows (``depth_prior_rows``) as a sparse (O, width) Jacobian on the
+    parameter vector [cams[free].ravel(), points.ravel(), (f)] (a fixed camera's columns dropped)."""
+    O = d_cam.shape[0]
+    slot = np.full(C, -1, dtype=np.int64)
+    slot[free] = np.arange(len(free))
+    s = slot[np.asarray(cam_idx)]
+    has = s >= 0
+    rows = [np.repeat(np.flatnonzero(has), 6), np.repeat(np.arange(O), 3)]
+    cols = [(6 * s[has][:, None] + np.arange(6)).ravel(), (6 * len(free) + 3 * np.asarray(pt_idx)[:, None]
+                                                            + np.arange(3)).ravel()]
+    vals = [d_cam[has].ravel(), d_pt.ravel()]
+    return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(O, width))
 
 
 def _block_diagonal(blocks):
@@ -384,7 +440,8 @@ def _block_diagonal(blocks):
     return sp.bsr_matrix((blocks, np.arange(P), np.arange(P + 1)), shape=(3 * P, 3 * P)).tocsr()
 
 
-def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev, tol, prior, t_start, smooth=None):
+def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev, tol, prior, t_start, smooth=None,
+              depth=None):
     """Levenberg-Marquardt with the points eliminated (Schur complement onto the camera side).
 
     Unknowns x = (y, p): y = the free cameras' (phi, t) [and the focal], p = the points. Each
@@ -408,6 +465,8 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
     after acceptance lam *= max(1/3, 1 - (2 rho - 1)^3) with rho = actual / predicted decrease (the
     quadratic model of J^T W J), nu = 2; after a rejection lam *= nu, nu *= 2. The rotation vectors
     are updated additively, as SciPy's are.
+    With ``depth`` each observation has a third row, its depth prior's (``depth_prior_rows``), on the
+    same camera and point: the blocks are 3 x 6 and 3 x 3 and the elimination is unchanged.
     Stops when an accepted step lowers the cost by less than tol x cost (status 2), when a step is
     below tol x (|x| + tol) (status 3), after max_nfev residual evaluations (status 0) or when lam
     reaches LM_DAMPING_MAX (status -2, no step lowers the cost).
@@ -448,6 +507,8 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
         cams, pts, f = unpack(y, pts)
         with np.errstate(all="ignore"):
             r, saved = reprojection_fwd(cams, pts, f, cx, cy, ci, pi, uv)
+            if depth is not None:  # (O, 3): the observation's depth row beside its two pixel rows
+                r = np.concatenate([r, depth_prior_rows(saved, *depth)[0][:, None]], axis=1)
             rows = _camera_rows(cams, free, prior, smooth)
             rho = robust_loss((r / f_scale) ** 2, loss)[0]
             cost = 0.5 * fs2 * float(np.sum(rho))
@@ -457,6 +518,11 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
 
     def normal_equations(r, saved, rows):
         d_cam, d_pt, n = _blocks(saved)
+        if depth is not None:
+            _, dc, dpt = depth_prior_rows(saved, *depth)
+            d_cam = np.concatenate([d_cam, dc[:, None, :]], axis=1)
+            d_pt = np.concatenate([d_pt, dpt[:, None, :]], axis=1)
+            n = np.concatenate([n, np.zeros((O, 1))], axis=1)  # the focal does not move a depth
         d_cam[~seen_free] = 0.0
         Jy = np.concatenate([d_cam, n[:, :, None]], axis=2) if refine_focal else d_cam  # (O, 2, k)
         w = robust_loss((r / f_scale) ** 2, loss)[1]  # (O, 2)
@@ -527,7 +593,7 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
         raise ValueError(f"bundle_adjust: the residuals are not finite at the start ({bad.size} observations, e.g. "
                          f"{bad[:5].tolist()}: a point on a camera's plane z = 0, or a non-finite camera / point); "
                          f"drop those observations or start the points elsewhere")
-    r0 = r
+    r0 = r[:, :2]
     nfev, iterations, status = 1, 0, 0
     cost_hist, sec_hist = [cost], [time.perf_counter() - t_start]
     damp, schedule = damping_start(SCHUR_DAMPING_INIT), Nielsen()
@@ -571,10 +637,10 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
                 break
             damp = schedule.rejected(damp)
     cams, pts, f = unpack(y, pts)
-    err = np.linalg.norm(r, axis=1)
+    err = np.linalg.norm(r[:, :2], axis=1)
     info = {"cost": float(cost), "nfev": int(nfev), "status": int(status), "solver": "schur",
             "iterations": int(iterations), "damping": float(damp.lam),
-            "rms_px_start": float(np.sqrt(np.mean(r0 ** 2))) if O else 0.0,
+            "rms_px_start": float(np.sqrt(np.mean(np.sum(r0 ** 2, axis=1)))) if O else 0.0,
             "median_px": float(np.median(err)) if err.size else 0.0,
             "rms_px": float(np.sqrt(np.mean(err ** 2))) if err.size else 0.0, "residual_px": err,
             "cost_history": cost_hist, "seconds_history": sec_hist}

@@ -193,6 +193,12 @@ class PoseInitConfig:
     # difference between neighbouring frames at sigma = smooth_trans_rel x the median depth of the
     # points per frame squared; 0: off. Why: docs/method.md §5, the path's smoothness.
     smooth_trans_rel: float = 0.0
+    # The frames' depth priors (one scale for the clip: InitConfig.depth_prior_space = "depth") as
+    # rows of a third round, weight x (log z - log a - log prior) per observation beside its pixels,
+    # the clip scale a fitted to the second round's points and held, the result scaled back to that
+    # round's path; 0: off. Why: the poses' slow rotation drift moves every point's disparity alike,
+    # which the tracks cannot tell from depth and the prior's shape can (docs/method.md §5).
+    depth_prior_weight: float = 0.0
     max_rms_px: float = 1.5  # an adjustment with a larger residual (inliers) is not kept
     max_change_deg: float = 5.0  # nor one that turns a camera by more than this from the given pose
     max_change_rel: float = 0.1  # nor one that moves a centre by more than this x the median point depth
@@ -213,6 +219,7 @@ class PoseInitConfig:
                      "prior_rot_deg", "prior_trans_rel"):
             check_number(getattr(self, name), f"PoseInitConfig.{name}", 0.0, lo_open=True)
         check_number(self.smooth_trans_rel, "PoseInitConfig.smooth_trans_rel", 0.0)
+        check_number(self.depth_prior_weight, "PoseInitConfig.depth_prior_weight", 0.0)
 
 
 @dataclass(frozen=True)

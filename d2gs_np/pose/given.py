@@ -22,6 +22,11 @@ suite's trajectories from the blurry frames alone better than the given poses ar
    ``outlier_px`` dropped, and again. A frame with fewer than ``min_frame_observations``
    observations (counted before each round) is held at its given pose: a handful of tracks in a streaked
    frame could turn it by degrees against the prior;
+3b. with the frames' depth priors (one scale for the clip) and ``depth_prior_weight`` > 0, a third
+   round with a depth row per observation (``pose.bundle.depth_prior_rows``): the clip scale is the
+   median of log z - log prior over the second round's observations, held; the result is scaled
+   about the mean camera centre back to the second round's path length (the prior holds the
+   structure's shape against the path, not the scene's scale);
 4. checks: the adjustment is kept only if its residual is below ``max_rms_px`` and its cameras
    stay within ``max_change_deg`` / ``max_change_rel`` (of the scene depth) of the given ones;
    else the given poses are kept and the log says why.
@@ -39,7 +44,8 @@ from typing import Optional
 import numpy as np
 
 from d2gs_np.geometry.camera import camera_center
-from d2gs_np.geometry.so3 import so3_log
+from d2gs_np.geometry.sampling import bilinear_fwd
+from d2gs_np.geometry.so3 import so3_exp, so3_log
 from d2gs_np.pose.bundle import (BundleProblem, bundle_adjust, camera_covariance, params_to_poses, poses_to_params,
                                  relative_rotation_std)
 from d2gs_np.pose.config import PoseInitConfig
@@ -113,14 +119,45 @@ def _rotation_deg(A, B):
     return np.degrees(np.linalg.norm(so3_log(A[:, :3, :3] @ np.transpose(B[:, :3, :3], (0, 2, 1))), axis=-1))
 
 
-def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = None, seed=0, tracks=None):
+def _log_prior_at(depth_priors, obs_cam, uv):
+    """Each observation's log depth prior, read bilinearly at its pixel (NaN: no prior there)."""
+    out = np.full(len(obs_cam), np.nan)
+    for k, d in enumerate(depth_priors):
+        sel = np.flatnonzero(obs_cam == k)
+        if d is None or not sel.size:
+            continue
+        d = np.asarray(d, dtype=np.float64)
+        with np.errstate(divide="ignore", invalid="ignore"):
+            logd = np.where(np.isfinite(d) & (d > 0), np.log(np.where(d > 0, d, 1.0)), np.nan)
+        out[sel] = bilinear_fwd(logd, uv[sel])[0]
+    return out
+
+
+def _rescaled(cams, pts, spread):
+    """Cameras (C, 6) and points scaled about the mean camera centre so that the centres' RMS
+    distance from it is ``spread`` (rotations unchanged); the factor applied."""
+    R = so3_exp(cams[:, :3])
+    c = -np.einsum("cji,cj->ci", R, cams[:, 3:])
+    m = c.mean(axis=0)
+    now = float(np.sqrt(np.mean(np.sum((c - m) ** 2, axis=1))))
+    k = spread / now if now > 0 and spread > 0 else 1.0
+    c2, pts2 = m + k * (c - m), m + k * (pts - m)
+    out = cams.copy()
+    out[:, 3:] = -np.einsum("cij,cj->ci", R, c2)
+    return out, pts2, k
+
+
+def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = None, seed=0, tracks=None,
+                       depth_priors=None):
     """Bundle adjustment of the given poses (module docstring).
 
     images: N (H, W, 3) frames in [0, 1]; masks: N (H, W) bool (True = moving) or None;
     cam_T_world (N, 4, 4) given poses; K (3, 3) intrinsics shared by every frame (fx may differ
     from fy). Returns (poses (N, 4, 4), info dict): ``info["kept"]`` says whether the adjusted
     poses were kept (else ``poses`` are the given ones and ``info["reason"]`` says why), with the
-    counts, residuals and change against the given poses. tracks: optional (obs_frame, obs_track,
+    counts, residuals and change against the given poses. depth_priors: optional N (H, W) depth
+    maps (NaN or None: no estimate) of one scale for the clip, used with ``depth_prior_weight`` > 0
+    (step 3b of the module docstring; ``info["depth_prior"]`` says what it did). tracks: optional (obs_frame, obs_track,
     obs_uv, num_tracks) from ``klt_tracks(images, config.tracks, masks=masks, seed=seed)``, computed
     here when None (a benchmark passes them to compare solvers on the same tracks).
     """
@@ -139,6 +176,7 @@ def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = N
         tracks = klt_tracks(images, cfg.tracks, masks=masks, seed=seed)
     of, ot, ouv, nt = tracks[0], tracks[1], tracks[2], tracks[3]
     ouv = np.array(ouv, dtype=np.float64)
+    ouv_image = ouv.copy()  # the observed pixels as the images have them (the depth priors' grid)
     ouv[:, 1] = cy + (ouv[:, 1] - cy) * (fx / fy)
     Kx = np.array([[fx, 0.0, cx], [0.0, fx, cy], [0.0, 0.0, 1.0]])
     X, ok = triangulate_tracks(T0, Kx, of, ot, ouv, nt, cfg.min_views, cfg.min_parallax_deg)
@@ -162,7 +200,7 @@ def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = N
     keep_pts = np.flatnonzero(ok)
     slot = np.full(nt, -1)
     slot[keep_pts] = np.arange(len(keep_pts))
-    o_cam, o_pt, o_uv = of[sel], slot[ot[sel]], ouv[sel]
+    o_cam, o_pt, o_uv, o_img = of[sel], slot[ot[sel]], ouv[sel], ouv_image[sel]
     pts = X[keep_pts]
     depth = float(np.median(_depths(T0, pts)))
     prior = (given, cfg.prior_trans_rel * depth, np.deg2rad(cfg.prior_rot_deg))
@@ -190,7 +228,10 @@ def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = N
         cams, pts = cams_new, pts_new
         if r == 0:
             inl = binfo["residual_px"] <= cfg.outlier_px
-            o_cam, o_pt, o_uv = o_cam[inl], o_pt[inl], o_uv[inl]
+            o_cam, o_pt, o_uv, o_img = o_cam[inl], o_pt[inl], o_uv[inl], o_img[inl]
+    if depth_priors is not None and cfg.depth_prior_weight > 0:
+        cams, pts, info["depth_prior"] = _depth_round(cams, pts, fx, cx, cy, o_cam, o_pt, o_uv, o_img, depth_priors,
+                                                      held, prior, smooth, cfg, rounds)
     per_frame = np.bincount(o_cam, minlength=N)
     # how well the tracks determine each frame's rotation against the others (the last round's
     # problem at its solution); a held frame has the prior's uncertainty
@@ -220,6 +261,44 @@ def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = N
         info["points_xyz"] = pts[np.bincount(o_pt, minlength=len(pts)) >= 2]
         return T1, info
     return T0.copy(), info
+
+
+def _depth_round(cams, pts, fx, cx, cy, o_cam, o_pt, o_uv, o_img, depth_priors, held, prior, smooth, cfg, rounds):
+    """Step 3b of the module docstring: (cams, points, info)."""
+    if len(depth_priors) != len(cams):
+        raise ValueError(f"depth_priors must have one map (or None) per frame ({len(cams)}); got {len(depth_priors)}")
+    logd = _log_prior_at(depth_priors, o_cam, o_img)
+    T = params_to_poses(cams)
+    z = _depths(T, pts)[o_cam, o_pt]
+    has = np.isfinite(logd) & (z > 0)
+    info = {"observations": int(has.sum())}
+    if has.sum() < cfg.min_points:
+        info["reason"] = f"{int(has.sum())} observations have a depth prior, fewer than min_points {cfg.min_points}"
+        return cams, pts, info
+    log_a = float(np.median(np.log(z[has]) - logd[has]))
+    c0 = camera_center(T)
+    spread = float(np.sqrt(np.mean(np.sum((c0 - c0.mean(axis=0)) ** 2, axis=1))))
+    prob = BundleProblem(cams, pts, fx, cx, cy, o_cam, o_pt, o_uv)
+    new_cams, new_pts, _, binfo = bundle_adjust(prob, fixed_cams=tuple(np.flatnonzero(held).tolist()), loss="soft_l1",
+                                                f_scale=cfg.robust_px, max_nfev=cfg.max_nfev, prior=prior,
+                                                solver=cfg.solver, smooth=smooth,
+                                                depth=(logd, log_a, cfg.depth_prior_weight))
+    if not np.any(held):  # held frames pin the scale themselves; else back to the second round's path length
+        new_cams, new_pts, k = _rescaled(new_cams, new_pts, spread)
+    else:
+        k = 1.0
+    z_new = _depths(params_to_poses(new_cams), new_pts)[o_cam, o_pt]
+    has &= z_new > 0
+    rounds.append({"rms_px_start": binfo["rms_px_start"], "rms_px": binfo["rms_px"], "median_px": binfo["median_px"],
+                   "observations": int(len(o_cam)), "nfev": binfo["nfev"], "solver": cfg.solver,
+                   "cost": binfo["cost"], "iterations": binfo["iterations"], "status": binfo["status"],
+                   "cost_history": binfo["cost_history"], "seconds_history": binfo["seconds_history"],
+                   "depth_prior": True})
+    info.update(scale=float(np.exp(log_a)), rescaled=float(k),
+                depth_change=float(np.exp(np.median(np.log(z_new[has] / z[has])))),
+                rel_error_before=float(np.median(np.abs(np.expm1(np.log(z[has]) - log_a - logd[has])))),
+                rel_error_after=float(np.median(np.abs(np.expm1(np.log(z_new[has]) - np.log(k) - log_a - logd[has])))))
+    return new_cams, new_pts, info
 
 
 def initial_poses(scene, config, note=None):
@@ -265,7 +344,23 @@ def adjusted_start(scene, config, note=None) -> AdjustedStart:
         return AdjustedStart(None)
     masks = [f.mask for f in frames] if all(f.mask is not None for f in frames) else None
     given = np.stack([f.cam_T_world for f in frames]).astype(np.float64)
-    poses, info = adjust_given_poses([f.image for f in frames], masks, given, K, pc, seed=config.train.seed)
+    depth_priors, depth_note = None, ""
+    if pc.depth_prior_weight > 0:
+        if not getattr(scene, "has_depth_prior", False):
+            depth_note = "; depth prior rows left out (the scene has no depth priors)"
+        elif config.init.depth_prior_space != "depth":
+            depth_note = (f"; depth prior rows left out (init.depth_prior_space = {config.init.depth_prior_space}: "
+                          f"a scale and shift per frame leave the structure's shape free)")
+        else:
+            depth_priors = [f.depth_prior for f in frames]
+    poses, info = adjust_given_poses([f.image for f in frames], masks, given, K, pc, seed=config.train.seed,
+                                     depth_priors=depth_priors)
+    dp = info.get("depth_prior")
+    if dp is not None:
+        depth_note = (f"; depth prior rows: {dp['reason']}" if "reason" in dp else
+                      f"; depth prior rows on {dp['observations']} observations (weight {pc.depth_prior_weight:g}): "
+                      f"the points' depths x{dp['depth_change']:.3f} (median), their prior's relative error "
+                      f"{dp['rel_error_before']:.3f} -> {dp['rel_error_after']:.3f}, path rescaled x{dp['rescaled']:.3f}")
     counts = (f"{info.get('points', 0)} points from {info.get('tracks', 0)} tracks")
     if "fallback" in info:
         counts += f" ({info['fallback']})"
@@ -273,6 +368,7 @@ def adjusted_start(scene, config, note=None) -> AdjustedStart:
         r = info["rounds"]
         counts += (f", reprojection rms {r[0]['rms_px_start']:.2f} -> {r[-1]['rms_px']:.2f} px over "
                    f"{r[-1]['observations']} observations, {info['seconds']:.1f}s")
+    counts += depth_note
     if not info["kept"]:
         say(f"pose initialisation (bundle adjustment): given poses kept: {info['reason']} ({counts})")
         return AdjustedStart(None)
