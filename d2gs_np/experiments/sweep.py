@@ -238,6 +238,10 @@ EXPERIMENTS = {
         Variant("stereo_prior_fused_ba", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
                         "pose_init": {"depth_prior_weight": 1.0}}),
+        # and the paper's opacity entropy L_gs against the translucent layers in front of a surface
+        Variant("stereo_prior_fused_ba_gs", scene={"depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
+                        "pose_init": {"depth_prior_weight": 1.0}, "loss": {"lambda_gs": _REG["lambda_gs"]}}),
         # the no-blur baseline (no blur model, no pose refinement) given the same prior seeds
         Variant("stereo_prior_noblur", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior"}, "train": {"blur": "off"},
