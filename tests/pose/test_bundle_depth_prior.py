@@ -10,7 +10,6 @@ import pytest
 
 from d2gs_np.data.suite import make_suite_scene
 from d2gs_np.geometry.camera import camera_center
-from d2gs_np.geometry.se3 import se3_exp
 from d2gs_np.geometry.so3 import so3_exp, so3_log
 from d2gs_np.pose import bundle as B
 from d2gs_np.pose.bundle import (BundleProblem, bundle_adjust, depth_prior_rows, params_to_poses, poses_to_params,
@@ -18,6 +17,7 @@ from d2gs_np.pose.bundle import (BundleProblem, bundle_adjust, depth_prior_rows,
 from d2gs_np.pose.config import PoseInitConfig
 from d2gs_np.pose.given import adjust_given_poses, adjusted_start
 from d2gs_np.pose.lm import robust_loss
+from bundle_fixtures import schur_then_scipy
 from d2gs_np.train.config import ExperimentConfig, InitConfig
 
 F, CX, CY, W, H = 200.0, 160.0, 120.0, 320, 240
@@ -220,12 +220,7 @@ def test_schur_and_scipy_reach_the_same_optimum_with_the_depth_rows():
     prior = (poses_to_params(given), 0.05, np.deg2rad(1.0))
     kw = dict(fixed_cams=(), loss="soft_l1", f_scale=1.0, tol=1e-12, prior=prior, depth=depth)
     prob = BundleProblem(poses_to_params(given), X + 0.05 * rng.normal(size=X.shape), F, CX, CY, ci, pi, obs)
-    c1, p1, f1, i1 = bundle_adjust(prob, solver="schur", max_nfev=200, **kw)
-    assert i1["status"] == 2
-    c3, p3, _, i3 = bundle_adjust(BundleProblem(c1, p1, f1, CX, CY, ci, pi, obs), solver="scipy", max_nfev=100, **kw)
-    assert i3["cost"] >= i1["cost"] * (1 - 1e-10)
-    np.testing.assert_allclose(c3, c1, atol=1e-5)
-    np.testing.assert_allclose(p3, p1, atol=1e-5)
+    c1, p1, f1, i1 = schur_then_scipy(prob, kw)
     rp, saved = reprojection_fwd(c1, p1, F, CX, CY, ci, pi, obs)
     rows = np.r_[rp.ravel(), B.pose_prior_fwd(c1, *prior)[0].ravel(), depth_prior_rows(saved, *depth)[0]]
     assert i1["cost"] == pytest.approx(0.5 * float(np.sum(robust_loss(rows ** 2, "soft_l1")[0])), rel=1e-12)
