@@ -163,11 +163,7 @@ def depth_prior_rows(saved, log_prior, log_scale, weight):
     the derivatives with respect to the observation's camera (phi, t) and point, from
     d log z / dx = e_3 / z and the reprojection's dx/dphi, dx/dt = I, dx/dX = R."""
     phi, R, RX, x = saved[0], saved[1], saved[2], saved[3]
-    lp = np.asarray(log_prior, dtype=np.float64)
-    if lp.shape != (x.shape[0],):
-        raise ValueError(f"log_prior must have one entry per observation ({x.shape[0]},); got {lp.shape}")
-    if not (np.isfinite(log_scale) and np.isfinite(weight) and weight > 0):
-        raise ValueError(f"the depth prior's log scale must be finite and its weight > 0; got {log_scale}, {weight}")
+    lp, log_scale, weight = _check_depth((log_prior, log_scale, weight), x.shape[0])
     has = np.isfinite(lp) & (x[:, 2] > 0)
     z = np.where(has, x[:, 2], 1.0)
     r = np.where(has, weight * (np.log(z) - log_scale - np.where(has, lp, 0.0)), 0.0)
@@ -175,6 +171,19 @@ def depth_prior_rows(saved, log_prior, log_scale, weight):
     d_cam = np.concatenate([(-hat(RX) @ left_jacobian(phi))[:, 2, :] * g, np.zeros((len(z), 2)), g], axis=1)
     d_pt = R[:, 2, :] * g
     return r, d_cam, d_pt
+
+
+def _check_depth(depth, num_obs):
+    """``depth`` = (log_prior, log_scale, weight) checked against ``num_obs`` observations; returned
+    as (float64 (O,) array, float, float)."""
+    lp = np.asarray(depth[0], dtype=np.float64)
+    log_scale, weight = float(depth[1]), float(depth[2])
+    if lp.shape != (num_obs,):
+        raise ValueError(f"the depth prior's log_prior must hold one log depth per observation: one entry per "
+                         f"observation, shape ({num_obs},); got {lp.shape}")
+    if not (np.isfinite(log_scale) and np.isfinite(weight) and weight > 0):
+        raise ValueError(f"the depth prior's log scale must be finite and its weight > 0; got {log_scale}, {weight}")
+    return lp, log_scale, weight
 
 
 def _check_prior_sigmas(sigma_t, sigma_r):
@@ -353,10 +362,7 @@ def bundle_adjust(problem: BundleProblem, fixed_cams=(0,), refine_focal=False, l
         smooth = float(smooth)
     O2 = 2 * len(problem.cam_idx)
     if depth is not None:
-        depth = (np.asarray(depth[0], dtype=np.float64), float(depth[1]), float(depth[2]))
-        if depth[0].shape != (len(problem.cam_idx),):
-            raise ValueError(f"the depth prior needs one log depth per observation ({len(problem.cam_idx)},); "
-                             f"got {depth[0].shape}")
+        depth = _check_depth(depth, len(problem.cam_idx))
     if solver == "schur":
         return _schur_lm(problem, cams0, pts0, free, refine_focal, loss, float(f_scale), int(max_nfev), float(tol),
                          None if prior is None else (prior_cams, float(sigma_t), float(sigma_r)), t_start, smooth,
@@ -507,19 +513,22 @@ def _schur_lm(problem, cams0, pts0, free, refine_focal, loss, f_scale, max_nfev,
         cams, pts, f = unpack(y, pts)
         with np.errstate(all="ignore"):
             r, saved = reprojection_fwd(cams, pts, f, cx, cy, ci, pi, uv)
+            depth_d = None
             if depth is not None:  # (O, 3): the observation's depth row beside its two pixel rows
-                r = np.concatenate([r, depth_prior_rows(saved, *depth)[0][:, None]], axis=1)
+                rd, dc, dpt = depth_prior_rows(saved, *depth)
+                r, depth_d = np.concatenate([r, rd[:, None]], axis=1), (dc, dpt)
             rows = _camera_rows(cams, free, prior, smooth)
             rho = robust_loss((r / f_scale) ** 2, loss)[0]
             cost = 0.5 * fs2 * float(np.sum(rho))
             if rows is not None:
                 cost += 0.5 * fs2 * float(np.sum(robust_loss((rows[0] / f_scale) ** 2, loss)[0]))
-        return finite_or_inf(cost), r, saved, rows
+        return finite_or_inf(cost), r, (saved, depth_d), rows
 
     def normal_equations(r, saved, rows):
+        saved, depth_d = saved  # the reprojection's saved values and the depth rows' derivatives
         d_cam, d_pt, n = _blocks(saved)
-        if depth is not None:
-            _, dc, dpt = depth_prior_rows(saved, *depth)
+        if depth_d is not None:
+            dc, dpt = depth_d
             d_cam = np.concatenate([d_cam, dc[:, None, :]], axis=1)
             d_pt = np.concatenate([d_pt, dpt[:, None, :]], axis=1)
             n = np.concatenate([n, np.zeros((O, 1))], axis=1)  # the focal does not move a depth

@@ -133,18 +133,28 @@ def _log_prior_at(depth_priors, obs_cam, uv):
     return out
 
 
+def _round_entry(binfo, observations, solver):
+    """A round of ``info["rounds"]``: what ``bundle_adjust`` said of it."""
+    keys = ("rms_px_start", "rms_px", "median_px", "nfev", "cost", "iterations", "status", "cost_history",
+            "seconds_history")
+    return {**{k: binfo[k] for k in keys}, "observations": int(observations), "solver": solver}
+
+
+def _spread(cams):
+    """The camera centres of cams (C, 6), their mean, and their RMS distance from it."""
+    c = camera_center(params_to_poses(cams))
+    m = c.mean(axis=0)
+    return c, m, float(np.sqrt(np.mean(np.sum((c - m) ** 2, axis=1))))
+
+
 def _rescaled(cams, pts, spread):
     """Cameras (C, 6) and points scaled about the mean camera centre so that the centres' RMS
     distance from it is ``spread`` (rotations unchanged); the factor applied."""
-    R = so3_exp(cams[:, :3])
-    c = -np.einsum("cji,cj->ci", R, cams[:, 3:])
-    m = c.mean(axis=0)
-    now = float(np.sqrt(np.mean(np.sum((c - m) ** 2, axis=1))))
+    c, m, now = _spread(cams)
     k = spread / now if now > 0 and spread > 0 else 1.0
-    c2, pts2 = m + k * (c - m), m + k * (pts - m)
     out = cams.copy()
-    out[:, 3:] = -np.einsum("cij,cj->ci", R, c2)
-    return out, pts2, k
+    out[:, 3:] = -np.einsum("cij,cj->ci", so3_exp(cams[:, :3]), m + k * (c - m))
+    return out, m + k * (pts - m), k
 
 
 def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = None, seed=0, tracks=None,
@@ -220,11 +230,7 @@ def adjust_given_poses(images, masks, cam_T_world, K, config: PoseInitConfig = N
                                                     loss="soft_l1", f_scale=cfg.robust_px,
                                                     max_nfev=cfg.max_nfev, prior=prior, solver=cfg.solver,
                                                     smooth=smooth)
-        rounds.append({"rms_px_start": binfo["rms_px_start"], "rms_px": binfo["rms_px"],
-                       "median_px": binfo["median_px"], "observations": int(len(o_cam)), "nfev": binfo["nfev"],
-                       "solver": cfg.solver, "cost": binfo["cost"], "iterations": binfo["iterations"],
-                       "status": binfo["status"], "cost_history": binfo["cost_history"],
-                       "seconds_history": binfo["seconds_history"]})
+        rounds.append(_round_entry(binfo, len(o_cam), cfg.solver))
         cams, pts = cams_new, pts_new
         if r == 0:
             inl = binfo["residual_px"] <= cfg.outlier_px
@@ -276,8 +282,7 @@ def _depth_round(cams, pts, fx, cx, cy, o_cam, o_pt, o_uv, o_img, depth_priors, 
         info["reason"] = f"{int(has.sum())} observations have a depth prior, fewer than min_points {cfg.min_points}"
         return cams, pts, info
     log_a = float(np.median(np.log(z[has]) - logd[has]))
-    c0 = camera_center(T)
-    spread = float(np.sqrt(np.mean(np.sum((c0 - c0.mean(axis=0)) ** 2, axis=1))))
+    spread = _spread(cams)[2]
     prob = BundleProblem(cams, pts, fx, cx, cy, o_cam, o_pt, o_uv)
     new_cams, new_pts, _, binfo = bundle_adjust(prob, fixed_cams=tuple(np.flatnonzero(held).tolist()), loss="soft_l1",
                                                 f_scale=cfg.robust_px, max_nfev=cfg.max_nfev, prior=prior,
@@ -289,11 +294,7 @@ def _depth_round(cams, pts, fx, cx, cy, o_cam, o_pt, o_uv, o_img, depth_priors, 
         k = 1.0
     z_new = _depths(params_to_poses(new_cams), new_pts)[o_cam, o_pt]
     has &= z_new > 0
-    rounds.append({"rms_px_start": binfo["rms_px_start"], "rms_px": binfo["rms_px"], "median_px": binfo["median_px"],
-                   "observations": int(len(o_cam)), "nfev": binfo["nfev"], "solver": cfg.solver,
-                   "cost": binfo["cost"], "iterations": binfo["iterations"], "status": binfo["status"],
-                   "cost_history": binfo["cost_history"], "seconds_history": binfo["seconds_history"],
-                   "depth_prior": True})
+    rounds.append(dict(_round_entry(binfo, len(o_cam), cfg.solver), depth_prior=True))
     info.update(scale=float(np.exp(log_a)), rescaled=float(k),
                 depth_change=float(np.exp(np.median(np.log(z_new[has] / z[has])))),
                 rel_error_before=float(np.median(np.abs(np.expm1(np.log(z[has]) - log_a - logd[has])))),
