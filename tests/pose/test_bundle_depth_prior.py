@@ -258,3 +258,17 @@ def test_adjusted_start_says_when_it_leaves_the_rows_out():
     # off (the default): no rows, nothing said of them
     adjusted_start(with_prior, ExperimentConfig(), notes.append)
     assert "depth prior rows" not in notes[-1]
+
+
+def test_a_point_at_or_behind_the_camera_gets_a_zero_row():
+    # z <= 0 has no log depth: the row and its derivatives are 0 (finite), the others unchanged
+    cams = np.zeros((1, 6))
+    X = np.array([[0.1, 0.0, 4.0], [0.0, 0.0, 0.0], [0.2, 0.1, -3.0], [0.0, 0.1, 1e-300]])
+    ci, pi = np.zeros(4, dtype=int), np.arange(4)
+    with np.errstate(invalid="ignore"):  # the reprojection of the point at the centre is 0 / 0
+        saved = _saved(cams, X, ci, pi)
+    r, d_cam, d_pt = depth_prior_rows(saved, np.log([2.0, 2.0, 2.0, 2.0]), 0.5, 2.0)
+    assert np.all(np.isfinite(r)) and np.all(np.isfinite(d_cam)) and np.all(np.isfinite(d_pt))
+    np.testing.assert_allclose(r[0], 2.0 * (np.log(4.0) - 0.5 - np.log(2.0)), rtol=1e-14)
+    assert np.all(r[1:3] == 0) and np.all(d_cam[1:3] == 0) and np.all(d_pt[1:3] == 0)
+    assert np.isfinite(r[3])  # a depth of 1e-300 is in front: its row is large but finite
