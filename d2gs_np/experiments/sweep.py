@@ -227,6 +227,11 @@ EXPERIMENTS = {
         # suite's prior error new in every frame and with half its variance shared by all frames
         Variant("stereo_prior_fused", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True}}),
+        # and the movers' shape held to the priors' (L_dgrad on the moving pixels, issue #44: a mover's
+        # patches drift apart along their rays inside L_depth's band)
+        Variant("stereo_prior_fused_dgrad", scene={"depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
+                        "loss": {"lambda_depth_grad": 1.0}}),
         Variant("stereo_prior_fused_shared", scene={"depth_prior": "video", "prior_shared_error": 0.5},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True}}),
         Variant("stereo_prior_shared", scene={"depth_prior": "video", "prior_shared_error": 0.5},

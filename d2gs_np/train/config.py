@@ -63,6 +63,11 @@ class LossConfig:
     # the same on the frame's moving pixels (its motion mask); None: depth_prior_tolerance. A mover's
     # depth is free up to a scale (docs/method.md §8), so its pixels may be held tighter than the static
     depth_prior_tolerance_moving: Optional[float] = None
+    # L_dgrad (train.terms.DepthGradient): the rendered depth's log differences between neighbouring
+    # pixels against the depth priors' (a mover's shape, its scale free). Not in the paper
+    # (shape-of-motion's depth gradient loss); off by default. Region "moving" (the motion masks) or "all"
+    lambda_depth_grad: float = 0.0
+    depth_grad_region: str = "moving"
     # L_cont (train.terms.ExposureContinuity): neighbouring exposures on one constant-velocity camera
     # path, in squared pixels. Not in the paper (DyBluRF ties neighbouring exposures); off by default
     lambda_continuity: float = 0.0
@@ -88,7 +93,8 @@ class LossConfig:
     def __post_init__(self):
         check_number(self.lambda_ssim, "LossConfig.lambda_ssim", 0.0, 1.0)
         for name in ("lambda_ts", "ts_time_weight", "ts_spatial_weight", "lambda_gs", "lambda_freq", "lambda_reproj",
-                     "lambda_depth_prior", "lambda_continuity", "lambda_iso", "lambda_stereo", "lambda_depth_var"):
+                     "lambda_depth_prior", "lambda_continuity", "lambda_iso", "lambda_stereo", "lambda_depth_var",
+                     "lambda_depth_grad"):
             check_number(getattr(self, name), f"LossConfig.{name}", 0.0, hint="0 = term off")
         check_number(self.depth_prior_tolerance, "LossConfig.depth_prior_tolerance", 0.0,
                      hint="the prior's relative accuracy, e.g. 0.1; 0 pulls every pixel")
@@ -103,6 +109,7 @@ class LossConfig:
             check_int(getattr(self, name), f"LossConfig.{name}", 1)
         check_int(self.stereo_depths, "LossConfig.stereo_depths", 3, hint="a parabola needs three")
         check_choice(self.stereo_space, "LossConfig.stereo_space", ("depth", "metric"))
+        check_choice(self.depth_grad_region, "LossConfig.depth_grad_region", ("moving", "all"))
         check_number(self.stereo_tolerance, "LossConfig.stereo_tolerance", 0.0,
                      hint="the sweep's relative accuracy, e.g. 0.05; 0 pulls every pixel")
         at = self.stereo_at

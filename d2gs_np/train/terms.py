@@ -32,6 +32,7 @@ from collections import OrderedDict
 from d2gs_np.blur.endpoints import XI_END, XI_START
 from d2gs_np.blur.exposure import EXPOSURE_BLOCK, exposure_bwd, exposure_fwd
 from d2gs_np.losses.continuity import _continuity_fwd, continuity_bwd, pixel_weights, time_pairs
+from d2gs_np.losses.depth_gradient import depth_gradient_bwd, depth_gradient_fwd
 from d2gs_np.losses.depth_prior import depth_prior_bwd, depth_prior_fwd
 from d2gs_np.losses.depth_variance import depth_variance_bwd, depth_variance_fwd, z_features_bwd, z_features_fwd
 from d2gs_np.losses.entropy import _entropy_fwd, entropy_bwd
@@ -56,7 +57,7 @@ from d2gs_np.train.render_stereo import RenderStereo
 from d2gs_np.train.schedule import downsample_area
 
 __all__ = ["TermInputs", "TermGrads", "Photometric", "Smoothness", "OpacityEntropy", "Frequency", "Reprojection",
-           "DepthPrior", "StereoPrior", "ExposureContinuity", "Isometry", "DepthVariance", "loss_terms",
+           "DepthPrior", "DepthGradient", "StereoPrior", "ExposureContinuity", "Isometry", "DepthVariance", "loss_terms",
            "terms_fwd_bwd"]
 
 
@@ -335,6 +336,36 @@ class DepthPrior:
         return TermGrads(render={"expected_depth": depth_prior_bwd(saved, self.weight)}, params={})
 
 
+class DepthGradient(DepthPrior):
+    """L_dgrad: the rendered expected depth's log differences between neighbouring pixels against the
+    frame's depth prior's (docs/method.md §6; ``losses/depth_gradient.py``), over the pixels where
+    the prior has an estimate, the render's alpha is at least POSE_DEPTH_ALPHA_MIN, the loss mask is
+    on and, with ``region = "moving"``, the frame's motion mask is (a frame without one adds
+    nothing). The prior at a render size is L_depth's (``DepthPrior.prior``)."""
+
+    name = "depth_grad"
+
+    def __init__(self, weight, priors, region="moving", max_entries=256):
+        super().__init__(weight, priors, "depth", max_entries=max_entries)
+        self.region = region
+
+    def fwd(self, x: TermInputs):
+        depth = x.out["expected_depth"]
+        h, w = depth.shape
+        mask = x.loss_mask
+        if self.region == "moving":
+            if x.motion_mask is None:
+                return 0.0, None
+            mask = x.motion_mask if mask is None else (mask > 0) & x.motion_mask
+        return depth_gradient_fwd(depth, self.prior(x.frame, w, h), x.out["alpha"], POSE_DEPTH_ALPHA_MIN,
+                                  GN_MIN_DEPTH, mask)
+
+    def bwd(self, saved) -> TermGrads:
+        if saved is None:
+            return TermGrads(render={}, params={})
+        return TermGrads(render={"expected_depth": depth_gradient_bwd(saved, self.weight)}, params={})
+
+
 class DepthVariance:
     """L_var: the squared coefficient of variation of the Gaussians' depths along each pixel's ray
     (docs/method.md §6; ``losses/depth_variance.py``), from one more sharp render of the frame at
@@ -501,6 +532,19 @@ def loss_terms(config: LossConfig, components=None, note=None, scene=None, run_d
                 how = f"the log depth ratios beyond {config.depth_prior_tolerance:g}{on_movers}"
             say(f"L_depth: weight {config.lambda_depth_prior:g}, {how} against the scene's depth priors (held as "
                 f"{prior_space}) on every frame")
+    if config.lambda_depth_grad > 0:
+        if scene is None or not scene.has_depth_prior:
+            say("L_dgrad: left out (the scene has no depth priors: depth_prior_file_path, docs/dataset_format.md "
+                "§3), although loss.lambda_depth_grad > 0")
+        elif prior_space == "disparity":
+            say("L_dgrad: left out (the depth priors are disparities up to a shift, whose log differences the "
+                "shift moves: InitConfig.depth_prior_space), although loss.lambda_depth_grad > 0")
+        else:
+            terms.append(DepthGradient(config.lambda_depth_grad, [f.depth_prior for f in scene.frames],
+                                       config.depth_grad_region))
+            where = "the moving pixels" if config.depth_grad_region == "moving" else "every pixel"
+            say(f"L_dgrad: weight {config.lambda_depth_grad:g}, the rendered depth's log differences between "
+                f"neighbours against the depth priors', on {where}")
     if config.lambda_stereo > 0:
         if scene is None or scene.num_frames < 2:
             say("L_stereo: left out (it needs a scene of two frames or more), although loss.lambda_stereo > 0")
