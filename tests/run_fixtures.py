@@ -26,3 +26,35 @@ def tiny_dynamic_scene(trusted: bool, seed=0):
     scene = make_scene("dynamic", seed, **exact, **TINY)
     assert bool(scene.poses_trusted) == trusted
     return scene
+
+
+def expected_depth_descent(trainer, term_name, k=1):
+    """A depth term's gradient through the render, checked by its directional derivative: the term
+    ``term_name`` of ``trainer`` on frame ``k`` at full size, its cotangent on the expected depth
+    through ``frame_render_bwd`` onto the static means g, and the central difference of the term
+    along g at a mean step of at most 1e-7. Returns (value, slope, |g|^2, value after the step
+    against g): the slope must match |g|^2, and the value must fall."""
+    import numpy as np
+
+    from d2gs_np.train.model import frame_render_bwd, frame_render_fwd
+    from d2gs_np.train.terms import TermInputs
+
+    term = next(t for t in trainer.terms if t.name == term_name)
+    model = trainer.model
+    tgt = trainer.cache.get(k, 1.0)
+
+    def value(params):
+        m = model.replace(params=params)
+        out, saved = frame_render_fwd(m, k, tgt.K, tgt.width, tgt.height)
+        return term.fwd(TermInputs(out, tgt.image, None, m, k, None)), saved
+
+    (v, s), saved = value(model.params)
+    assert s is not None, f"{term_name}: no valid pixel on frame {k}"
+    grads = frame_render_bwd(saved, np.zeros_like(tgt.image), v_expected_depth=term.bwd(s).render["expected_depth"])[0]
+    g = grads["static.means"]
+    assert np.abs(g).max() > 0
+    h = 1e-7 / np.abs(g).max()
+    plus = dict(model.params, **{"static.means": model.params["static.means"] + h * g})
+    minus = dict(model.params, **{"static.means": model.params["static.means"] - h * g})
+    below = value(minus)[0][0]
+    return v, (value(plus)[0][0] - below) / (2 * h), float(np.sum(g * g)), below

@@ -11,9 +11,10 @@ from d2gs_np.losses.depth_prior import depth_prior_fwd
 from d2gs_np.blur.config import BlurConfig
 from d2gs_np.render.config import RenderConfig
 from d2gs_np.train.config import ExperimentConfig, LossConfig, PoseSolverConfig, TrainConfig
-from d2gs_np.train.model import frame_render_bwd, frame_render_fwd
+from d2gs_np.train.model import frame_render_fwd
 from d2gs_np.train.terms import DepthPrior, TermInputs, loss_terms
 from d2gs_np.train.trainer import Trainer
+from run_fixtures import expected_depth_descent
 
 TINY = dict(width=48, height=27, num_frames=4, num_test_views=2, subframes=4)
 
@@ -61,27 +62,9 @@ def test_its_gradient_through_the_render_is_downhill(prior_scene, tmp_path):
     # frame and miss by up to 30 %; at 1e-7 rounding leaves ~1e-9 (measured 8e-10).
     cfg = dataclasses.replace(_config(1, 1.0), render=RenderConfig(raster_float32=False),
                               blur=BlurConfig(backward_views=0))  # float64, every view's backward
-    tr = Trainer(prior_scene, cfg, tmp_path / "r")
-    term = next(t for t in tr.terms if t.name == "depth_prior")
-    model, k = tr.model, 1
-    tgt = tr.cache.get(k, 1.0)
-
-    def value(params):
-        m = model.replace(params=params)
-        out, saved = frame_render_fwd(m, k, tgt.K, tgt.width, tgt.height)
-        return term.fwd(TermInputs(out, tgt.image, None, m, k, None)), saved
-
-    (v, s), saved = value(model.params)
-    assert s is not None and 0.0 < v < 2.0
-    grads = frame_render_bwd(saved, np.zeros_like(tgt.image), v_expected_depth=term.bwd(s).render["expected_depth"])[0]
-    g = grads["static.means"]
-    assert np.abs(g).max() > 0
-    h = 1e-7 / np.abs(g).max()
-    plus = dict(model.params, **{"static.means": model.params["static.means"] + h * g})
-    minus = dict(model.params, **{"static.means": model.params["static.means"] - h * g})
-    slope = (value(plus)[0][0] - value(minus)[0][0]) / (2 * h)
-    assert slope == pytest.approx(float(np.sum(g * g)), rel=1e-5)
-    assert value(minus)[0][0] < v
+    v, slope, g2, below = expected_depth_descent(Trainer(prior_scene, cfg, tmp_path / "r"), "depth_prior")
+    assert 0.0 < v < 2.0
+    assert slope == pytest.approx(g2, rel=1e-5) and below < v
 
 
 def test_training_logs_the_term_and_it_reaches_the_gaussians(prior_scene, tmp_path):
