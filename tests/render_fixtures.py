@@ -77,6 +77,13 @@ def central_fd(f, x, h):
     return grad
 
 
+def wavy_depth(shape, seed=0, lo=1.5, hi=6.0):
+    """A smooth (h, w) depth map spanning about [lo, hi] with a little noise: the depth losses' test input."""
+    rng = np.random.default_rng(seed)
+    yy, xx = np.mgrid[0:shape[0], 0:shape[1]]
+    return lo + (hi - lo) * (0.5 + 0.4 * np.sin(xx / 2.3 + seed) * np.cos(yy / 3.1)) + 0.05 * rng.standard_normal(shape)
+
+
 def central_fd_scalar(g, h):
     """(g(h) - g(-h)) / (2h) for a scalar function g of a scalar step."""
     return (g(h) - g(-h)) / (2.0 * h)

@@ -5,6 +5,8 @@ ignores, extreme inputs, bad input."""
 import numpy as np
 import pytest
 
+from render_fixtures import central_fd, wavy_depth
+
 from d2gs_np.losses.depth_gradient import depth_gradient_bwd, depth_gradient_fwd
 from d2gs_np.losses.depth_prior import depth_prior_fwd
 
@@ -12,19 +14,7 @@ H, W = 9, 11
 
 
 def _depth(seed=0, lo=1.5, hi=6.0):
-    rng = np.random.default_rng(seed)
-    yy, xx = np.mgrid[0:H, 0:W]
-    return lo + (hi - lo) * (0.5 + 0.4 * np.sin(xx / 2.3 + seed) * np.cos(yy / 3.1)) + 0.05 * rng.standard_normal((H, W))
-
-
-def _central(f, x, h):
-    g = np.zeros_like(x)
-    for i in np.ndindex(x.shape):
-        xp, xm = x.copy(), x.copy()
-        xp[i] += h
-        xm[i] -= h
-        g[i] = (f(xp) - f(xm)) / (2 * h)
-    return g
+    return wavy_depth((H, W), seed, lo, hi)
 
 
 def _holes(prior, alpha, seed=1):
@@ -51,7 +41,7 @@ def test_gradient_matches_central_differences():
     r = np.log(d) - np.log(prior)
     assert np.nanmin(np.abs(np.diff(r, axis=1))) > 1e-5 and np.nanmin(np.abs(np.diff(r, axis=0))) > 1e-5
     g = depth_gradient_bwd(saved, weight)
-    fd = _central(lambda x: weight * depth_gradient_fwd(x, prior, alpha, mask=mask)[0], d, 1e-6)
+    fd = central_fd(lambda x: weight * depth_gradient_fwd(x, prior, alpha, mask=mask)[0], d, 1e-6)
     assert np.max(np.abs(g - fd)) <= 1e-7 * np.max(np.abs(fd))
     assert np.all(g[:, :2] == 0.0) and np.all(g[~np.isfinite(prior)] == 0.0) and np.all(g[alpha < 0.5] == 0.0)
 

@@ -5,15 +5,15 @@ fix), the pixels it ignores, flat and extreme inputs, bad input."""
 import numpy as np
 import pytest
 
+from render_fixtures import central_fd, wavy_depth
+
 from d2gs_np.losses.depth_prior import depth_prior_bwd, depth_prior_fwd
 
 H, W = 9, 11
 
 
 def _depth(seed=0, lo=1.5, hi=6.0):
-    rng = np.random.default_rng(seed)
-    yy, xx = np.mgrid[0:H, 0:W]
-    return lo + (hi - lo) * (0.5 + 0.4 * np.sin(xx / 2.3 + seed) * np.cos(yy / 3.1)) + 0.05 * rng.standard_normal((H, W))
+    return wavy_depth((H, W), seed, lo, hi)
 
 
 def _with_holes(prior, alpha, seed=1):
@@ -23,16 +23,6 @@ def _with_holes(prior, alpha, seed=1):
     prior[rng.random((H, W)) < 0.1] = np.nan
     alpha[rng.random((H, W)) < 0.1] = 0.3
     return prior, alpha
-
-
-def _central(f, x, h):
-    g = np.zeros_like(x)
-    for i in np.ndindex(x.shape):
-        xp, xm = x.copy(), x.copy()
-        xp[i] += h
-        xm[i] -= h
-        g[i] = (f(xp) - f(xm)) / (2 * h)
-    return g
 
 
 _TOL_MAP = np.where(np.arange(W)[None, :] < W // 2, 0.0, 0.05) * np.ones((H, 1))  # a pixel's own tau
@@ -68,7 +58,7 @@ def test_gradient_matches_central_differences(space, tol):
         assert np.min(np.abs(np.abs(r) - tv)) > 1e-4  # away from the kinks
         assert np.all(tv == 0) or 0 < np.mean(np.abs(r) < tv) < 1  # some pixels within tau
     g = depth_prior_bwd(saved, weight)
-    fd = _central(value, d, 1e-6)
+    fd = central_fd(value, d, 1e-6)
     assert np.max(np.abs(g - fd)) < 1e-7 * np.max(np.abs(fd))
     ignored = ~np.isfinite(prior) | (alpha < 0.5) | (mask == 0)
     assert np.all(g[ignored] == 0.0) and np.any(g[~ignored] != 0.0)
