@@ -8,7 +8,14 @@ keys are also the optimizer's labels (docs/method.md §2):
     dynamic.<the same five> (Nd rows)
     dynamic.deform_means (Nd, K, 3) dynamic.deform_quats (Nd, K, 4) dynamic.deform_colors (Nd, K, 3)
 
-with K = P + 2L (``DeformConfig.num_coefs``). The static keys are always present (possibly with
+with K = P + 2L (``DeformConfig.num_coefs``). A scene whose movers are tracked as rigid objects
+(``MotionInitConfig.rigid``, ``scene/rigid.py``) also has one rigid path per cluster and each dynamic
+Gaussian's cluster:
+
+    rigid.means (C, 3)  rigid.quats (C, 4) raw wxyz  rigid.deform_means (C, K, 3)  rigid.deform_quats (C, K, 4)
+    dynamic.cluster (Nd,)  integer ids stored as floats, -1 (no cluster) or 0..C-1; not trained
+
+The static keys are always present (possibly with
 0 rows). A scene without moving pixels has *no* ``dynamic.*`` keys (docs/method.md §9); a dynamic set
 pruned down to 0 rows keeps its keys with 0 rows, so optimizer state stays in step.
 
@@ -49,12 +56,21 @@ __all__ = [
     "prune",
     "select_rows",
     "append_gaussians",
+    "RIGID",
+    "RIGID_FIELDS",
+    "CLUSTER",
+    "has_rigid",
+    "num_clusters",
 ]
 
 STATIC = "static"
 DYNAMIC = "dynamic"
 GAUSSIAN_FIELDS = ("means", "log_scales", "quats", "opacity_logits", "colors")
 DEFORM_FIELDS = ("deform_means", "deform_quats", "deform_colors")
+RIGID = "rigid"  # the clusters' rigid paths (scene/rigid.py)
+RIGID_FIELDS = ("means", "quats", "deform_means", "deform_quats")
+CLUSTER = f"{DYNAMIC}.cluster"  # each dynamic Gaussian's cluster id
+_RIGID_TRAILING = {"means": (3,), "quats": (4,), "deform_means": ("K", 3), "deform_quats": ("K", 4)}
 # Trailing shape of each field (after the row axis); "K" is the number of deformation coefficients.
 _TRAILING = {
     "means": (3,),
@@ -65,11 +81,13 @@ _TRAILING = {
     "deform_means": ("K", 3),
     "deform_quats": ("K", 4),
     "deform_colors": ("K", 3),
+    "cluster": (),
 }
 
 
-def _fields(prefix):
-    return GAUSSIAN_FIELDS + (DEFORM_FIELDS if prefix == DYNAMIC else ())
+def _fields(prefix, clustered=False):
+    """The fields of one set; the dynamic set's ``cluster`` only in a scene with rigid clusters."""
+    return GAUSSIAN_FIELDS + ((DEFORM_FIELDS + (("cluster",) if clustered else ())) if prefix == DYNAMIC else ())
 
 
 # ---------------------------------------------------------------------------------------------
@@ -157,13 +175,14 @@ def _shape_text(field):
 
 
 def make_gaussians(prefix, means, log_scales, quats, opacity_logits, colors, deform_means=None,
-                   deform_quats=None, deform_colors=None):
+                   deform_quats=None, deform_colors=None, cluster=None):
     """Validated, C-contiguous blocks of one Gaussian set, keyed ``f"{prefix}.{field}"``.
 
     prefix: "static" or "dynamic".
     means (N, 3), log_scales (N, 3), quats (N, 4) raw wxyz, opacity_logits (N,), colors (N, 3).
     deform_means (N, K, 3), deform_quats (N, K, 4), deform_colors (N, K, 3): required for the
     dynamic set, not allowed for the static one.
+    cluster (N,): the dynamic rows' cluster ids (scene with rigid clusters only), or None.
     Returns a new dict; the arrays are copies.
     """
     if prefix not in (STATIC, DYNAMIC):
@@ -175,6 +194,10 @@ def make_gaussians(prefix, means, log_scales, quats, opacity_logits, colors, def
         if missing:
             raise ValueError(f"the dynamic set needs deformation coefficients; missing {missing}")
         blocks.update(deform)
+        if cluster is not None:
+            blocks["cluster"] = cluster
+    elif cluster is not None:
+        raise ValueError("only the dynamic set has clusters; pass cluster only with prefix='dynamic'")
     elif any(v is not None for v in deform.values()):
         raise ValueError("the static set has no deformation; pass deform_* only with prefix='dynamic'")
     _check_float_array(f"{prefix}.means", means)
@@ -271,6 +294,16 @@ def has_dynamic(params):
     return f"{DYNAMIC}.means" in params
 
 
+def has_rigid(params):
+    """True when the scene's movers are rigid clusters (``rigid.*`` blocks, ``scene/rigid.py``)."""
+    return f"{RIGID}.means" in params
+
+
+def num_clusters(params):
+    """Number of rigid clusters (0 without them)."""
+    return params[f"{RIGID}.means"].shape[0] if has_rigid(params) else 0
+
+
 def num_static(params):
     """Number of static Gaussians."""
     return params[f"{STATIC}.means"].shape[0]
@@ -291,9 +324,12 @@ def validate_params(params, deform_config=None):
     if not isinstance(params, dict):
         raise TypeError(f"params must be a dict of arrays; got {type(params).__name__}")
     expected = {f"{STATIC}.{f}" for f in _fields(STATIC)}
-    dynamic_keys = {f"{DYNAMIC}.{f}" for f in _fields(DYNAMIC)}
-    if any(k in params for k in dynamic_keys):
+    clustered = any(k.startswith(f"{RIGID}.") for k in params) or CLUSTER in params
+    dynamic_keys = {f"{DYNAMIC}.{f}" for f in _fields(DYNAMIC, clustered)}
+    if any(k in params for k in dynamic_keys) or clustered:
         expected |= dynamic_keys
+    if clustered:
+        expected |= {f"{RIGID}.{f}" for f in RIGID_FIELDS}
     missing, unexpected = sorted(expected - params.keys()), sorted(params.keys() - expected)
     if missing or unexpected:
         raise ValueError(f"params keys do not follow the scene layout: missing {missing}, unexpected {unexpected}")
@@ -312,7 +348,7 @@ def validate_params(params, deform_config=None):
                     f"dynamic.deform_means has K={K} coefficients but deform_config expects "
                     f"{deform_config.num_coefs} (P={deform_config.degree}, L={deform_config.order})"
                 )
-        for field in _fields(prefix):
+        for field in _fields(prefix, clustered):
             name = f"{prefix}.{field}"
             x = params[name]
             _check_float_array(name, x, dtype)
@@ -323,6 +359,29 @@ def validate_params(params, deform_config=None):
                 )
             if not x.flags.c_contiguous:
                 raise ValueError(f"{name} must be C-contiguous; use np.ascontiguousarray")
+    if clustered:
+        _validate_rigid(params, dtype, K)
+
+
+def _validate_rigid(params, dtype, K):
+    """The rigid blocks' shapes (C rows, the dynamic set's K) and the cluster ids' range."""
+    C = params[f"{RIGID}.means"].shape[0] if params[f"{RIGID}.means"].ndim == 2 else -1
+    for field in RIGID_FIELDS:
+        name = f"{RIGID}.{field}"
+        x = params[name]
+        _check_float_array(name, x, dtype)
+        shape = (C,) + tuple(K if s == "K" else s for s in _RIGID_TRAILING[field])
+        if C < 0 or x.shape != shape:
+            dims = ", ".join(("C",) + tuple(str(d) for d in _RIGID_TRAILING[field]))
+            raise ValueError(f"{name} must have shape ({dims}) with C = rows of {RIGID}.means and K = the "
+                             f"dynamic set's; got {x.shape}")
+        if not x.flags.c_contiguous:
+            raise ValueError(f"{name} must be C-contiguous; use np.ascontiguousarray")
+    ids = params[CLUSTER]
+    if np.any(ids != np.round(ids)) or np.any(ids < -1) or np.any(ids > C - 1):
+        bad = ids[(ids != np.round(ids)) | (ids < -1) | (ids > C - 1)][:3]
+        raise ValueError(f"{CLUSTER} must hold whole numbers from -1 (no cluster) to {C - 1} (C = {C} clusters); "
+                         f"got {bad.tolist()}")
 
 
 # ---------------------------------------------------------------------------------------------
@@ -363,7 +422,7 @@ def select_rows(params, prefix, keep):
     n = num_static(params) if prefix == STATIC else num_dynamic(params)
     mask = _check_mask("keep", keep, n)
     out = dict(params)
-    for field in _fields(prefix):
+    for field in _fields(prefix, CLUSTER in params):
         name = f"{prefix}.{field}"
         out[name] = np.ascontiguousarray(params[name][mask])
     return out
@@ -386,8 +445,12 @@ def append_gaussians(params, new):
     if unknown:
         raise ValueError(f"new has blocks of unknown sets {sorted(unknown)}; keys must start with 'static.' or 'dynamic.'")
     for prefix in sorted(prefixes):
-        fields = _fields(prefix)
+        clustered = prefix == DYNAMIC and CLUSTER in params
+        fields = _fields(prefix, clustered)
         names = [f"{prefix}.{f}" for f in fields]
+        if clustered and CLUSTER not in new:
+            # rows seeded in world coordinates (not cloned from a cluster's rows): no cluster
+            new = {**new, CLUSTER: np.full(len(new[f"{prefix}.means"]), -1.0, dtype=dtype)}
         missing = sorted(set(names) - new.keys())
         unexpected = sorted({k for k in new if k.startswith(prefix + ".")} - set(names))
         if missing or unexpected:

@@ -6,8 +6,9 @@ post-sigmoid opacities, plain RGB colours, with the static rows first and the dy
 deformed to time t (``d2gs_np.scene.deformation``), after them.
 
 Static quaternions are passed raw (the renderer normalises them); dynamic ones come out of the
-deformation already unit length. A scene without a dynamic set does no deformation work and
-returns v_t = 0.
+deformation already unit length. A scene with rigid clusters (``scene/rigid.py``) then carries
+each clustered dynamic Gaussian by its cluster's pose at t. A scene without a dynamic set does no
+deformation work and returns v_t = 0.
 """
 from __future__ import annotations
 
@@ -15,8 +16,11 @@ import numpy as np
 
 from d2gs_np.scene.config import DeformConfig
 from d2gs_np.scene.deformation import _check_time, _deform_bwd, _deform_fwd
+from d2gs_np.scene.rigid import rigid_bwd, rigid_fwd
 from d2gs_np.scene.gaussians import (
+    CLUSTER,
     DYNAMIC,
+    has_rigid,
     STATIC,
     has_dynamic,
     opacity_bwd,
@@ -61,7 +65,7 @@ def _render_inputs_fwd(params, t, deform_config):
     means = [params[f"{STATIC}.means"]]
     quats = [params[f"{STATIC}.quats"]]
     colors = [params[f"{STATIC}.colors"]]
-    deform_saved = None
+    deform_saved = rigid_saved = None
     if dynamic:
         (d_means, d_quats, d_colors), deform_saved = _deform_fwd(
             params[f"{DYNAMIC}.means"],
@@ -73,6 +77,8 @@ def _render_inputs_fwd(params, t, deform_config):
             t,
             deform_config,
         )
+        if has_rigid(params):
+            (d_means, d_quats), rigid_saved = rigid_fwd(d_means, d_quats, params[CLUSTER], params, t, deform_config)
         means.append(d_means)
         quats.append(d_quats)
         colors.append(d_colors)
@@ -89,6 +95,7 @@ def _render_inputs_fwd(params, t, deform_config):
         scale=scale_saved,
         opacity=opacity_saved,
         deform=deform_saved,
+        rigid=rigid_saved,
     )
     return render_inputs, saved
 
@@ -100,8 +107,8 @@ def render_inputs_bwd(saved, v_render_inputs):
         colors (N, 3); a missing key (or None) counts as zero.
 
     Returns (v_params, v_t): v_params is keyed like the params given to ``render_inputs_fwd`` (every
-    block, dense); v_t is the scalar derivative w.r.t. time (0 without a dynamic set), of the
-    params' dtype.
+    trained block, dense; not the cluster ids); v_t is the scalar derivative w.r.t. time (0 without
+    a dynamic set), of the params' dtype.
     """
     if not isinstance(v_render_inputs, dict):
         raise TypeError(f"v_render_inputs must be a dict; got {type(v_render_inputs).__name__}")
@@ -147,7 +154,12 @@ def _render_inputs_bwd(saved, v_render_inputs):
     }
     v_t = dtype.type(0.0)
     if saved["deform"] is not None:
-        g = _deform_bwd(saved["deform"], v["means"][Ns:], v["quats"][Ns:], v["colors"][Ns:])
+        v_dm, v_dq = v["means"][Ns:], v["quats"][Ns:]
+        v_rigid, v_t_rigid = {}, dtype.type(0.0)
+        if saved.get("rigid") is not None:
+            v_dm, v_dq, v_rigid, v_t_rigid = rigid_bwd(saved["rigid"], v_dm, v_dq)
+        g = _deform_bwd(saved["deform"], v_dm, v_dq, v["colors"][Ns:])
+        v_params.update(v_rigid)
         v_params.update({
             f"{DYNAMIC}.means": g["base_means"],
             f"{DYNAMIC}.log_scales": np.ascontiguousarray(v_log_scales[Ns:]),
@@ -158,5 +170,5 @@ def _render_inputs_bwd(saved, v_render_inputs):
             f"{DYNAMIC}.deform_quats": g["coef_quats"],
             f"{DYNAMIC}.deform_colors": g["coef_colors"],
         })
-        v_t = g["t"]
+        v_t = dtype.type(g["t"] + v_t_rigid)
     return v_params, v_t
