@@ -33,14 +33,13 @@ from d2gs_np.blur.config import BlurConfig
 from d2gs_np.blur.virtual_poses import (_check_pose_args, _check_tangent, _three_knot_poses_fwd, _virtual_poses_fwd,
                                        exposure_offsets, three_knot_poses_bwd, virtual_poses_bwd)
 from d2gs_np.geometry.se3 import matrix_grad_to_left_tangent
-from d2gs_np.scene.gaussians import DYNAMIC, STATIC
+from d2gs_np.scene.gaussians import SCENE_PREFIXES, STATIC
 
 __all__ = [
     "blur_render_fwd",
     "blur_render_bwd",
 ]
 
-_SCENE_PREFIXES = (f"{STATIC}.", f"{DYNAMIC}.")
 _RENDER_FIELDS = ("means", "quats", "scales", "opacities", "colors")
 _OUTPUT_KEYS = ("image", "alpha", "depth", "expected_depth")
 
@@ -96,7 +95,7 @@ def blur_render_fwd(params, frame_time, tau, pose_est, xi_start, xi_end, K, widt
     render_inputs_fwd, render_inputs_bwd = _resolve_scene_model(scene_model)
     frame_time = check_scalar(frame_time, "frame_time")
     tau = check_scalar(tau, "tau", 0.0)
-    scene_params = {k: v for k, v in params.items() if k.startswith(_SCENE_PREFIXES)}
+    scene_params = {k: v for k, v in params.items() if k.startswith(SCENE_PREFIXES)}
     if f"{STATIC}.means" not in scene_params:
         raise ValueError(f"params has no scene blocks ('{STATIC}.means', ...); build them with "
                          "d2gs_np.scene.gaussians.init_params")

@@ -27,7 +27,7 @@ from d2gs_np.base.checks import check_scalar, check_choice, check_number
 from d2gs_np.blur.config import N_SCHEDULES, _check_backward_views, _check_n
 from d2gs_np.geometry.camera import project_points
 from d2gs_np.geometry.se3 import se3_exp
-from d2gs_np.scene.deformation import _deform_fwd
+from d2gs_np.scene.rigid import dynamic_positions
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
 
 __all__ = [
@@ -127,12 +127,7 @@ def frame_views(scene_params, frame_time, tau, pose_est, xi_start, xi_end, K, wi
     length = blur_length_px(m, m, Ts, Te, K, width, height)
     if f"{DYNAMIC}.means" in scene_params and scene_params[f"{DYNAMIC}.means"].shape[0] > 0:
         t = float(frame_time)
-        ends = []
-        for ti in (t - 0.5 * tau, t + 0.5 * tau):
-            (dm, _, _), _ = _deform_fwd(*(scene_params[f"{DYNAMIC}.{f}"] for f in
-                                          ("means", "quats", "colors", "deform_means", "deform_quats",
-                                           "deform_colors")), ti, deform_config)
-            ends.append(dm)
+        ends = dynamic_positions(scene_params, (t - 0.5 * tau, t + 0.5 * tau), deform_config)
         length = max(length, blur_length_px(ends[0], ends[1], Ts, Te, K, width, height))
     return views_for_length(bc.num_virtual, length, bc.view_spacing_px)
 

@@ -232,6 +232,11 @@ EXPERIMENTS = {
         Variant("stereo_prior_fused_dgrad", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
                         "loss": {"lambda_depth_grad": 1.0}}),
+        # and each tracked mover one rigid object (MotionInitConfig.rigid, scene/rigid.py, issue #44:
+        # one shape, so one scale of it over the clip for the priors' frames to set together)
+        Variant("stereo_prior_fused_rigid", scene={"depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
+                        "motion_init": {"rigid": True}}),
         Variant("stereo_prior_fused_shared", scene={"depth_prior": "video", "prior_shared_error": 0.5},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True}}),
         Variant("stereo_prior_shared", scene={"depth_prior": "video", "prior_shared_error": 0.5},

@@ -218,9 +218,12 @@ class MotionInitConfig:
     # "similarity" or "homography" (the chained warps alone), "centroid" (the component's centroid
     # plus the similarity's turn and scale about it; ``rotation`` applies to this rule only)
     warp: str = "flow"
+    # each track with three or more seeds becomes one rigid object (``scene/rigid.py``): a pose path
+    # fitted to its seeds' targets, the seeds' own deformation a residual starting at zero (issue #44)
+    rigid: bool = False
 
     def __post_init__(self):
-        for name in ("enabled", "rotation"):
+        for name in ("enabled", "rotation", "rigid"):
             check_bool(getattr(self, name), f"MotionInitConfig.{name}")
         check_number(self.min_area_fraction, "MotionInitConfig.min_area_fraction", 0.0, 1.0, hi_open=True)
         check_number(self.max_jump_fraction, "MotionInitConfig.max_jump_fraction", 0.0, lo_open=True)

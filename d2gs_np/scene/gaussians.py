@@ -61,6 +61,7 @@ __all__ = [
     "CLUSTER",
     "has_rigid",
     "num_clusters",
+    "SCENE_PREFIXES",
 ]
 
 STATIC = "static"
@@ -70,6 +71,7 @@ DEFORM_FIELDS = ("deform_means", "deform_quats", "deform_colors")
 RIGID = "rigid"  # the clusters' rigid paths (scene/rigid.py)
 RIGID_FIELDS = ("means", "quats", "deform_means", "deform_quats")
 CLUSTER = f"{DYNAMIC}.cluster"  # each dynamic Gaussian's cluster id
+SCENE_PREFIXES = (f"{STATIC}.", f"{DYNAMIC}.", f"{RIGID}.")  # the blocks that make the scene (not the camera's)
 _RIGID_TRAILING = {"means": (3,), "quats": (4,), "deform_means": ("K", 3), "deform_quats": ("K", 4)}
 # Trailing shape of each field (after the row axis); "K" is the number of deformation coefficients.
 _TRAILING = {

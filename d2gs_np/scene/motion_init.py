@@ -44,6 +44,11 @@ centroid of what is visible moves differently from the object. Against the
 true motion of the suite's movers the flow rule is the closest on every scene
 (``examples/motion_init_accuracy.py``; docs/results.md §9).
 
+With ``rigid`` (``MotionInitConfig.rigid``) each track of three or more seeds is one rigid
+object instead: its pose at each frame is the rotation and translation (no scale) that takes its
+seeds at the track's middle frame to their targets there, the pose path is fitted by the same
+basis, and its seeds keep zero coefficients in its frame (``scene/rigid.py``).
+
 Seeds whose pixel lies in no tracked component keep zero coefficients. Only
 the means are initialised; rotations and colours start with zero residuals.
 """
@@ -59,6 +64,7 @@ from d2gs_np.scene.config import WARPS, DeformConfig, MotionInitConfig
 from d2gs_np.scene.deformation import deform_basis
 
 WARP_W_MIN = 1e-6  # a homogeneous pixel with w below this is at or behind infinity
+RIGID_MIN_SEEDS = 3  # a rotation needs three points off one line
 
 
 def mask_components(mask, min_area):
@@ -293,6 +299,7 @@ def initialize_deformation(scene, seed_points, seed_frames, seed_pixels, deform_
     times = np.array([f.time for f in frames])
     basis = np.stack([np.concatenate([[1.0], deform_basis(t, deform_config)[0]]) for t in times])  # (N, 1 + K)
     tracked = 0
+    paths = {}  # seed -> (its track's frames, its 3D targets there)
     for i in np.flatnonzero(seed_track >= 0):
         k, px, j, here = int(seed_frames[i]), seed_pixels[i], int(seed_track[i]), int(seed_here[i])
         mem = members[j]
@@ -315,12 +322,98 @@ def initialize_deformation(scene, seed_points, seed_frames, seed_pixels, deform_
         depth = np.array([float(pc[2])])
         targets = np.stack([unproject_points(pix[n][None], depth, frames[m].cam_T_world, frames[m].K)[0]
                             for n, m in enumerate(fidx)])  # (M, 3)
-        A = basis[fidx]  # (M, 1 + K)
-        reg = config.ridge * len(fidx) * np.eye(1 + K)
-        reg[0, 0] = 0.0  # the base position is not shrunk
-        sol = np.linalg.solve(A.T @ A + reg, A.T @ targets)  # (1 + K, 3)
-        means[i] = sol[0]
-        coefs[i] = sol[1:]
+        paths[int(i)] = (fidx, targets)
         tracked += 1
     info = {"num_tracks": num_tracks, "num_tracked_seeds": tracked}
+    clustered = {}
+    if config.rigid:
+        clustered = _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, config.ridge)
+        info["rigid"] = _rigid_blocks(clustered, Nd, K)
+        info["num_clusters"] = len(clustered)
+    for i, (fidx, targets) in paths.items():
+        if int(seed_track[i]) in clustered:
+            means[i] = info["rigid"]["local"][i]
+            continue
+        sol = _ridge_fit(basis[fidx], targets, config.ridge)  # (1 + K, 3)
+        means[i] = sol[0]
+        coefs[i] = sol[1:]
     return means, coefs, info
+
+
+def _ridge_fit(A, targets, ridge):
+    """Base value and coefficients (1 + K, D) of the deformation through ``targets`` (M, D) at the
+    basis rows A (M, 1 + K): ridge-regularised least squares, the base value not shrunk (step 5)."""
+    reg = ridge * len(A) * np.eye(A.shape[1])
+    reg[0, 0] = 0.0
+    return np.linalg.solve(A.T @ A + reg, A.T @ targets)
+
+
+def _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, ridge):
+    """One rigid path per track with at least ``RIGID_MIN_SEEDS`` seeds (``MotionInitConfig.rigid``).
+
+    The track's seeds at its middle frame are the object's shape (centred on their centroid);
+    its pose at each frame is the rotation and translation (Kabsch, no scale) taking that shape to
+    the seeds' targets there, fitted by the deformation's basis (position; the raw quaternion,
+    signs made continuous). Each seed's local position is its own lifted point pulled back by the
+    fitted pose at its own frame, so the seed starts where it was seen.
+    Returns {track: dict(seeds, p (1 + K, 3), q (1 + K, 4), local (S, 3))}.
+    """
+    from d2gs_np.geometry.quaternion import quat_to_rotmat, rotmat_to_quat
+    from d2gs_np.geometry.trajectory import umeyama
+
+    out = {}
+    for j in np.unique(seed_track[seed_track >= 0]):
+        seeds = [i for i in np.flatnonzero(seed_track == j) if int(i) in paths]
+        if len(seeds) < RIGID_MIN_SEEDS:
+            continue
+        frames_j = sorted({int(m) for i in seeds for m in paths[int(i)][0]})
+        at = {int(i): dict(zip((int(m) for m in paths[int(i)][0]), paths[int(i)][1])) for i in seeds}
+        ref = frames_j[len(frames_j) // 2]
+        shape_seeds = [i for i in seeds if ref in at[int(i)]]
+        if len(shape_seeds) < RIGID_MIN_SEEDS:
+            continue
+        X = np.stack([at[int(i)][ref] for i in shape_seeds])
+        X = X - X.mean(axis=0)
+        fit_frames, pos, quat = [], [], []
+        for m in frames_j:
+            have = [n for n, i in enumerate(shape_seeds) if m in at[int(i)]]
+            if len(have) < RIGID_MIN_SEEDS:
+                continue
+            Y = np.stack([at[int(shape_seeds[n])][m] for n in have])
+            try:
+                _, R, t = umeyama(X[have], Y, with_scale=False)
+            except ValueError:  # the seeds there all at one place
+                continue
+            q = rotmat_to_quat(R)
+            if quat and float(q @ quat[-1]) < 0.0:
+                q = -q  # continuous signs, so the raw quaternion's fit follows the turn
+            fit_frames.append(m)
+            pos.append(t)
+            quat.append(q)
+        if len(fit_frames) < 2:
+            continue
+        A = basis[fit_frames]
+        p, q = _ridge_fit(A, np.stack(pos), ridge), _ridge_fit(A, np.stack(quat), ridge)
+        local = []
+        for i in seeds:
+            k = int(seed_frames[i])
+            pk, rk = basis[k] @ p, basis[k] @ q
+            R = quat_to_rotmat(rk)
+            local.append(R.T @ (np.asarray(seed_points[i], np.float64) - pk))
+        out[int(j)] = dict(seeds=np.asarray(seeds), p=p, q=q, local=np.stack(local))
+    return out
+
+
+def _rigid_blocks(clustered, Nd, K):
+    """The ``rigid.*`` blocks, the cluster ids (Nd,) and the clustered seeds' local positions."""
+    C = len(clustered)
+    blocks = {"rigid.means": np.zeros((C, 3)), "rigid.quats": np.tile([1.0, 0.0, 0.0, 0.0], (C, 1)),
+              "rigid.deform_means": np.zeros((C, K, 3)), "rigid.deform_quats": np.zeros((C, K, 4))}
+    ids = np.full(Nd, -1.0)
+    local = {}
+    for c, (j, cl) in enumerate(sorted(clustered.items())):
+        blocks["rigid.means"][c], blocks["rigid.deform_means"][c] = cl["p"][0], cl["p"][1:]
+        blocks["rigid.quats"][c], blocks["rigid.deform_quats"][c] = cl["q"][0], cl["q"][1:]
+        ids[cl["seeds"]] = c
+        local.update({int(i): x for i, x in zip(cl["seeds"], cl["local"])})
+    return dict(blocks=blocks, cluster=ids, local=local)

@@ -30,7 +30,7 @@ import numpy as np
 from d2gs_np.blur.exposure import EXPOSURE_BLOCK
 from d2gs_np.optim import adam
 from d2gs_np.blur.endpoints import CAMERA, POSENET, XI_END, XI_MID, XI_START
-from d2gs_np.scene.gaussians import DYNAMIC, STATIC
+from d2gs_np.scene.gaussians import CLUSTER, DYNAMIC, STATIC
 from d2gs_np.train.config import NON_RATE_FIELDS, LearningRates
 
 __all__ = ["PER_FRAME_BLOCKS", "POSITION_BLOCKS", "position_row_factors", "scene_extent", "size_extent", "position_extent", "block_learning_rate",
@@ -113,9 +113,9 @@ def position_extent(lr: LearningRates, camera_extent: float, poses, points) -> f
 
 def learning_rates(block_names, lr: LearningRates, extent: float, iters: int, num_frames: int,
                    centred: bool = False) -> adam.AdamConfig:
-    """AdamConfig with the rate of every block in ``block_names``."""
+    """AdamConfig with the rate of every block in ``block_names`` but the untrained cluster ids."""
     return adam.AdamConfig(lrs={n: block_learning_rate(n, lr, extent, iters, num_frames, centred)
-                                for n in block_names})
+                                for n in block_names if n != CLUSTER})
 
 
 def camera_row_scales(components, lr: LearningRates, num_frames: int, rule: str = "constant") -> np.ndarray:
@@ -153,16 +153,18 @@ def centre_endpoint_grads(grads):
     return {**grads, XI_END: g, XI_START: -g}
 
 
-def position_row_factors(params, cam_T_world, floor: float) -> dict:
+def position_row_factors(params, cam_T_world, floor: float, dynamic_means=None) -> dict:
     """Per-Gaussian factors on the position steps (``LearningRates.means_depth = "near"``): for
     each block of ``POSITION_BLOCKS`` in ``params``, (N,) factors clip(z / z_med, floor, 1), z each
     Gaussian's (base) depth in the camera ``cam_T_world`` (4, 4) and z_med the median depth of the
     static Gaussians in front of it. A step of length s moves a Gaussian at depth z by about
     f s / z pixels: the factor gives a near Gaussian the pixel step of one at the median depth;
     those at or beyond it, and behind the camera (z <= 0: floor), as a world-unit rule would.
-    No static Gaussian in front: all factors 1."""
+    No static Gaussian in front: all factors 1. ``dynamic_means`` (Nd, 3): the dynamic set's world
+    positions where its base means are not (rigid clusters: ``scene.rigid.dynamic_positions``)."""
     R, t = np.asarray(cam_T_world[:3, :3], np.float64), np.asarray(cam_T_world[:3, 3], np.float64)
-    depth = {p: np.asarray(params[f"{p}.means"], np.float64) @ R[2] + t[2]
+    depth = {p: np.asarray(params[f"{p}.means"] if p == STATIC or dynamic_means is None else dynamic_means,
+                           np.float64) @ R[2] + t[2]
              for p in (STATIC, DYNAMIC) if f"{p}.means" in params}
     zs = depth.get(STATIC, np.zeros(0))
     zs = zs[zs > 0]

@@ -45,7 +45,7 @@ from d2gs_np.geometry.se3 import check_rigid, se3_exp, se3_interpolate
 from d2gs_np.render import render_fwd
 from d2gs_np.render.api import _render_bwd, _render_fwd
 from d2gs_np.scene import gaussians
-from d2gs_np.scene.gaussians import DYNAMIC, STATIC
+from d2gs_np.scene.gaussians import DYNAMIC, SCENE_PREFIXES, STATIC
 from d2gs_np.scene.initialize import initialize_points, pixel_scale_cap
 from d2gs_np.scene.render_inputs import RENDER_FIELDS, _render_inputs_bwd, _render_inputs_fwd, render_inputs_fwd
 from d2gs_np.scene.motion_init import initialize_deformation
@@ -54,7 +54,6 @@ from d2gs_np.train.config import ExperimentConfig
 
 __all__ = ["Model", "SCENE_PREFIXES", "frame_render_fwd", "frame_render_bwd"]
 
-SCENE_PREFIXES = (f"{STATIC}.", f"{DYNAMIC}.")
 PARAMS_KEY = "params/"  # checkpoint array keys of the blocks
 POSES_REF_KEY = "camera/poses_ref"
 POSES_INIT_KEY = "camera/poses_init"
@@ -132,6 +131,12 @@ class Model:
             params[f"{DYNAMIC}.deform_means"] = coefs
             say(f"dynamic motion initialised from {minfo['num_tracks']} mask tracks "
                 f"({minfo['num_tracked_seeds']} of {len(means)} seeds tracked)")
+            if config.motion_init.rigid:
+                rigid = minfo["rigid"]
+                params.update(rigid["blocks"])
+                params[gaussians.CLUSTER] = rigid["cluster"]
+                say(f"rigid movers (motion_init.rigid): {minfo['num_clusters']} tracks as rigid objects, "
+                    f"{int(np.sum(rigid['cluster'] >= 0))} seeds in them, the rest deform freely")
         say(f"initialised {gaussians.num_static(params)} static and {gaussians.num_dynamic(params)} "
             f"dynamic Gaussians in {time.perf_counter() - t0:.1f}s ({_short(info)})")
         if components.blur:

@@ -50,6 +50,7 @@ from d2gs_np.data.scene import Scene
 from d2gs_np.scene import gaussians
 from d2gs_np.scene.deformation import deform_basis
 from d2gs_np.scene.gaussians import DYNAMIC, STATIC
+from d2gs_np.scene.rigid import dynamic_positions
 from d2gs_np.train import prune as prune_rules
 from d2gs_np.train.config import ExperimentConfig
 from d2gs_np.train.densify import (add_grad_stats, densify, dynamic_gaussian_cap, gaussian_cap, init_grad_stats,
@@ -234,8 +235,12 @@ class Prune(Plugin):
                 p[f"{DYNAMIC}.log_scales"], self.extent, pc.max_scale_fraction)
             if self.has_masks:
                 m = state.model
-                drop |= prune_rules.escaped(p[f"{DYNAMIC}.means"], p[f"{DYNAMIC}.deform_means"], m.times,
-                                            m.mid_poses(), m.Ks, self.masks, self.config.deform, pc)
+                if gaussians.has_rigid(p):  # the clusters' poses carry their Gaussians
+                    drop |= prune_rules.escaped_at(dynamic_positions(p, m.times, self.config.deform), m.mid_poses(),
+                                                   m.Ks, self.masks, pc)
+                else:
+                    drop |= prune_rules.escaped(p[f"{DYNAMIC}.means"], p[f"{DYNAMIC}.deform_means"], m.times,
+                                                m.mid_poses(), m.Ks, self.masks, self.config.deform, pc)
             keep[DYNAMIC] = ~drop
         removed = int(sum((~k).sum() for k in keep.values()))
         if removed:
@@ -344,8 +349,11 @@ class NeighbourRefresh(Plugin):
     def _build(self, params, deform):
         means = params.get(f"{DYNAMIC}.means")
         if means is not None and self.at_time is not None:
-            b = deform_basis(self.at_time, deform)[0]
-            means = means + np.einsum("k,nkd->nd", b.astype(means.dtype), params[f"{DYNAMIC}.deform_means"])
+            if gaussians.has_rigid(params):  # where the clusters' poses put them
+                means = dynamic_positions(params, [self.at_time], deform)[0]
+            else:
+                b = deform_basis(self.at_time, deform)[0]
+                means = means + np.einsum("k,nkd->nd", b.astype(means.dtype), params[f"{DYNAMIC}.deform_means"])
         self.lists = knn(means, self.k) if means is not None else np.zeros((0, 0), dtype=np.int64)
         return self.lists
 

@@ -79,6 +79,13 @@ def escaped(base_means, coef_means, times, poses, Ks, masks, deform_config, conf
     """Remove mask (N,) of dynamic Gaussians living on static pixels (see the module docstring)."""
     if config.max_outside_share <= 0 or len(base_means) == 0:
         return np.zeros(len(base_means), dtype=bool)
-    centres = dynamic_centres(base_means, coef_means, times, deform_config)
+    return escaped_at(dynamic_centres(base_means, coef_means, times, deform_config), poses, Ks, masks, config)
+
+
+def escaped_at(centres, poses, Ks, masks, config: PruneConfig):
+    """``escaped`` of the dynamic centres (T, N, 3) at the frames' times (a scene with rigid
+    clusters: ``scene.rigid.dynamic_positions``)."""
+    if config.max_outside_share <= 0 or centres.shape[1] == 0:
+        return np.zeros(centres.shape[1], dtype=bool)
     share, seen = outside_share(centres, poses, Ks, masks, config.mask_dilation_px)
     return (seen > 0) & (share > config.max_outside_share)

@@ -19,7 +19,7 @@ from typing import NamedTuple
 import numpy as np
 
 from d2gs_np.losses.ssim import SSIM_WINDOW
-from d2gs_np.scene.gaussians import DYNAMIC, STATIC
+from d2gs_np.scene.gaussians import DYNAMIC, RIGID, STATIC
 from d2gs_np.blur.endpoints import CAMERA, POSENET
 from d2gs_np.train.config import ExperimentConfig, TrainConfig
 
@@ -47,8 +47,9 @@ def make_stages(train: TrainConfig, dynamic: bool) -> list:
         # only moves the dynamic set's sub-frame times, so its gradient is exactly zero.
         stages.append(Stage("warmup", 0, w, (f"{STATIC}.", xi, f"{POSENET}."), True))
     if d > 0:
-        stages.append(Stage("deform", w, w + d, (f"{DYNAMIC}.",), False))
-    stages.append(Stage("joint", w + d, n, (f"{STATIC}.", f"{DYNAMIC}.", f"{CAMERA}.", f"{POSENET}."), False))
+        stages.append(Stage("deform", w, w + d, (f"{DYNAMIC}.", f"{RIGID}."), False))
+    stages.append(Stage("joint", w + d, n, (f"{STATIC}.", f"{DYNAMIC}.", f"{RIGID}.", f"{CAMERA}.", f"{POSENET}."),
+                        False))
     c = int(round(train.camera_from_fraction * n))
     if c > 0:
         stages = _camera_from(stages, c)

@@ -43,7 +43,9 @@ import numpy as np
 
 from d2gs_np.data.scene import Scene
 from d2gs_np.render.api import warm_up
+from d2gs_np.scene import gaussians
 from d2gs_np.scene.gaussians import STATIC, num_static
+from d2gs_np.scene.rigid import dynamic_positions
 from d2gs_np.train.background import background_rng, composite_bwd, composite_fwd
 from d2gs_np.train.checkpoint import atomic_write_text, save_checkpoint
 from d2gs_np.train.config import ExperimentConfig
@@ -212,8 +214,12 @@ class Trainer:
         if self.components.centred:
             grads = centre_endpoint_grads(grads)
         lr = self.config.train.lr
-        factors = (position_row_factors(state.params, state.model.poses_ref[k], lr.means_depth_floor)
-                   if lr.means_depth == "near" else None)
+        factors = None
+        if lr.means_depth == "near":
+            p = state.params
+            world = (dynamic_positions(p, [state.model.times[k]], self.config.deform)[0]
+                     if gaussians.has_rigid(p) else None)
+            factors = position_row_factors(p, state.model.poses_ref[k], lr.means_depth_floor, world)
         params, adam_state = optimiser_step(grads, state.adam, state.params, self.adam_config, plan.stage.trainable,
                                             k, plan.lr_scale, self.camera_row_scales[k], factors)
         sq = (out["image"] - tgt.image) ** 2
