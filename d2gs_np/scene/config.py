@@ -221,9 +221,12 @@ class MotionInitConfig:
     # each track with three or more seeds becomes one rigid object (``scene/rigid.py``): a pose path
     # fitted to its seeds' targets, the seeds' own deformation a residual starting at zero (issue #44)
     rigid: bool = False
+    # with ``rigid``: False holds the clustered Gaussians' own position and rotation residuals at zero
+    # (their gradients dropped), so each cluster moves as one body; True trains them as the rest
+    rigid_residual: bool = True
 
     def __post_init__(self):
-        for name in ("enabled", "rotation", "rigid"):
+        for name in ("enabled", "rotation", "rigid", "rigid_residual"):
             check_bool(getattr(self, name), f"MotionInitConfig.{name}")
         check_number(self.min_area_fraction, "MotionInitConfig.min_area_fraction", 0.0, 1.0, hi_open=True)
         check_number(self.max_jump_fraction, "MotionInitConfig.max_jump_fraction", 0.0, lo_open=True)

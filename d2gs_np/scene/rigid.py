@@ -28,7 +28,7 @@ import numpy as np
 from d2gs_np.scene.deformation import _deform_bwd, _deform_fwd
 from d2gs_np.scene.gaussians import CLUSTER, DYNAMIC, RIGID, has_rigid
 
-__all__ = ["quat_rotmat_unit", "rigid_fwd", "rigid_bwd", "dynamic_positions"]
+__all__ = ["quat_rotmat_unit", "rigid_fwd", "rigid_bwd", "dynamic_positions", "hold_rigid_residuals"]
 
 
 def quat_rotmat_unit(q):
@@ -141,3 +141,17 @@ def dynamic_positions(params, times, deform_config):
             (m, _), _ = rigid_fwd(m, q, params[CLUSTER], params, float(t), deform_config)
         out.append(m)
     return np.stack(out) if out else np.zeros((0, params[f"{DYNAMIC}.means"].shape[0], 3))
+
+
+def hold_rigid_residuals(grads, params):
+    """``grads`` with the clustered rows of the dynamic position and rotation coefficients zeroed
+    (``MotionInitConfig.rigid_residual = False``): from zero coefficients and zero Adam moments those
+    rows then stay at zero, and each cluster moves as one body. Other blocks unchanged."""
+    on = np.asarray(params[CLUSTER]) >= 0
+    out = dict(grads)
+    for name in (f"{DYNAMIC}.deform_means", f"{DYNAMIC}.deform_quats"):
+        if name in out:
+            g = out[name].copy()
+            g[on] = 0.0
+            out[name] = g
+    return out

@@ -45,7 +45,7 @@ from d2gs_np.data.scene import Scene
 from d2gs_np.render.api import warm_up
 from d2gs_np.scene import gaussians
 from d2gs_np.scene.gaussians import STATIC, num_static
-from d2gs_np.scene.rigid import dynamic_positions
+from d2gs_np.scene.rigid import dynamic_positions, hold_rigid_residuals
 from d2gs_np.train.background import background_rng, composite_bwd, composite_fwd
 from d2gs_np.train.checkpoint import atomic_write_text, save_checkpoint
 from d2gs_np.train.config import ExperimentConfig
@@ -213,6 +213,8 @@ class Trainer:
             grads[n] = grads[n] + g if n in grads else g
         if self.components.centred:
             grads = centre_endpoint_grads(grads)
+        if not self.config.motion_init.rigid_residual and gaussians.has_rigid(state.params):
+            grads = hold_rigid_residuals(grads, state.params)
         lr = self.config.train.lr
         factors = None
         if lr.means_depth == "near":

@@ -99,3 +99,23 @@ def test_resume_reproduces_an_uninterrupted_rigid_run(mover_scene, tmp_path):
     assert resumed.params.keys() == full.params.keys()
     for name in full.params:
         np.testing.assert_array_equal(resumed.params[name], full.params[name], err_msg=name)
+
+
+def test_a_rigid_body_keeps_its_gaussians_residuals_at_zero(mover_scene, tmp_path):
+    """``rigid_residual=False``: the clustered rows' position and rotation residuals stay exactly
+    zero through training and densification, while their colours and the clusters' paths train."""
+    cfg = _config(12)
+    cfg = cfg.replace(motion_init=MotionInitConfig(rigid=True, rigid_residual=False))
+    tr = Trainer(mover_scene, cfg, tmp_path / "r")
+    colors0 = tr.params["dynamic.deform_colors"].copy()
+    path0 = tr.params["rigid.deform_means"].copy()
+    tr.run()
+    p = tr.params
+    on = p[CLUSTER] >= 0
+    assert on.sum() > 0
+    assert not p["dynamic.deform_means"][on].any() and not p["dynamic.deform_quats"][on].any()
+    assert not np.array_equal(p["rigid.deform_means"], path0)
+    assert len(p[CLUSTER]) != len(colors0) or not np.array_equal(p["dynamic.deform_colors"], colors0)
+    free = Trainer(mover_scene, _config(12), tmp_path / "free")
+    free.run()
+    assert free.params["dynamic.deform_means"][free.params[CLUSTER] >= 0].any()  # the default trains them
