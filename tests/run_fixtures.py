@@ -14,6 +14,15 @@ def copy_run_for_resume(src, dst):
     return dst
 
 
+def step_and_checkpoint(trainer, steps):
+    """Step ``trainer`` by hand to ``steps`` and checkpoint there (an interrupted run to resume)."""
+    while trainer.step_index < steps:
+        trainer.step(trainer.step_index)
+        trainer.step_index += 1
+    trainer.checkpoint()
+    return trainer
+
+
 TINY = dict(width=48, height=27, num_frames=6)  # a tiny clip of the "dynamic" preset: seconds to train
 
 

@@ -273,12 +273,9 @@ def test_flow_follows_what_a_similarity_cannot():
 # swinging sign), true poses, 12 frames of 120 x 68: ~6 s each. Measured (median over frames of
 # the seeds' median reprojection error, px): big_mover centroid 3.16 / flow 0.46 (worst frame
 # 11.1 / 0.77), cube_sign 4.50 / 2.15. The bounds sit between the rules with room for both sides.
-@pytest.mark.parametrize("name, flow_bound, centroid_floor", [("big_mover", 1.0, 2.0), ("cube_sign", 3.0, 3.5)])
-def test_default_motion_init_follows_the_true_movers(name, flow_bound, centroid_floor):
-    """The default rule (flow) initialises the movers' motion to about a pixel; the centroid rule
-    does not."""
+def _suite_seeds(name):
+    """A suite scene (12 frames 120x68, true poses), 400 dynamic seeds and their true pixels."""
     from d2gs_np.data.suite import build_suite_world, make_suite_scene, mover_tracks_of_seeds, resolve
-    from d2gs_np.evaluation.metrics import trajectory_reprojection_error
 
     kw = dict(width=120, height=68, num_frames=12, num_test_views=0, rot_noise_deg=0.0, trans_noise=0.0,
               subframes=8)
@@ -286,6 +283,16 @@ def test_default_motion_init_follows_the_true_movers(name, flow_bound, centroid_
     world = build_suite_world(resolve(name, 0, **kw))
     _, _, d, _, info = initialize_points(scene, InitConfig(dynamic_points=400), np.random.default_rng(0))
     truth = mover_tracks_of_seeds(world, scene.frames, info["dynamic_source_frames"], info["dynamic_source_pixels"])
+    return scene, d, info, truth
+
+
+@pytest.mark.parametrize("name, flow_bound, centroid_floor", [("big_mover", 1.0, 2.0), ("cube_sign", 3.0, 3.5)])
+def test_default_motion_init_follows_the_true_movers(name, flow_bound, centroid_floor):
+    """The default rule (flow) initialises the movers' motion to about a pixel; the centroid rule
+    does not."""
+    from d2gs_np.evaluation.metrics import trajectory_reprojection_error
+
+    scene, d, info, truth = _suite_seeds(name)
     err = {}
     for label, config in (("default", MotionInitConfig()), ("centroid", MotionInitConfig(warp="centroid"))):
         m, c, _ = initialize_deformation(scene, d, info["dynamic_source_frames"], info["dynamic_source_pixels"],
@@ -317,15 +324,9 @@ def test_rigid_init_makes_one_object_per_track_that_follows_it(name, bound):
     to about their true pixels (big_mover's panel 1.0 px, cube_sign's cube and sign 3.1 px median,
     measured; the per-seed fit reaches 0.5 / 2.1 px by bending each seed on its own), each seed
     starts where it was seen, and the cluster keeps its seeds' distances at every frame."""
-    from d2gs_np.data.suite import build_suite_world, make_suite_scene, mover_tracks_of_seeds, resolve
     from d2gs_np.scene.rigid import dynamic_positions
 
-    kw = dict(width=120, height=68, num_frames=12, num_test_views=0, rot_noise_deg=0.0, trans_noise=0.0,
-              subframes=8)
-    scene = make_suite_scene(name, 0, **kw)
-    world = build_suite_world(resolve(name, 0, **kw))
-    _, _, d, _, info = initialize_points(scene, InitConfig(dynamic_points=400), np.random.default_rng(0))
-    truth = mover_tracks_of_seeds(world, scene.frames, info["dynamic_source_frames"], info["dynamic_source_pixels"])
+    scene, d, info, truth = _suite_seeds(name)
     cfg = DeformConfig()
     m, c, minfo = initialize_deformation(scene, d, info["dynamic_source_frames"], info["dynamic_source_pixels"], cfg,
                                          MotionInitConfig(rigid=True))

@@ -12,6 +12,7 @@ from d2gs_np.scene.config import MotionInitConfig
 from d2gs_np.scene.gaussians import CLUSTER, num_clusters
 from d2gs_np.train.config import DensifyConfig, ExperimentConfig, LossConfig, PoseSolverConfig, TrainConfig
 from d2gs_np.train.trainer import Trainer
+from run_fixtures import step_and_checkpoint
 
 TINY = dict(width=48, height=27, num_frames=4, num_test_views=1, subframes=4)
 
@@ -90,10 +91,7 @@ def test_resume_reproduces_an_uninterrupted_rigid_run(mover_scene, tmp_path):
     full.run()
     part_cfg = cfg.replace(train=dataclasses.replace(cfg.train, checkpoint_every=5))
     part = Trainer(mover_scene, part_cfg, tmp_path / "part")
-    while part.step_index < 5:
-        part.step(part.step_index)
-        part.step_index += 1
-    part.checkpoint()
+    step_and_checkpoint(part, 5)
     resumed = Trainer(mover_scene, part_cfg, tmp_path / "part", resume=True)
     resumed.run()
     assert resumed.params.keys() == full.params.keys()

@@ -15,7 +15,7 @@ from d2gs_np.scene import deformation
 from d2gs_np.train.config import ExperimentConfig, LearningRates, PruneConfig, TrainConfig
 from d2gs_np.render import RenderConfig
 from d2gs_np.train.trainer import Trainer
-from run_fixtures import copy_run_for_resume
+from run_fixtures import copy_run_for_resume, step_and_checkpoint
 
 TINY = dict(width=48, height=27, num_frames=6)
 
@@ -110,10 +110,7 @@ def test_resume_reproduces_an_uninterrupted_run(dynamic_scene, tmp_path, means_u
     # Interrupted: stop after 6 steps (checkpoint), then resume in a new trainer.
     part_cfg = cfg.replace(train=dataclasses.replace(cfg.train, checkpoint_every=6, time_budget=None))
     part = Trainer(dynamic_scene, part_cfg, tmp_path / "part")
-    while part.step_index < 6:
-        part.step(part.step_index)
-        part.step_index += 1
-    part.checkpoint()
+    step_and_checkpoint(part, 6)
     resumed = Trainer(dynamic_scene, part_cfg, tmp_path / "part", resume=True)
     assert resumed.step_index == 6
     resumed.run()
