@@ -237,6 +237,10 @@ EXPERIMENTS = {
         Variant("stereo_prior_fused_rigid", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
                         "motion_init": {"rigid": True}}),
+        # the same with the clusters' poses fitted to the lifted targets alone (before session 52's PnP)
+        Variant("stereo_prior_fused_rigid_kabsch", scene={"depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
+                        "motion_init": {"rigid": True, "rigid_fit": "kabsch"}}),
         # the same with each cluster one body (no residual motion of its Gaussians), and with L_dgrad
         Variant("stereo_prior_fused_rigid_body", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},

@@ -224,6 +224,9 @@ class MotionInitConfig:
     # with ``rigid``: False holds the clustered Gaussians' own position and rotation residuals at zero
     # (their gradients dropped), so each cluster moves as one body; True trains them as the rest
     rigid_residual: bool = True
+    # with ``rigid``: how each cluster's pose at a frame is fitted, "pnp" (the shape projected onto
+    # its seeds' tracked pixels, from the "kabsch" pose) or "kabsch" (to their lifted 3D targets)
+    rigid_fit: str = "pnp"
 
     def __post_init__(self):
         for name in ("enabled", "rotation", "rigid", "rigid_residual"):
@@ -233,5 +236,6 @@ class MotionInitConfig:
         # tracks shorter than 1 + K frames need the ridge to be well posed
         check_number(self.ridge, "MotionInitConfig.ridge", 0.0, lo_open=True)
         check_choice(self.warp, "MotionInitConfig.warp", WARPS)
+        check_choice(self.rigid_fit, "MotionInitConfig.rigid_fit", ("pnp", "kabsch"))
         # a similarity has 4 degrees of freedom: 2 points + 1 check
         check_int(self.min_rotation_inliers, "MotionInitConfig.min_rotation_inliers", 3)

@@ -65,6 +65,7 @@ from d2gs_np.scene.deformation import deform_basis
 
 WARP_W_MIN = 1e-6  # a homogeneous pixel with w below this is at or behind infinity
 RIGID_MIN_SEEDS = 3  # a rotation needs three points off one line
+RIGID_SHAPE_SEEDS = 20  # seeds of the reference frame enough to stand for the object's shape (PnP)
 
 
 def mask_components(mask, min_area):
@@ -322,15 +323,16 @@ def initialize_deformation(scene, seed_points, seed_frames, seed_pixels, deform_
         depth = np.array([float(pc[2])])
         targets = np.stack([unproject_points(pix[n][None], depth, frames[m].cam_T_world, frames[m].K)[0]
                             for n, m in enumerate(fidx)])  # (M, 3)
-        paths[int(i)] = (fidx, targets)
+        paths[int(i)] = (fidx, targets, pix)
         tracked += 1
     info = {"num_tracks": num_tracks, "num_tracked_seeds": tracked}
     clustered = {}
     if config.rigid:
-        clustered = _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, config.ridge)
+        clustered = _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, config.ridge,
+                                    frames if config.rigid_fit == "pnp" else None)
         info["rigid"] = _rigid_blocks(clustered, Nd, K)
         info["num_clusters"] = len(clustered)
-    for i, (fidx, targets) in paths.items():
+    for i, (fidx, targets, _) in paths.items():
         if int(seed_track[i]) in clustered:
             means[i] = info["rigid"]["local"][i]
             continue
@@ -348,14 +350,17 @@ def _ridge_fit(A, targets, ridge):
     return np.linalg.solve(A.T @ A + reg, A.T @ targets)
 
 
-def _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, ridge):
+def _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, ridge, frames=None):
     """One rigid path per track with at least ``RIGID_MIN_SEEDS`` seeds (``MotionInitConfig.rigid``).
 
     The track's seeds at its middle frame are the object's shape (centred on their centroid);
     its pose at each frame is the rotation and translation (Kabsch, no scale) taking that shape to
-    the seeds' targets there, fitted by the deformation's basis (position; the raw quaternion,
-    signs made continuous). Each seed's local position is its own lifted point pulled back by the
-    fitted pose at its own frame, so the seed starts where it was seen.
+    the seeds' targets there. With ``frames`` (``rigid_fit = "pnp"``) that pose is then refined so the
+    shape projects onto the seeds' tracked pixels (``_pnp_pose``): the targets are lifted at each
+    seed's own depth, which no rigid shape meets while the object turns or changes depth, and the
+    pixels are what was seen. The poses are fitted by the deformation's basis (position; the raw
+    quaternion, signs made continuous). Each seed's local position is its own lifted point pulled
+    back by the fitted pose at its own frame, so the seed starts where it was seen.
     Returns {track: dict(seeds, p (1 + K, 3), q (1 + K, 4), local (S, 3))}.
     """
     from d2gs_np.geometry.quaternion import quat_to_rotmat, rotmat_to_quat
@@ -368,12 +373,17 @@ def _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, ridge):
             continue
         frames_j = sorted({int(m) for i in seeds for m in paths[int(i)][0]})
         at = {int(i): dict(zip((int(m) for m in paths[int(i)][0]), paths[int(i)][1])) for i in seeds}
+        px = {int(i): dict(zip((int(m) for m in paths[int(i)][0]), paths[int(i)][2])) for i in seeds}
         ref = frames_j[len(frames_j) // 2]
         shape_seeds = [i for i in seeds if ref in at[int(i)]]
+        own = [i for i in shape_seeds if int(seed_frames[i]) == ref]
+        if frames is not None and len(own) >= RIGID_SHAPE_SEEDS:
+            shape_seeds = own  # lifted at the reference frame's own depths: one consistent shape
         if len(shape_seeds) < RIGID_MIN_SEEDS:
             continue
         X = np.stack([at[int(i)][ref] for i in shape_seeds])
-        X = X - X.mean(axis=0)
+        centre = X.mean(axis=0)
+        X = X - centre
         fit_frames, pos, quat = [], [], []
         for m in frames_j:
             have = [n for n, i in enumerate(shape_seeds) if m in at[int(i)]]
@@ -384,6 +394,9 @@ def _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, ridge):
                 _, R, t = umeyama(X[have], Y, with_scale=False)
             except ValueError:  # the seeds there all at one place
                 continue
+            if frames is not None:
+                uv = np.stack([px[int(shape_seeds[n])][m] for n in have])
+                R, t = _pnp_pose(X[have], uv, frames[m], R, t)
             q = rotmat_to_quat(R)
             if quat and float(q @ quat[-1]) < 0.0:
                 q = -q  # continuous signs, so the raw quaternion's fit follows the turn
@@ -402,6 +415,30 @@ def _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, ridge):
             local.append(R.T @ (np.asarray(seed_points[i], np.float64) - pk))
         out[int(j)] = dict(seeds=np.asarray(seeds), p=p, q=q, local=np.stack(local))
     return out
+
+
+def _pnp_pose(X, uv, frame, R, t):
+    """The object pose (R, t), object -> world, that projects the shape X (S, 3) onto the pixels uv
+    (S, 2) in ``frame`` best: OpenCV's iterative PnP from the given pose, on the RANSAC inliers
+    (2 px) when at least RIGID_MIN_SEEDS support it; the given pose where PnP fails."""
+    T = np.asarray(frame.cam_T_world, np.float64)
+    Rc, tc = T[:3, :3] @ R, T[:3, :3] @ t + T[:3, 3]  # object -> camera
+    if len(X) < 6 or not np.all(np.isfinite(uv)):
+        return R, t
+    rvec, _ = cv2.Rodrigues(Rc)
+    obj, img = X.astype(np.float64), uv.astype(np.float64)  # the pixel convention cancels: same K both ways
+    Kc = np.asarray(frame.K, np.float64)
+    ok, rvec, tvec, inl = cv2.solvePnPRansac(obj, img, Kc, None, rvec.copy(), tc.reshape(3, 1).copy(),
+                                             useExtrinsicGuess=True, reprojectionError=2.0, iterationsCount=100,
+                                             flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok or inl is None or len(inl) < max(RIGID_MIN_SEEDS, 6):
+        return R, t
+    ok, rvec, tvec = cv2.solvePnP(obj[inl[:, 0]], img[inl[:, 0]], Kc, None, rvec, tvec, useExtrinsicGuess=True,
+                                  flags=cv2.SOLVEPNP_ITERATIVE)
+    if not ok or not np.all(np.isfinite(tvec)) or float(tvec.ravel()[2]) <= 0.0:
+        return R, t
+    Rc = cv2.Rodrigues(rvec)[0]
+    return T[:3, :3].T @ Rc, T[:3, :3].T @ (tvec.ravel() - T[:3, 3])
 
 
 def _rigid_blocks(clustered, Nd, K):
