@@ -185,3 +185,22 @@ def test_float32_stays_float32():
     assert all(v.dtype == np.float32 for v in v_params.values()) and v_t.dtype == np.float32
     ref, _ = render_inputs_fwd({k: v.astype(np.float64) for k, v in params.items()}, 0.4, config)
     np.testing.assert_allclose(out["means"], ref["means"], rtol=0, atol=1e-5)  # float32 rounding of O(1-10) values
+
+
+def test_no_clusters_is_the_plain_deformation():
+    """A rigid layout with C = 0 clusters (no track long enough) renders exactly as the scene
+    without it, and its (empty) rigid blocks get empty gradients."""
+    rng = np.random.default_rng(8)
+    config = DeformConfig()
+    params = rigid_params(rng, C=0, clusters=np.full(7, -1.0))
+    plain = {k: v for k, v in params.items() if not k.startswith("rigid.") and k != CLUSTER}
+    out, saved = render_inputs_fwd(params, 0.2, config)
+    ref, ref_saved = render_inputs_fwd(plain, 0.2, config)
+    for k in out:
+        np.testing.assert_array_equal(out[k], ref[k], err_msg=k)
+    w = {k: np.ones_like(v) for k, v in out.items()}
+    v_params, v_t = render_inputs_bwd(saved, w)
+    v_ref, v_t_ref = render_inputs_bwd(ref_saved, w)
+    assert v_params["rigid.means"].shape == (0, 3) and v_t == v_t_ref
+    for k in v_ref:
+        np.testing.assert_array_equal(v_params[k], v_ref[k], err_msg=k)
