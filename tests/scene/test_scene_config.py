@@ -41,6 +41,9 @@ def test_deform_config_counts_its_coefficients():
     (MotionInitConfig, dict(ridge=-1.0), ValueError, "MotionInitConfig.ridge"),
     (MotionInitConfig, dict(ridge=0.0), ValueError, "MotionInitConfig.ridge"),
     (MotionInitConfig, dict(warp="affine"), ValueError, "MotionInitConfig.warp must be one of"),
+    (MotionInitConfig, dict(rigid_fit="icp"), ValueError, "MotionInitConfig.rigid_fit must be one of"),
+    (MotionInitConfig, dict(rigid="yes"), ValueError, "MotionInitConfig.rigid must be true or false"),
+    (MotionInitConfig, dict(rigid_residual=1), ValueError, "MotionInitConfig.rigid_residual must be true or false"),
 ])
 def test_bad_fields_are_refused_by_name(cls, bad, exc, match):
     with pytest.raises(exc, match=match):
