@@ -237,10 +237,10 @@ EXPERIMENTS = {
         Variant("stereo_prior_fused_rigid", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
                         "motion_init": {"rigid": True}}),
-        # the same with the clusters' poses fitted to the lifted targets alone (before session 52's PnP)
-        Variant("stereo_prior_fused_rigid_kabsch", scene={"depth_prior": "video"},
+        # the same with the clusters' poses refined by PnP onto the tracked pixels
+        Variant("stereo_prior_fused_rigid_pnp", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
-                        "motion_init": {"rigid": True, "rigid_fit": "kabsch"}}),
+                        "motion_init": {"rigid": True, "rigid_fit": "pnp"}}),
         # the same with each cluster one body (no residual motion of its Gaussians), and with L_dgrad
         Variant("stereo_prior_fused_rigid_body", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},

@@ -224,9 +224,10 @@ class MotionInitConfig:
     # with ``rigid``: False holds the clustered Gaussians' own position and rotation residuals at zero
     # (their gradients dropped), so each cluster moves as one body; True trains them as the rest
     rigid_residual: bool = True
-    # with ``rigid``: how each cluster's pose at a frame is fitted, "pnp" (the shape projected onto
-    # its seeds' tracked pixels, from the "kabsch" pose) or "kabsch" (to their lifted 3D targets)
-    rigid_fit: str = "pnp"
+    # with ``rigid``: how each cluster's pose at a frame is fitted, "kabsch" (to its seeds' lifted 3D
+    # targets) or "pnp" (then the shape projected onto their tracked pixels; worse in training:
+    # docs/results.md §4, "Rigid movers")
+    rigid_fit: str = "kabsch"
 
     def __post_init__(self):
         for name in ("enabled", "rotation", "rigid", "rigid_residual"):
