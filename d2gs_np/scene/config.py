@@ -226,7 +226,7 @@ class MotionInitConfig:
     rigid_residual: bool = True
     # with ``rigid``: how each cluster's pose at a frame is fitted, "kabsch" (to its seeds' lifted 3D
     # targets) or "pnp" (then the shape projected onto their tracked pixels; worse in training:
-    # docs/results.md §4, "Rigid movers")
+    # docs/results.md §4, "Rigid movers: one pose path per tracked mover (session 52; built, opt-in)")
     rigid_fit: str = "kabsch"
 
     def __post_init__(self):
