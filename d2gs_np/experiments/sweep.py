@@ -241,13 +241,10 @@ EXPERIMENTS = {
         Variant("stereo_prior_fused_rigid_pnp", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
                         "motion_init": {"rigid": True, "rigid_fit": "pnp"}}),
-        # the same with each cluster one body (no residual motion of its Gaussians), and with L_dgrad
+        # the same with each cluster one body (no residual motion of its Gaussians)
         Variant("stereo_prior_fused_rigid_body", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
                         "motion_init": {"rigid": True, "rigid_residual": False}}),
-        Variant("stereo_prior_fused_rigid_dgrad", scene={"depth_prior": "video"},
-                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
-                        "motion_init": {"rigid": True}, "loss": {"lambda_depth_grad": 1.0}}),
         Variant("stereo_prior_fused_shared", scene={"depth_prior": "video", "prior_shared_error": 0.5},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True}}),
         Variant("stereo_prior_shared", scene={"depth_prior": "video", "prior_shared_error": 0.5},
