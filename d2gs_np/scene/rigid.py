@@ -71,10 +71,6 @@ def _right_matrix(b):
                      z, y, -x, w], -1).reshape(-1, 4, 4)
 
 
-def _cluster_ids(cluster):
-    return np.asarray(cluster).astype(np.int64)
-
-
 def rigid_fwd(local_means, local_quats, cluster, rigid_blocks, t, deform_config):
     """World positions and unit rotations of the dynamic Gaussians at time t.
 
@@ -90,7 +86,7 @@ def rigid_fwd(local_means, local_quats, cluster, rigid_blocks, t, deform_config)
                                      rigid_blocks[f"{RIGID}.deform_means"], rigid_blocks[f"{RIGID}.deform_quats"],
                                      np.zeros(rigid_blocks[f"{RIGID}.deform_means"].shape, dtype=dtype), t,
                                      deform_config)
-    ids = _cluster_ids(cluster)
+    ids = np.asarray(cluster).astype(np.int64)
     on = np.flatnonzero(ids >= 0)
     c = ids[on]
     Rc = quat_rotmat_unit(qc)  # (C, 3, 3)
