@@ -84,6 +84,16 @@ def wavy_depth(shape, seed=0, lo=1.5, hi=6.0):
     return lo + (hi - lo) * (0.5 + 0.4 * np.sin(xx / 2.3 + seed) * np.cos(yy / 3.1)) + 0.05 * rng.standard_normal(shape)
 
 
+def with_holes(prior, alpha, seed=1):
+    """Copies of a depth prior and an alpha map with NaN in a tenth of the prior's pixels and alpha
+    0.3 (below the depth losses' 0.5) in another tenth: pixels the depth losses must ignore."""
+    rng = np.random.default_rng(seed)
+    prior, alpha = prior.copy(), alpha.copy()
+    prior[rng.random(prior.shape) < 0.1] = np.nan
+    alpha[rng.random(alpha.shape) < 0.1] = 0.3
+    return prior, alpha
+
+
 def central_fd_scalar(g, h):
     """(g(h) - g(-h)) / (2h) for a scalar function g of a scalar step."""
     return (g(h) - g(-h)) / (2.0 * h)

@@ -5,7 +5,7 @@ ignores, extreme inputs, bad input."""
 import numpy as np
 import pytest
 
-from render_fixtures import central_fd, wavy_depth
+from render_fixtures import central_fd, wavy_depth, with_holes
 
 from d2gs_np.losses.depth_gradient import depth_gradient_bwd, depth_gradient_fwd
 from d2gs_np.losses.depth_prior import depth_prior_fwd
@@ -17,14 +17,6 @@ def _depth(seed=0, lo=1.5, hi=6.0):
     return wavy_depth((H, W), seed, lo, hi)
 
 
-def _holes(prior, alpha, seed=1):
-    rng = np.random.default_rng(seed)
-    prior, alpha = prior.copy(), alpha.copy()
-    prior[rng.random((H, W)) < 0.1] = np.nan
-    alpha[rng.random((H, W)) < 0.1] = 0.3
-    return prior, alpha
-
-
 def test_gradient_matches_central_differences():
     # A prior that agrees with the render only in part, holes in both, a mask: every pair kind and
     # the 1/D factor are exercised. Central differences at h = 1e-6 on depths 1.5-6: the L1 is
@@ -33,7 +25,7 @@ def test_gradient_matches_central_differences():
     # ~1e-3..1e-1; 1e-7 relative to the largest catches a missing neighbour or factor.
     d = _depth(0)
     prior = 0.7 * d + 0.3 * np.roll(d, 3, axis=1) + 0.2
-    prior, alpha = _holes(prior, np.ones((H, W)))
+    prior, alpha = with_holes(prior, np.ones((H, W)))
     mask = np.ones((H, W))
     mask[:, :2] = 0.0
     weight = 0.37

@@ -5,7 +5,7 @@ fix), the pixels it ignores, flat and extreme inputs, bad input."""
 import numpy as np
 import pytest
 
-from render_fixtures import central_fd, wavy_depth
+from render_fixtures import central_fd, wavy_depth, with_holes
 
 from d2gs_np.losses.depth_prior import depth_prior_bwd, depth_prior_fwd
 
@@ -14,15 +14,6 @@ H, W = 9, 11
 
 def _depth(seed=0, lo=1.5, hi=6.0):
     return wavy_depth((H, W), seed, lo, hi)
-
-
-def _with_holes(prior, alpha, seed=1):
-    """NaN in a few prior pixels, alpha below 0.5 in others: both must be ignored."""
-    rng = np.random.default_rng(seed)
-    prior, alpha = prior.copy(), alpha.copy()
-    prior[rng.random((H, W)) < 0.1] = np.nan
-    alpha[rng.random((H, W)) < 0.1] = 0.3
-    return prior, alpha
 
 
 _TOL_MAP = np.where(np.arange(W)[None, :] < W // 2, 0.0, 0.05) * np.ones((H, 1))  # a pixel's own tau
@@ -40,7 +31,7 @@ def test_gradient_matches_central_differences(space, tol):
     d = _depth(0)
     truth = 1.0 / d if space == "disparity" else d
     prior = 0.7 * truth + 0.3 * np.roll(truth, 3, axis=1) + 0.2
-    prior, alpha = _with_holes(prior, np.ones((H, W)))
+    prior, alpha = with_holes(prior, np.ones((H, W)))
     mask = np.ones((H, W))
     mask[:, :2] = 0.0
     weight = 0.37
@@ -130,7 +121,7 @@ def test_a_disparity_prior_is_matched_up_to_scale_and_shift():
 
 def test_ignored_pixels_do_not_change_the_value():
     d = _depth(4)
-    prior, alpha = _with_holes(0.8 * d + 0.3 * _depth(5), np.ones((H, W)))
+    prior, alpha = with_holes(0.8 * d + 0.3 * _depth(5), np.ones((H, W)))
     v = depth_prior_fwd(d, prior, alpha)[0]
     assert v == depth_prior_fwd(d, np.where(alpha < 0.5, -1.0, prior), alpha)[0]  # no estimate, or no render
     other = d.copy()
