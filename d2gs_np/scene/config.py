@@ -2,7 +2,8 @@
 
 ``DeformConfig`` sizes the deformation model (scene/deformation.py), ``InitConfig`` and the
 ``StereoConfig`` it nests set up the initial point clouds (scene/initialize.py, scene/stereo.py),
-``MotionInitConfig`` the initial motion of the dynamic set (scene/motion_init.py). Plain data:
+``MotionInitConfig`` the initial motion of the dynamic set (scene/motion_init.py), ``BorderConfig`` the
+static world continued past the frames' borders at the end of training (scene/border.py). Plain data:
 importing this module loads none of the code that uses it (no OpenCV, Numba or CasADi).
 """
 from __future__ import annotations
@@ -14,7 +15,7 @@ from dataclasses import dataclass, field
 from d2gs_np.base.checks import check_bool, check_choice, check_int, check_number
 from d2gs_np.pose.config import FeatureConfig
 
-__all__ = ["DeformConfig", "InitConfig", "StereoConfig", "MotionInitConfig", "WARPS"]
+__all__ = ["DeformConfig", "InitConfig", "StereoConfig", "MotionInitConfig", "BorderConfig", "WARPS"]
 
 # how a seed's pixel can follow its object's track (``MotionInitConfig.warp``)
 WARPS = ("centroid", "similarity", "homography", "flow")
@@ -240,3 +241,34 @@ class MotionInitConfig:
         check_choice(self.rigid_fit, "MotionInitConfig.rigid_fit", ("pnp", "kabsch"))
         # a similarity has 4 degrees of freedom: 2 points + 1 check
         check_int(self.min_rotation_inliers, "MotionInitConfig.min_rotation_inliers", 3)
+
+
+@dataclass(frozen=True)
+class BorderConfig:
+    """The static world continued past the training frames' borders (``scene/border.py``), added to
+    the finished model (``Trainer``): opaque copies of each frame's border pixels, outward."""
+
+    # how far past each border, as a share of the image's larger side (0 = off); a test view 5 % of
+    # the depth beside the path sees ~5 % of the width past it (docs/method.md §2)
+    margin: float = 0.12
+    step_px: float = 3.0  # spacing of the copies along and across the border, pixels
+    gap: int = 2  # the first copy lies gap * step_px px past the border (its footprint off the image)
+    sigma: float = 0.6  # each copy's isotropic sigma, in units of step_px at its depth
+    min_alpha: float = 0.5  # border pixels whose static alpha is lower are not copied
+    opacity: float = 0.98
+    # the copies' depth continues the surface's slope, measured this many pixels inside the border
+    # (0: the border pixel's depth, fronto-parallel), within a factor max_depth_ratio of it
+    slope_px: int = 6
+    max_depth_ratio: float = 2.0
+    colour_sigma_px: float = 3.0  # the copies take the border's colour blurred by a Gaussian of this sigma
+
+    def __post_init__(self):
+        check_number(self.margin, "BorderConfig.margin", 0.0, 1.0, hint="0 = off")
+        check_number(self.step_px, "BorderConfig.step_px", 0.0, lo_open=True)
+        check_int(self.gap, "BorderConfig.gap", 1)
+        check_number(self.sigma, "BorderConfig.sigma", 0.0, lo_open=True)
+        check_number(self.min_alpha, "BorderConfig.min_alpha", 0.0, 1.0)
+        check_number(self.opacity, "BorderConfig.opacity", 0.0, 1.0, lo_open=True, hi_open=True)
+        check_int(self.slope_px, "BorderConfig.slope_px", 0)
+        check_number(self.max_depth_ratio, "BorderConfig.max_depth_ratio", 1.0)
+        check_number(self.colour_sigma_px, "BorderConfig.colour_sigma_px", 0.0, hint="0 = the border pixel's own")

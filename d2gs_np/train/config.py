@@ -19,7 +19,7 @@ from d2gs_np.blur.config import BlurConfig, TrajectoryConfig
 from d2gs_np.pose.config import CorrespondConfig, GaussNewtonConfig, PoseInitConfig
 from d2gs_np.base.checks import ConfigWarning, check_bool, check_choice, check_int, check_number, name_items, warn
 from d2gs_np.render.config import RenderConfig
-from d2gs_np.scene.config import DeformConfig, InitConfig, MotionInitConfig
+from d2gs_np.scene.config import BorderConfig, DeformConfig, InitConfig, MotionInitConfig
 from d2gs_np.train.schedule import ScheduleConfig
 
 _AUTO = ("auto", "on", "off")
@@ -412,6 +412,8 @@ class ExperimentConfig:
     prune: PruneConfig = field(default_factory=PruneConfig)
     pose_solver: PoseSolverConfig = field(default_factory=PoseSolverConfig)
     pose_init: PoseInitConfig = field(default_factory=PoseInitConfig)
+    # the static world continued past the frames' borders, added to the finished model
+    border: BorderConfig = field(default_factory=BorderConfig)
 
     def to_dict(self) -> dict:
         return _to_plain(self)

@@ -44,6 +44,7 @@ import numpy as np
 from d2gs_np.data.scene import Scene
 from d2gs_np.render.api import warm_up
 from d2gs_np.scene import gaussians
+from d2gs_np.scene.border import border_gaussians, static_renders
 from d2gs_np.scene.gaussians import STATIC, num_static
 from d2gs_np.scene.rigid import dynamic_positions, hold_rigid_residuals
 from d2gs_np.train.background import background_rng, composite_bwd, composite_fwd
@@ -320,8 +321,26 @@ class Trainer:
         if budget is not None and self.stopwatch.seconds() >= budget:
             self.log.note(f"time budget of {budget:.0f}s reached at step {self.step_index} (schedule step "
                           f"{self.state.sched} of {total}: schedule complete); stopping")
+        self._extend_past_borders()
         self.checkpoint(final=True)
         return self.state.record
+
+    def _extend_past_borders(self):
+        """The finished model's static world continued past the frames' borders (``scene/border.py``),
+        outside the training clock: no training view changes, so neither does anything trained."""
+        cfg = self.config.border
+        if cfg.margin <= 0:
+            return
+        t0 = time.perf_counter()
+        model = self.state.model
+        images, alphas, depths = static_renders(model)
+        new, info = border_gaussians(images, alphas, depths, model.mid_poses(), model.Ks, cfg,
+                                     existing=model.params[f"{STATIC}.means"], eps2d=model.config.render.eps2d)
+        if new is not None:
+            self.state = self.state.resize_rows(STATIC, new=new)
+        self.log.note(f"past the frames' borders: {info['added']} static Gaussians added of {info['candidates']} "
+                      f"candidates" + (f" ({info['reason']})" if "reason" in info else "")
+                      + f", {time.perf_counter() - t0:.1f}s outside the training clock")
 
     def _schedule_done(self, step, seconds) -> bool:
         """Whether the run has ended: its budget spent (``seconds``; None: not asked), or (unless
