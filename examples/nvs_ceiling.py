@@ -10,10 +10,11 @@ pixel exact:
 - ``lowpass``: the unseen pixels rendered as the true view blurred by a Gaussian of ``--sigma``
   pixels (an oracle that knows the region's coarse content, only its fine texture missing).
 
-The scene's ceiling is the mean over its views of each (``d2gs eval`` scores novel views as the
-mean over views of the per-view PSNR). Given a run folder whose ``metrics.json`` has ``dvs`` and
-``nvs``, it also prints the run's deblurred and novel views, and how far the ceiling lies from
-DVS − 3 dB (issue #40's first line: novel views within 3 dB of the deblurred ones).
+Given a run folder whose ``metrics.json`` has ``dvs`` and ``nvs``, it also prints the run's deblurred
+and novel views and the novel views the ceilings allow (``d2gs eval`` scores novel views as the mean
+over views of the per-view PSNR; a view is taken at most at its ceiling and at most at the deblurred
+views' PSNR, which no view is expected to beat), beside DVS − 3 dB (issue #40's first line: novel
+views within 3 dB of the deblurred ones).
 
     python examples/nvs_ceiling.py SCENE_OR_RUN [more] [--sigma 2] [--out ceiling.csv]
 
@@ -95,16 +96,16 @@ def main(argv=None):
     for path in args.paths:
         scene_dir, m = _resolve(path)
         rows = scene_ceilings(load_scene(scene_dir), args.sigma)
-        mean_c = float(np.mean([r["ceiling_mean"] for r in rows]))
-        low_c = float(np.mean([r["ceiling_lowpass"] for r in rows]))
         views = " / ".join(f"{r['unseen_share'] * 100:.1f} % {r['ceiling_mean']:.1f} {r['ceiling_lowpass']:.1f}"
                            for r in rows)
-        line = f"{Path(path).name}: ceiling mean-colour {mean_c:.2f} dB, low-pass {low_c:.2f} dB (views: {views})"
+        line = f"{Path(path).name}: views (unseen share, mean-colour and low-pass ceilings dB): {views}"
         if m and "dvs" in m and "nvs" in m:
             dvs, nvs = m["dvs"]["psnr"], m["nvs"]["psnr"]
-            line += (f"; run DVS {dvs:.2f}, NVS {nvs:.2f}, seen px {m['nvs'].get('seen_psnr') or float('nan'):.2f};"
-                     f" DVS - 3 = {dvs - 3:.2f}: the low-pass ceiling {'reaches' if low_c >= dvs - 3 else 'misses'} it"
-                     f" by {low_c - (dvs - 3):+.2f} dB")
+            # no view is taken to beat the training views' own fit: each at most the DVS and its ceiling
+            allowed = {k: float(np.mean([min(r[k], dvs) for r in rows])) for k in ("ceiling_mean", "ceiling_lowpass")}
+            line += (f"; run DVS {dvs:.2f}, NVS {nvs:.2f}, seen px {m['nvs'].get('seen_psnr') or float('nan'):.2f}; "
+                     f"NVS allowed with every view at most the DVS: {allowed['ceiling_mean']:.2f} (mean colour), "
+                     f"{allowed['ceiling_lowpass']:.2f} (low-pass), against DVS - 3 = {dvs - 3:.2f}")
         print(line, flush=True)
         for r in rows:
             out_rows.append({"path": str(path), **r})

@@ -1,5 +1,5 @@
-"""The static world continued past the training frames' borders (docs/method.md §2, "Past the frames'
-borders").
+"""The static world continued past the training frames' borders (docs/method.md §2: past the
+frames' borders).
 
 A novel view beside the camera path sees, along its edge, surfaces that no training frame saw.
 Without Gaussians there it renders the background: on the suite's end test views 4-6 % of the
