@@ -337,6 +337,7 @@ class Trainer:
         new, info = border_gaussians(images, alphas, depths, model.mid_poses(), model.Ks, cfg,
                                      existing=model.params[f"{STATIC}.means"], eps2d=model.config.render.eps2d)
         if new is not None:
+            new = {k: v.astype(model.params[k].dtype, copy=False) for k, v in new.items()}
             self.state = self.state.resize_rows(STATIC, new=new)
         self.log.note(f"past the frames' borders: {info['added']} static Gaussians added of {info['candidates']} "
                       f"candidates" + (f" ({info['reason']})" if "reason" in info else "")
