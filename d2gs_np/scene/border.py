@@ -74,8 +74,11 @@ def outside_every_frame(points, sigmas, poses, Ks, sizes, eps2d=0.0):
         uv, z = project_points(points, T, K)
         front = z > 0
         zs = np.where(front, z, 1.0)
-        pad_x = RADIUS_SIGMA * np.sqrt((sigmas * K[0, 0] / zs) ** 2 + eps2d) + FOOTPRINT_PAD_PX
-        pad_y = RADIUS_SIGMA * np.sqrt((sigmas * K[1, 1] / zs) ** 2 + eps2d) + FOOTPRINT_PAD_PX
+        # an isotropic sigma's screen variance is (f sigma / z)^2 (1 + (x/z)^2) per axis (J J^T of the
+        # projection); unclamped, so never smaller than the renderer's (which clamps x/z)
+        tx, ty = (uv[:, 0] - K[0, 2]) / K[0, 0], (uv[:, 1] - K[1, 2]) / K[1, 1]
+        pad_x = RADIUS_SIGMA * np.sqrt((sigmas * K[0, 0] / zs) ** 2 * (1.0 + tx ** 2) + eps2d) + FOOTPRINT_PAD_PX
+        pad_y = RADIUS_SIGMA * np.sqrt((sigmas * K[1, 1] / zs) ** 2 * (1.0 + ty ** 2) + eps2d) + FOOTPRINT_PAD_PX
         touches = front & (uv[:, 0] + pad_x > 0) & (uv[:, 0] - pad_x < W) & (uv[:, 1] + pad_y > 0) & \
             (uv[:, 1] - pad_y < H)
         out &= ~touches
