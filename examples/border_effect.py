@@ -34,7 +34,8 @@ def border_effect(run_dir, config=None):
     scene = load_scene(run.meta["scene_root"])
     model = run.model
     t0 = time.perf_counter()
-    new, info = border_gaussians(*static_renders(model), model.mid_poses(), model.Ks, cfg,
+    poses = model.mid_poses()
+    new, info = border_gaussians(*static_renders(model, poses), poses, model.Ks, cfg,
                                  existing=model.params[f"{STATIC}.means"], eps2d=model.config.render.eps2d)
     seconds = time.perf_counter() - t0
     with_border = model if new is None else model.replace(params=append_gaussians(model.params, new))

@@ -307,8 +307,8 @@ def object_states(world: SyntheticWorld, t):
 
 
 # ========================================================================= textures
-# Textures use a C1 periodic wave instead of np.sin: on this project's machines float64 np.sin
-# costs ~20x an add per element and textures are evaluated for every sample of every sub-frame.
+# Textures use a C1 periodic wave instead of np.sin: float64 np.sin is slow per element, and textures
+# are evaluated for every sample of every sub-frame.
 def _wave(x):
     """C1 periodic wave of period 1 in [-1, 1], a close stand-in for sin(2 pi x) (max gap 0.02).
 

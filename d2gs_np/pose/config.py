@@ -77,8 +77,8 @@ class FeatureConfig:
 class CorrespondConfig:
     """Which frame pairs are matched and how (``pose/correspond.py``; ``features``: detector, ratio, RANSAC)."""
 
-    # Detection tuned for small blurry frames: with OpenCV's SIFT defaults most pairs of the
-    # 160 x 90 wall_disk suite scene had too few verified matches (docs/results.md §12).
+    # Detection tuned for small blurry frames, where OpenCV's SIFT defaults leave most pairs with too
+    # few verified matches (docs/results.md §12).
     features: FeatureConfig = field(default_factory=lambda: FeatureConfig(
         contrast_threshold=0.002, sigma=1.0, ratio=0.85, ransac_threshold_px=1.5))
     gaps: tuple = (1, 2)  # pairs (k, k + g): consecutive frames and frames two apart

@@ -2,8 +2,7 @@
 frames' borders).
 
 A novel view beside the camera path sees, along its edge, surfaces that no training frame saw.
-Without Gaussians there it renders the background: on the suite's end test views 4-6 % of the
-pixels, at 11-17 dB. Here each training frame's static render is continued outward, as
+Without Gaussians there it renders the background (what that costs: docs/method.md §2). Here each training frame's static render is continued outward, as
 clamp-to-edge texture addressing continues an image: for every ``step_px``-th pixel of its border
 whose static alpha is at least ``min_alpha``, opaque isotropic Gaussians at the render's local mean
 colour there (over its background, blurred by a Gaussian of ``colour_sigma_px``) and at the pixel's
@@ -153,9 +152,8 @@ def border_gaussians(images, alphas, depths, poses, Ks, config: BorderConfig, ex
         slope = np.where(has, (inv - 1.0 / np.where(has, z_in, 1.0)) / max(inset, 1), 0.0)
         q = config.max_depth_ratio
         inv_out = np.clip(inv + slope * dist, inv / q, inv * q)
-        # the border's local mean colour as the frame renders it, over its background (one bright star
-        # of a dark sky, which the model may draw as a few opaque stars over a transparent black,
-        # replicated 30 px would be a streak)
+        # the border's local mean colour as the frame renders it, over its background: one bright pixel
+        # (a star of a dark sky drawn as opaque stars over transparent black) replicated would be a streak
         colour = _local_mean(img, config.colour_sigma_px)[r, c]
         z = 1.0 / inv_out
         pts.append(unproject_points(np.stack([u, v], axis=1), z, T, K))

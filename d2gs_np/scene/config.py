@@ -248,8 +248,8 @@ class BorderConfig:
     """The static world continued past the training frames' borders (``scene/border.py``), added to
     the finished model (``Trainer``): opaque copies of each frame's border pixels, outward."""
 
-    # how far past each border, as a share of the image's larger side (0 = off); a test view 5 % of
-    # the depth beside the path sees ~5 % of the width past it (docs/method.md §2)
+    # how far past each border, as a share of the image's larger side (0 = off): as far as a novel
+    # view beside the path may look past a frame's edge (docs/method.md §2)
     margin: float = 0.12
     step_px: float = 3.0  # spacing of the copies along and across the border, pixels
     gap: int = 2  # the first copy lies gap * step_px px past the border (its footprint off the image)

@@ -293,7 +293,7 @@ class PoseSolverConfig:
     # Both keep the calls from shrinking and turning the trajectory (docs/results.md §11).
     # Real (not schedule) steps a call needs since the previous call, or since the start: the
     # depths a call reads come from the scene Adam fitted since. The cadence ``every`` runs on the
-    # schedule's clock, which a loaded machine stretches; 40 is about one period's real steps on
+    # schedule's clock, which a loaded machine stretches; the default is one period's real steps on
     # an idle machine (docs/results.md §11).
     min_steps: int = 40
     prior_rot_deg: float = 0.3

@@ -333,8 +333,9 @@ class Trainer:
             return
         t0 = time.perf_counter()
         model = self.state.model
-        images, alphas, depths = static_renders(model)
-        new, info = border_gaussians(images, alphas, depths, model.mid_poses(), model.Ks, cfg,
+        poses = model.mid_poses()
+        images, alphas, depths = static_renders(model, poses)
+        new, info = border_gaussians(images, alphas, depths, poses, model.Ks, cfg,
                                      existing=model.params[f"{STATIC}.means"], eps2d=model.config.render.eps2d)
         if new is not None:
             new = {k: v.astype(model.params[k].dtype, copy=False) for k, v in new.items()}

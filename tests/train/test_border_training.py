@@ -35,7 +35,7 @@ def test_a_finished_run_holds_the_world_past_the_borders(tmp_path):
     for k, v in off.params.items():
         got = on.params[k][:n] if k.startswith("static.") else on.params[k]
         np.testing.assert_array_equal(got, v, err_msg=k)
-    for view in range(scene.num_frames if hasattr(scene, "num_frames") else len(scene.frames)):
+    for view in range(scene.num_frames):
         np.testing.assert_array_equal(on.model.render(view), off.model.render(view))
     loaded = load_run(tmp_path / "on").model
     assert num_static(loaded.params) == num_static(on.params)
