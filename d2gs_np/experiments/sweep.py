@@ -200,6 +200,10 @@ EXPERIMENTS = {
     "static-depth": (
         Variant("stereo_true", scene=_TRUE_POSES),
         Variant("oracle_true", scene=_TRUE_POSES, config={"init": {"static_depth": "scene", "dynamic_depth": "scene"}}),
+        # and each tracked mover one body on a path chained from frame pairs at the true depth (issue #44)
+        Variant("oracle_true_rigid_pairs", scene=_TRUE_POSES,
+                config={"init": {"static_depth": "scene", "dynamic_depth": "scene"},
+                        "motion_init": {"rigid": True, "rigid_residual": False, "rigid_fit": "pairs"}}),
         Variant("stereo"),
         Variant("oracle", config={"init": {"static_depth": "scene", "dynamic_depth": "scene"}}),
         # the realistic counterpart of the oracle: a modelled video depth prior (data/suite.py) aligned to
@@ -245,6 +249,10 @@ EXPERIMENTS = {
         Variant("stereo_prior_fused_rigid_body", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
                         "motion_init": {"rigid": True, "rigid_residual": False}}),
+        # one body whose path is chained from frame pairs lifted at the aligned priors (rigid_fit "pairs")
+        Variant("stereo_prior_fused_rigid_pairs", scene={"depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
+                        "motion_init": {"rigid": True, "rigid_residual": False, "rigid_fit": "pairs"}}),
         Variant("stereo_prior_fused_shared", scene={"depth_prior": "video", "prior_shared_error": 0.5},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True}}),
         Variant("stereo_prior_shared", scene={"depth_prior": "video", "prior_shared_error": 0.5},

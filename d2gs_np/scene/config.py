@@ -19,6 +19,7 @@ __all__ = ["DeformConfig", "InitConfig", "StereoConfig", "MotionInitConfig", "Bo
 
 # how a seed's pixel can follow its object's track (``MotionInitConfig.warp``)
 WARPS = ("centroid", "similarity", "homography", "flow")
+RIGID_FITS = ("kabsch", "pnp", "pairs")
 DYNAMIC_DEPTHS = ("static_median", "scene", "prior", "auto")  # InitConfig.dynamic_depth
 STATIC_DEPTHS = ("stereo", "scene", "prior", "stereo_prior", "auto")  # InitConfig.static_depth
 STEREO_PRIOR_SCOPES = ("measured", "all")  # InitConfig.stereo_prior_scope
@@ -227,7 +228,10 @@ class MotionInitConfig:
     rigid_residual: bool = True
     # with ``rigid``: how each cluster's pose at a frame is fitted, "kabsch" (to its seeds' lifted 3D
     # targets) or "pnp" (then the shape projected onto their tracked pixels; worse in training:
-    # docs/results.md §4, "Rigid movers: one pose path per tracked mover (session 52; built, opt-in)")
+    # docs/results.md §4, "Rigid movers: one pose path per tracked mover (session 52; built, opt-in)"),
+    # or "pairs" (chained from each consecutive pair's rigid motion, the pair's correspondences
+    # lifted at the seeds' depth maps: a turn out of the image plane too; needs init.dynamic_depth
+    # "prior" or "scene")
     rigid_fit: str = "kabsch"
 
     def __post_init__(self):
@@ -238,7 +242,7 @@ class MotionInitConfig:
         # tracks shorter than 1 + K frames need the ridge to be well posed
         check_number(self.ridge, "MotionInitConfig.ridge", 0.0, lo_open=True)
         check_choice(self.warp, "MotionInitConfig.warp", WARPS)
-        check_choice(self.rigid_fit, "MotionInitConfig.rigid_fit", ("pnp", "kabsch"))
+        check_choice(self.rigid_fit, "MotionInitConfig.rigid_fit", RIGID_FITS)
         # a similarity has 4 degrees of freedom: 2 points + 1 check
         check_int(self.min_rotation_inliers, "MotionInitConfig.min_rotation_inliers", 3)
 

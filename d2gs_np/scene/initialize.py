@@ -634,6 +634,7 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
     dyn_pix = np.zeros((0, 2))
     frame_depth = np.full(N, np.nan)
     prior_info = None
+    dyn_maps = None  # per-frame depth maps the dynamic seeds were lifted at ("scene", "prior"), else None
     if has_moving and config.dynamic_points > 0:
         ref = tri_pts if tri_pts.shape[0] > 0 else fill_pts
         fallback = float(np.median(tri_depth)) if tri_depth.size else 0.5 * (near + far)
@@ -645,7 +646,8 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
         jitter = rng.uniform(1.0 - config.dynamic_depth_jitter, 1.0 + config.dynamic_depth_jitter, len(dyn_src))
         depth = config.dynamic_depth_factor * frame_depth[dyn_src] * jitter
         if config.dynamic_depth == "scene":  # the scene's depth maps at the seeds' pixels (checked above)
-            measured = _at_pixels([f.depth for f in frames], dyn_src, dyn_pix) * jitter
+            dyn_maps = [f.depth for f in frames]
+            measured = _at_pixels(dyn_maps, dyn_src, dyn_pix) * jitter
             ok = np.isfinite(measured) & (measured > 0)
             depth = np.where(ok, measured, depth)
         elif config.dynamic_depth == "prior":  # each frame's prior aligned to the static points seen there
@@ -659,6 +661,7 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
             aligned, prior_info = _aligned_priors(frames, reference, np.unique(dyn_src), config,
                                                   fc.mask_dilation_px)
             prior_info["reference"] = f"{what} ({len(reference)})"
+            dyn_maps = aligned
             measured = _at_pixels(aligned, dyn_src, dyn_pix) * jitter
             ok = np.isfinite(measured) & (measured > 0)
             depth = np.where(ok, measured, depth)
@@ -707,6 +710,7 @@ def initialize_points(scene, config: InitConfig = None, rng=None, anchor_points=
                                            np.zeros(len(fill_src), bool)]),
         "dynamic_source_frames": dyn_src,
         "dynamic_source_pixels": dyn_pix,
+        "dynamic_depth_maps": dyn_maps,
     }
     return static_points, static_colors, dynamic_points, dynamic_colors, info
 

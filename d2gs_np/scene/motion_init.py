@@ -47,7 +47,12 @@ true motion of the suite's movers the flow rule is the closest on every scene
 With ``rigid`` (``MotionInitConfig.rigid``) each track of three or more seeds is one rigid
 object instead: its pose at each frame is the rotation and translation (no scale) that takes its
 seeds at the track's middle frame to their targets there, the pose path is fitted by the same
-basis, and its seeds keep zero coefficients in its frame (``scene/rigid.py``).
+basis, and its seeds keep zero coefficients in its frame (``scene/rigid.py``). The targets sit at
+each seed's own depth, so that pose holds the turn in the image plane only; with ``rigid_fit =
+"pairs"`` and the per-frame depth maps the seeds were lifted at, the pose is chained instead from
+each consecutive pair of the track's frames: the pair's flow correspondences inside the object
+(step 3's maps), lifted at both frames' depths, and the rigid motion between them (a RANSAC
+similarity, its scale dropped), which holds a turn out of the image plane too.
 
 Seeds whose pixel lies in no tracked component keep zero coefficients. Only
 the means are initialised; rotations and colours start with zero residuals.
@@ -66,6 +71,15 @@ from d2gs_np.scene.deformation import deform_basis
 WARP_W_MIN = 1e-6  # a homogeneous pixel with w below this is at or behind infinity
 RIGID_MIN_SEEDS = 3  # a rotation needs three points off one line
 RIGID_SHAPE_SEEDS = 20  # seeds of the reference frame enough to stand for the object's shape (PnP)
+PAIR_MIN_POINTS = 12  # correspondences a pair's rigid motion needs ("pairs"); fewer: no turn measured
+PAIR_MAX_POINTS = 800  # correspondences a pair keeps, on a regular grid over the object
+PAIR_ERODE_PX = 2  # the object's region eroded by this much: off its blurred rim and depth edges
+PAIR_INLIER_FRACTION = 0.1  # RANSAC inlier distance, a fraction of the object's median radius
+PAIR_MIN_INLIER_SHARE = 0.5  # a pair with fewer inliers than this share measures no turn
+PAIR_RANSAC_ITERS = 200
+# a correspondence's depth within this factor of its region's median depth in both frames: a blurred
+# mover's mask also covers the streak it leaves, where the depth is the background's
+PAIR_DEPTH_GATE = 1.25
 
 
 def mask_components(mask, min_area):
@@ -244,14 +258,133 @@ def _track_turns(frames, labels, mem, min_inliers):
     return np.array(angle), np.array(scale)
 
 
+def _object_region(labels, k, c):
+    """Member (k, c)'s component, eroded by ``PAIR_ERODE_PX`` (the whole component if that empties it)."""
+    region = labels[k] == c
+    size = 2 * PAIR_ERODE_PX + 1
+    inner = cv2.erode(region.astype(np.uint8), np.ones((size, size), np.uint8)).astype(bool)
+    return inner if inner.any() else region
+
+
+def pair_motion(frames, labels, a, b, depth_maps, min_inliers=6):
+    """The rigid motion (R (3, 3), t (3,)) taking the world points of track member a = (k0, centroid,
+    component) to those of member b (x_b = R x_a + t), from the pair's map (``_pair_map``) on a grid
+    of the object's pixels in k0, both ends lifted at ``depth_maps`` (per frame (H, W), NaN or
+    non-positive where unknown), those within ``PAIR_DEPTH_GATE`` of their region's median depth in
+    both frames: a RANSAC similarity (3-point samples, inliers within ``PAIR_INLIER_FRACTION`` of the
+    object's median radius), refitted on its inliers; the scale is dropped
+    (each frame's depth may carry its own), the translation is the one that keeps the inliers'
+    centroid. Returns (R, t, number of inliers), or None where too few correspondences or inliers."""
+    from d2gs_np.geometry.trajectory import umeyama
+    from d2gs_np.scene.initialize import sample_image_bilinear
+
+    (k0, _, c0), (k1, _, c1) = a, b
+    if depth_maps[k0] is None or depth_maps[k1] is None:
+        return None
+    region0, region1 = _object_region(labels, k0, c0), _object_region(labels, k1, c1)
+    ys, xs = np.nonzero(region0)
+    stride = max(1, int(np.ceil(np.sqrt(len(xs) / PAIR_MAX_POINTS))))
+    on_grid = (ys % stride == 0) & (xs % stride == 0)
+    p = np.c_[xs[on_grid], ys[on_grid]] + PIXEL_CENTER_OFFSET
+    if len(p) < PAIR_MIN_POINTS:
+        return None
+    q = _pair_map(frames, labels, a, b, min_inliers)(p)
+    h, w = region1.shape
+    ok = np.isfinite(q).all(axis=1)
+    qi = np.clip(np.floor(np.nan_to_num(q)).astype(np.int64), 0, [w - 1, h - 1])
+    ok &= region1[qi[:, 1], qi[:, 0]]
+    d0, d1 = (sample_image_bilinear(np.nan_to_num(np.asarray(depth_maps[k], np.float64), nan=0.0, posinf=0.0,
+                                                  neginf=0.0)[..., None], x)[:, 0]
+              for k, x in ((k0, p), (k1, np.nan_to_num(q))))
+    ok &= (d0 > 0) & (d1 > 0)
+    if ok.sum() < PAIR_MIN_POINTS:
+        return None
+    for d in (d0, d1):
+        med = float(np.median(d[ok]))
+        ok &= (d < PAIR_DEPTH_GATE * med) & (d > med / PAIR_DEPTH_GATE)
+    if ok.sum() < PAIR_MIN_POINTS:
+        return None
+    P = unproject_points(p[ok], d0[ok], frames[k0].cam_T_world, frames[k0].K)
+    Q = unproject_points(q[ok], d1[ok], frames[k1].cam_T_world, frames[k1].K)
+    size = float(np.sqrt(np.median(((P - np.median(P, axis=0)) ** 2).sum(axis=1))))
+    if not size > 0:
+        return None
+    rng = np.random.default_rng(len(P))  # deterministic: the same pair gives the same motion
+    best = None
+    for _ in range(PAIR_RANSAC_ITERS):
+        pick = rng.choice(len(P), 3, replace=False)
+        try:
+            s, R, t = umeyama(P[pick], Q[pick])
+        except ValueError:  # three points at one place
+            continue
+        inl = np.linalg.norm(Q - (s * P @ R.T + t), axis=1) < PAIR_INLIER_FRACTION * size
+        if best is None or inl.sum() > best.sum():
+            best = inl
+    if best is None or best.sum() < max(PAIR_MIN_POINTS, PAIR_MIN_INLIER_SHARE * len(P)):
+        return None
+    _, R, _ = umeyama(P[best], Q[best])
+    t = Q[best].mean(axis=0) - R @ P[best].mean(axis=0)
+    return R, t, int(best.sum())
+
+
+def _chained_poses(frames, labels, mem, depth_maps, ref, centre, min_inliers):
+    """Object -> world poses {frame: (R, t)} of track members mem, chained from the pair motions
+    (``pair_motion``) outwards from the member at frame ``ref``, which has (I, centre). A pair
+    without a motion carries the pose by the pair's centroid shift alone (no turn). Returns
+    (poses, number of pairs without a motion)."""
+    ks = [m for m, _, _ in mem]
+    r = ks.index(ref)
+    poses = {ref: (np.eye(3), np.asarray(centre, np.float64))}
+    missed = 0
+    for n in range(r, len(mem) - 1):  # forward: pose(n + 1) = motion(n -> n + 1) o pose(n)
+        Rn, tn = poses[ks[n]]
+        mo = pair_motion(frames, labels, mem[n], mem[n + 1], depth_maps, min_inliers)
+        missed += mo is None
+        if mo is None:
+            poses[ks[n + 1]] = (Rn, tn + _centroid_shift(frames, mem[n], mem[n + 1], tn))
+        else:
+            poses[ks[n + 1]] = (mo[0] @ Rn, mo[0] @ tn + mo[1])
+    for n in range(r, 0, -1):  # backward: pose(n - 1) = motion(n - 1 -> n)^-1 o pose(n)
+        Rn, tn = poses[ks[n]]
+        mo = pair_motion(frames, labels, mem[n - 1], mem[n], depth_maps, min_inliers)
+        missed += mo is None
+        if mo is None:
+            poses[ks[n - 1]] = (Rn, tn - _centroid_shift(frames, mem[n - 1], mem[n], tn))
+        else:
+            poses[ks[n - 1]] = (mo[0].T @ Rn, mo[0].T @ (tn - mo[1]))
+    return poses, missed
+
+
+def _centroid_shift(frames, a, b, at):
+    """World shift of an object between members a and b from its components' centroids, each lifted
+    at the depth of the point ``at`` in that member's camera (a pair without a measured motion)."""
+    out = []
+    for k, cent, _ in (a, b):
+        T = frames[k].cam_T_world
+        z = float((T[:3, :3] @ at + T[:3, 3])[2])
+        out.append(unproject_points(np.asarray(cent, np.float64)[None], np.array([max(z, 1e-9)]), T, frames[k].K)[0])
+    return out[1] - out[0]
+
+
 def initialize_deformation(scene, seed_points, seed_frames, seed_pixels, deform_config: DeformConfig,
-                           config: MotionInitConfig = MotionInitConfig()):
+                           config: MotionInitConfig = MotionInitConfig(), depth_maps=None):
     """Base means (Nd, 3) and position coefficients (Nd, K, 3) for dynamic seeds.
 
     scene: the training Scene (masks and poses used). seed_points (Nd, 3): seeds lifted at frame
-    seed_frames (Nd,) from continuous pixels seed_pixels (Nd, 2). Returns (means, coef_means, info).
+    seed_frames (Nd,) from continuous pixels seed_pixels (Nd, 2). depth_maps: per frame (H, W) or
+    None, the depths the seeds were lifted at (``initialize_points``' ``dynamic_depth_maps``); needed
+    by ``rigid_fit = "pairs"``. Returns (means, coef_means, info).
     """
     frames = scene.frames
+    if config.rigid and config.rigid_fit == "pairs":
+        if depth_maps is None:
+            raise ValueError("MotionInitConfig.rigid_fit = 'pairs' lifts the pairs' correspondences at the depth "
+                             "the dynamic seeds were lifted at, and these seeds have none: set init.dynamic_depth "
+                             "to 'prior' (a scene with depth priors) or 'scene' (true depth), or rigid_fit to "
+                             "'kabsch'")
+        if len(depth_maps) != len(frames):
+            raise ValueError(f"initialize_deformation: depth_maps has {len(depth_maps)} entries for {len(frames)} "
+                             "frames")
     Nd = seed_points.shape[0]
     K = deform_config.num_coefs
     means = np.array(seed_points, dtype=np.float64, copy=True)
@@ -328,8 +461,15 @@ def initialize_deformation(scene, seed_points, seed_frames, seed_pixels, deform_
     info = {"num_tracks": num_tracks, "num_tracked_seeds": tracked}
     clustered = {}
     if config.rigid:
+        chain = None
+        if config.rigid_fit == "pairs":
+            chain = dict(frames=frames, labels=labels, members=members, depth_maps=depth_maps,
+                         min_inliers=config.min_rotation_inliers)
         clustered = _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, config.ridge,
-                                    frames if config.rigid_fit == "pnp" else None)
+                                    frames if config.rigid_fit == "pnp" else None, chain)
+        if chain is not None:
+            info["rigid_pairs_missed"] = int(sum(cl["missed"] for cl in clustered.values()))
+            info["rigid_pairs"] = int(sum(cl["pairs"] for cl in clustered.values()))
         info["rigid"] = _rigid_blocks(clustered, Nd, K)
         info["num_clusters"] = len(clustered)
     for i, (fidx, targets, _) in paths.items():
@@ -350,7 +490,7 @@ def _ridge_fit(A, targets, ridge):
     return np.linalg.solve(A.T @ A + reg, A.T @ targets)
 
 
-def _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, ridge, frames=None):
+def _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, ridge, frames=None, chain=None):
     """One rigid path per track with at least ``RIGID_MIN_SEEDS`` seeds (``MotionInitConfig.rigid``).
 
     The track's seeds at its middle frame are the object's shape (centred on their centroid);
@@ -360,8 +500,11 @@ def _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, ridge, f
     seed's own depth, which no rigid shape meets while the object turns or changes depth, and the
     pixels are what was seen. The poses are fitted by the deformation's basis (position; the raw
     quaternion, signs made continuous). Each seed's local position is its own lifted point pulled
-    back by the fitted pose at its own frame, so the seed starts where it was seen.
-    Returns {track: dict(seeds, p (1 + K, 3), q (1 + K, 4), local (S, 3))}.
+    back by the fitted pose at its own frame, so the seed starts where it was seen. With ``chain``
+    (``rigid_fit = "pairs"``: the frames, component labels, track members, depth maps and the
+    similarity's inlier count) the poses are ``_chained_poses`` over the track's members instead,
+    from the shape's centroid at the middle frame.
+    Returns {track: dict(seeds, p (1 + K, 3), q (1 + K, 4), local (S, 3)[, missed, pairs])}.
     """
     from d2gs_np.geometry.quaternion import quat_to_rotmat, rotmat_to_quat
     from d2gs_np.geometry.trajectory import umeyama
@@ -385,7 +528,23 @@ def _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, ridge, f
         centre = X.mean(axis=0)
         X = X - centre
         fit_frames, pos, quat = [], [], []
-        for m in frames_j:
+        extra = {}
+        if chain is not None:
+            own = [i for i in seeds if int(seed_frames[i]) == ref]  # lifted at the reference frame's own depth
+            if own:
+                centre = np.mean([seed_points[i] for i in own], axis=0)
+            mem = chain["members"][int(j)]
+            chained, missed = _chained_poses(chain["frames"], chain["labels"], mem, chain["depth_maps"], ref,
+                                             centre, chain["min_inliers"])
+            extra = dict(missed=missed, pairs=len(mem) - 1)
+            for m in sorted(chained):
+                q = rotmat_to_quat(chained[m][0])
+                if quat and float(q @ quat[-1]) < 0.0:
+                    q = -q
+                fit_frames.append(m)
+                pos.append(chained[m][1])
+                quat.append(q)
+        for m in (frames_j if chain is None else ()):
             have = [n for n, i in enumerate(shape_seeds) if m in at[int(i)]]
             if len(have) < RIGID_MIN_SEEDS:
                 continue
@@ -413,7 +572,7 @@ def _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, ridge, f
             pk, rk = basis[k] @ p, basis[k] @ q
             R = quat_to_rotmat(rk)
             local.append(R.T @ (np.asarray(seed_points[i], np.float64) - pk))
-        out[int(j)] = dict(seeds=np.asarray(seeds), p=p, q=q, local=np.stack(local))
+        out[int(j)] = dict(seeds=np.asarray(seeds), p=p, q=q, local=np.stack(local), **extra)
     return out
 
 

@@ -415,6 +415,13 @@ class ExperimentConfig:
     # the static world continued past the frames' borders, added to the finished model
     border: BorderConfig = field(default_factory=BorderConfig)
 
+    def __post_init__(self):
+        m, d = self.motion_init, self.init.dynamic_depth
+        if m.rigid and m.rigid_fit == "pairs" and d not in ("prior", "scene", "auto"):
+            raise ValueError(f"motion_init.rigid_fit = 'pairs' lifts each pair's correspondences at the dynamic seeds' "
+                             f"depth maps, which init.dynamic_depth = {d!r} has none of: set init.dynamic_depth to "
+                             "'prior' (depth priors), 'scene' (true depth) or 'auto', or rigid_fit to 'kabsch'")
+
     def to_dict(self) -> dict:
         return _to_plain(self)
 

@@ -126,7 +126,7 @@ class Model:
         if d_pts is not None and config.motion_init.enabled:
             means, coefs, minfo = initialize_deformation(
                 scene, d_pts, info["dynamic_source_frames"], info["dynamic_source_pixels"], config.deform,
-                config.motion_init)
+                config.motion_init, depth_maps=info.get("dynamic_depth_maps"))
             params[f"{DYNAMIC}.means"] = means
             params[f"{DYNAMIC}.deform_means"] = coefs
             say(f"dynamic motion initialised from {minfo['num_tracks']} mask tracks "
@@ -137,6 +137,10 @@ class Model:
                 params[gaussians.CLUSTER] = rigid["cluster"]
                 say(f"rigid movers (motion_init.rigid): {minfo['num_clusters']} tracks as rigid objects, "
                     f"{int(np.sum(rigid['cluster'] >= 0))} seeds in them, the rest deform freely")
+                if "rigid_pairs" in minfo:
+                    say(f"rigid paths chained from frame pairs (motion_init.rigid_fit = 'pairs'): "
+                        f"{minfo['rigid_pairs'] - minfo['rigid_pairs_missed']} of {minfo['rigid_pairs']} pairs "
+                        "measured a rigid motion, the rest carried by the centroids' shift (no turn)")
         say(f"initialised {gaussians.num_static(params)} static and {gaussians.num_dynamic(params)} "
             f"dynamic Gaussians in {time.perf_counter() - t0:.1f}s ({_short(info)})")
         if components.blur:
