@@ -44,16 +44,16 @@ def _render_box(R, c, tex):
     return image, depth, inside
 
 
-def _two_frames(turn_deg, axis=(0.0, 1.0, 0.0), shift=(0.15, 0.0, 0.1)):
-    """Two frames of the box turning by turn_deg about ``axis`` and moving by ``shift``; the camera
-    stays put (identity cam_T_world). Returns (frames, labels, members, depth maps, true R, true t)."""
+R0 = so3_exp(np.radians([10.0, -25.0, 5.0]))  # the box's first pose, body -> world
+C0 = np.array([-0.1, 0.05, 3.0])
+
+
+def _frames(poses):
+    """Frames of the box at each (R, c) of ``poses``, the camera put (identity cam_T_world):
+    (frames, component labels, track members, depth maps)."""
     tex = _texture()
-    R0 = so3_exp(np.radians([10.0, -25.0, 5.0]))
-    c0 = np.array([-0.1, 0.05, 3.0])
-    dR = so3_exp(np.radians(turn_deg) * np.asarray(axis) / np.linalg.norm(axis))
-    R1, c1 = dR @ R0, c0 + np.asarray(shift)
-    frames, maps, labels, members = [], [], [], []
-    for k, (R, c) in enumerate(((R0, c0), (R1, c1))):
+    frames, labels, members, maps = [], [], [], []
+    for k, (R, c) in enumerate(poses):
         image, depth, mask = _render_box(R, c, tex)
         frames.append(SimpleNamespace(image=image, mask=mask, cam_T_world=np.eye(4), K=K, width=W, height=H,
                                       time=float(k)))
@@ -61,9 +61,17 @@ def _two_frames(turn_deg, axis=(0.0, 1.0, 0.0), shift=(0.15, 0.0, 0.1)):
         labels.append(lab)
         members.append((k, cents[0], 0))
         maps.append(depth)
+    return frames, labels, members, maps
+
+
+def _two_frames(turn_deg, axis=(0.0, 1.0, 0.0), shift=(0.15, 0.0, 0.1)):
+    """Two frames of the box turning by turn_deg about ``axis`` and moving by ``shift``. Returns
+    (frames, labels, members, depth maps, true R, true t)."""
+    dR = so3_exp(np.radians(turn_deg) * np.asarray(axis) / np.linalg.norm(axis))
+    R1, c1 = dR @ R0, C0 + np.asarray(shift)
     # x1 = R1 R0^T (x0 - c0) + c1 for a body point: the true world motion between the frames
     R_true = R1 @ R0.T
-    return frames, labels, members, maps, R_true, c1 - R_true @ c0
+    return (*_frames([(R0, C0), (R1, c1)]), R_true, c1 - R_true @ C0)
 
 
 def _angle_deg(R):
@@ -115,20 +123,9 @@ def test_chained_poses_follow_a_turning_object_and_carry_pairs_without_a_motion(
     """Three frames turning 12 degrees each: the chained object -> world poses from the middle frame
     hold the true turn (0.5 degrees); a frame with no depth gives its pairs no motion, which the
     chain carries by the centroids' shift alone (no turn) and counts."""
-    tex = _texture()
-    R0, c0 = so3_exp(np.radians([10.0, -25.0, 5.0])), np.array([-0.1, 0.05, 3.0])
     step = so3_exp(np.radians([0.0, 12.0, 0.0]))
-    frames, labels, mem, maps, Rs = [], [], [], [], []
-    for k in range(3):
-        R, c = np.linalg.matrix_power(step, k) @ R0, c0 + np.array([0.1 * k, 0.0, 0.0])
-        image, depth, mask = _render_box(R, c, tex)
-        frames.append(SimpleNamespace(image=image, mask=mask, cam_T_world=np.eye(4), K=K, width=W, height=H,
-                                      time=float(k)))
-        lab, cents, _ = mask_components(mask, 10)
-        labels.append(lab)
-        mem.append((k, cents[0], 0))
-        maps.append(depth)
-        Rs.append(R)
+    Rs = [np.linalg.matrix_power(step, k) @ R0 for k in range(3)]
+    frames, labels, mem, maps = _frames([(R, C0 + np.array([0.1 * k, 0.0, 0.0])) for k, R in enumerate(Rs)])
     poses, missed = _chained_poses(frames, labels, mem, maps, 1, np.array([0.0, 0.0, 3.0]), 6)
     assert missed == 0 and sorted(poses) == [0, 1, 2]
     np.testing.assert_array_equal(poses[1][0], np.eye(3))
