@@ -28,7 +28,7 @@ import numpy as np
 from d2gs_np.scene.deformation import _deform_bwd, _deform_fwd
 from d2gs_np.scene.gaussians import CLUSTER, DYNAMIC, RIGID, has_rigid
 
-__all__ = ["quat_rotmat_unit", "rigid_fwd", "rigid_bwd", "dynamic_positions", "hold_rigid_residuals"]
+__all__ = ["quat_rotmat_unit", "cluster_poses", "rigid_fwd", "rigid_bwd", "dynamic_positions", "hold_rigid_residuals"]
 
 
 def quat_rotmat_unit(q):
@@ -71,6 +71,23 @@ def _right_matrix(b):
                      z, y, -x, w], -1).reshape(-1, 4, 4)
 
 
+def _cluster_path(rigid_blocks, t, deform_config, dtype):
+    """Each cluster's position (C, 3) and unit rotation (C, 4) at time t, and what the backward needs."""
+    C = rigid_blocks[f"{RIGID}.means"].shape[0]
+    (p, qc, _), csaved = _deform_fwd(rigid_blocks[f"{RIGID}.means"], rigid_blocks[f"{RIGID}.quats"],
+                                     np.zeros((C, 3), dtype=dtype), rigid_blocks[f"{RIGID}.deform_means"],
+                                     rigid_blocks[f"{RIGID}.deform_quats"],
+                                     np.zeros(rigid_blocks[f"{RIGID}.deform_means"].shape, dtype=dtype), t,
+                                     deform_config)
+    return p, qc, csaved
+
+
+def cluster_poses(rigid_blocks, t, deform_config):
+    """Each cluster's pose at time t, cluster -> world: (R (C, 3, 3), p (C, 3))."""
+    p, qc, _ = _cluster_path(rigid_blocks, t, deform_config, np.asarray(rigid_blocks[f"{RIGID}.means"]).dtype)
+    return quat_rotmat_unit(qc), p
+
+
 def rigid_fwd(local_means, local_quats, cluster, rigid_blocks, t, deform_config):
     """World positions and unit rotations of the dynamic Gaussians at time t.
 
@@ -79,13 +96,8 @@ def rigid_fwd(local_means, local_quats, cluster, rigid_blocks, t, deform_config)
     integers). rigid_blocks: dict with the four ``rigid.*`` blocks (module docstring). t: scalar.
     Returns ((means (N, 3), quats (N, 4)), saved). Trusts its inputs (validated with the params).
     """
-    dtype = local_means.dtype
     C = rigid_blocks[f"{RIGID}.means"].shape[0]
-    zeros = np.zeros((C, 3), dtype=dtype)
-    (p, qc, _), csaved = _deform_fwd(rigid_blocks[f"{RIGID}.means"], rigid_blocks[f"{RIGID}.quats"], zeros,
-                                     rigid_blocks[f"{RIGID}.deform_means"], rigid_blocks[f"{RIGID}.deform_quats"],
-                                     np.zeros(rigid_blocks[f"{RIGID}.deform_means"].shape, dtype=dtype), t,
-                                     deform_config)
+    p, qc, csaved = _cluster_path(rigid_blocks, t, deform_config, local_means.dtype)
     ids = np.asarray(cluster).astype(np.int64)
     on = np.flatnonzero(ids >= 0)
     c = ids[on]

@@ -165,9 +165,8 @@ def test_pairs_path_follows_a_suite_mover_that_turns_out_of_the_image_plane():
     within 1.5 degrees of the truth (median over frames; measured 0.27), where the Kabsch fit to the
     seeds' targets (lifted at each seed's own depth) misses most of it (measured 7.8)."""
     from d2gs_np.data.suite import build_suite_world, make_suite_scene, mover_pose, resolve
-    from d2gs_np.geometry.quaternion import quat_to_rotmat
-    from d2gs_np.scene.deformation import deform_basis
     from d2gs_np.scene.initialize import initialize_points
+    from d2gs_np.scene.rigid import cluster_poses
 
     kw = dict(width=120, height=68, num_frames=12, num_test_views=0, rot_noise_deg=0.0, trans_noise=0.0,
               subframes=8)
@@ -185,10 +184,7 @@ def test_pairs_path_follows_a_suite_mover_that_turns_out_of_the_image_plane():
                                              depth_maps=info["dynamic_depth_maps"])
         B = minfo["rigid"]["blocks"]
         assert len(B["rigid.means"]) == 1
-        Rs = []
-        for t in times:
-            q = B["rigid.quats"][0] + deform_basis(t, cfg)[0] @ B["rigid.deform_quats"][0]
-            Rs.append(quat_to_rotmat(q / np.linalg.norm(q)))
+        Rs = [cluster_poses(B, t, cfg)[0][0] for t in times]
         true = [mover_pose(mover, t)[0] @ mover_pose(mover, times[mid])[0].T for t in times]
         err[fit] = float(np.median([_angle_deg(Rs[k] @ Rs[mid].T @ true[k].T) for k in range(len(times))]))
         if fit == "pairs":
