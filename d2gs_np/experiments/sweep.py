@@ -253,6 +253,10 @@ EXPERIMENTS = {
         Variant("stereo_prior_fused_rigid_pairs", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
                         "motion_init": {"rigid": True, "rigid_residual": False, "rigid_fit": "pairs"}}),
+        # and that path refined with the object's shape by the object bundle (rigid_fit "bundle")
+        Variant("stereo_prior_fused_rigid_bundle", scene={"depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
+                        "motion_init": {"rigid": True, "rigid_residual": False, "rigid_fit": "bundle"}}),
         Variant("stereo_prior_fused_shared", scene={"depth_prior": "video", "prior_shared_error": 0.5},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True}}),
         Variant("stereo_prior_shared", scene={"depth_prior": "video", "prior_shared_error": 0.5},

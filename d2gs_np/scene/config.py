@@ -19,7 +19,7 @@ __all__ = ["DeformConfig", "InitConfig", "StereoConfig", "MotionInitConfig", "Bo
 
 # how a seed's pixel can follow its object's track (``MotionInitConfig.warp``)
 WARPS = ("centroid", "similarity", "homography", "flow")
-RIGID_FITS = ("kabsch", "pnp", "pairs")
+RIGID_FITS = ("kabsch", "pnp", "pairs", "bundle")
 DYNAMIC_DEPTHS = ("static_median", "scene", "prior", "auto")  # InitConfig.dynamic_depth
 STATIC_DEPTHS = ("stereo", "scene", "prior", "stereo_prior", "auto")  # InitConfig.static_depth
 STEREO_PRIOR_SCOPES = ("measured", "all")  # InitConfig.stereo_prior_scope
@@ -231,8 +231,15 @@ class MotionInitConfig:
     # docs/results.md §4, "Rigid movers: one pose path per tracked mover (session 52; built, opt-in)"),
     # or "pairs" (chained from each consecutive pair's rigid motion, the pair's correspondences
     # lifted at the seeds' depth maps: a turn out of the image plane too; needs init.dynamic_depth
-    # "prior" or "scene")
+    # "prior" or "scene"), or "bundle" (those chained poses refined with the object's shape by a bundle
+    # adjustment over short flow tracks inside it, the depth maps a weak term: scene/object_bundle.py)
     rigid_fit: str = "kabsch"
+    # with rigid_fit "bundle": frames each point is tracked forwards and backwards; the depth maps'
+    # relative error (standard deviation of the log depth); the pose path's turn per frame allowed to
+    # change by about this many degrees from frame to frame (0: no smoothness term)
+    bundle_window: int = 5
+    bundle_depth_sigma: float = 0.1
+    bundle_accel_deg: float = 3.0
 
     def __post_init__(self):
         for name in ("enabled", "rotation", "rigid", "rigid_residual"):
@@ -243,6 +250,9 @@ class MotionInitConfig:
         check_number(self.ridge, "MotionInitConfig.ridge", 0.0, lo_open=True)
         check_choice(self.warp, "MotionInitConfig.warp", WARPS)
         check_choice(self.rigid_fit, "MotionInitConfig.rigid_fit", RIGID_FITS)
+        check_int(self.bundle_window, "MotionInitConfig.bundle_window", 1)
+        check_number(self.bundle_depth_sigma, "MotionInitConfig.bundle_depth_sigma", 0.0, lo_open=True)
+        check_number(self.bundle_accel_deg, "MotionInitConfig.bundle_accel_deg", 0.0)
         # a similarity has 4 degrees of freedom: 2 points + 1 check
         check_int(self.min_rotation_inliers, "MotionInitConfig.min_rotation_inliers", 3)
 

@@ -52,7 +52,11 @@ each seed's own depth, so that pose holds the turn in the image plane only; with
 "pairs"`` and the per-frame depth maps the seeds were lifted at, the pose is chained instead from
 each consecutive pair of the track's frames: the pair's flow correspondences inside the object
 (step 3's maps), lifted at both frames' depths, and the rigid motion between them (a RANSAC
-similarity, its scale dropped), which holds a turn out of the image plane too.
+similarity, its scale dropped), which holds a turn out of the image plane too. With ``rigid_fit =
+"bundle"`` those chained poses are refined together with the object's shape by a bundle adjustment
+over short flow tracks inside it, the depth maps a weak term (``scene/object_bundle.py``): where the
+depth maps' error tilts each frame's lifted object differently, the pairs find no rigid motion, and
+the turn shows only as foreshortening over several frames.
 
 Seeds whose pixel lies in no tracked component keep zero coefficients. Only
 the means are initialised; rotations and colours start with zero residuals.
@@ -376,9 +380,9 @@ def initialize_deformation(scene, seed_points, seed_frames, seed_pixels, deform_
     by ``rigid_fit = "pairs"``. Returns (means, coef_means, info).
     """
     frames = scene.frames
-    if config.rigid and config.rigid_fit == "pairs":
+    if config.rigid and config.rigid_fit in ("pairs", "bundle"):
         if depth_maps is None:
-            raise ValueError("MotionInitConfig.rigid_fit = 'pairs' lifts the pairs' correspondences at the depth "
+            raise ValueError(f"MotionInitConfig.rigid_fit = {config.rigid_fit!r} lifts the pairs' correspondences at the depth "
                              "the dynamic seeds were lifted at, and these seeds have none: set init.dynamic_depth "
                              "to 'prior' (a scene with depth priors) or 'scene' (true depth), or rigid_fit to "
                              "'kabsch'")
@@ -462,14 +466,17 @@ def initialize_deformation(scene, seed_points, seed_frames, seed_pixels, deform_
     clustered = {}
     if config.rigid:
         chain = None
-        if config.rigid_fit == "pairs":
+        if config.rigid_fit in ("pairs", "bundle"):
             chain = dict(frames=frames, labels=labels, members=members, depth_maps=depth_maps,
-                         min_inliers=config.min_rotation_inliers)
+                         min_inliers=config.min_rotation_inliers,
+                         bundle=config if config.rigid_fit == "bundle" else None)
         clustered = _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, config.ridge,
                                     frames if config.rigid_fit == "pnp" else None, chain)
         if chain is not None:
             info["rigid_pairs_missed"] = int(sum(cl["missed"] for cl in clustered.values()))
             info["rigid_pairs"] = int(sum(cl["pairs"] for cl in clustered.values()))
+            if config.rigid_fit == "bundle":
+                info["rigid_bundles"] = [cl["bundle"] for _, cl in sorted(clustered.items())]
         info["rigid"] = _rigid_blocks(clustered, Nd, K)
         info["num_clusters"] = len(clustered)
     for i, (fidx, targets, _) in paths.items():
@@ -502,9 +509,10 @@ def _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, ridge, f
     quaternion, signs made continuous). Each seed's local position is its own lifted point pulled
     back by the fitted pose at its own frame, so the seed starts where it was seen. With ``chain``
     (``rigid_fit = "pairs"``: the frames, component labels, track members, depth maps and the
-    similarity's inlier count) the poses are ``_chained_poses`` over the track's members instead,
-    from the shape's centroid at the middle frame.
-    Returns {track: dict(seeds, p (1 + K, 3), q (1 + K, 4), local (S, 3)[, missed, pairs])}.
+    similarity's inlier count; ``bundle``: the MotionInitConfig of ``rigid_fit = "bundle"`` or None)
+    the poses are ``_chained_poses`` over the track's members instead, from the shape's centroid at
+    the middle frame, and with ``bundle`` refined by ``object_bundle.bundle_poses``.
+    Returns {track: dict(seeds, p (1 + K, 3), q (1 + K, 4), local (S, 3)[, missed, pairs[, bundle]])}.
     """
     from d2gs_np.geometry.quaternion import quat_to_rotmat, rotmat_to_quat
     from d2gs_np.geometry.trajectory import umeyama
@@ -537,6 +545,13 @@ def _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, ridge, f
             chained, missed = _chained_poses(chain["frames"], chain["labels"], mem, chain["depth_maps"], ref,
                                              centre, chain["min_inliers"])
             extra = dict(missed=missed, pairs=len(mem) - 1)
+            if chain.get("bundle") is not None:
+                from d2gs_np.scene.object_bundle import bundle_poses
+
+                b = chain["bundle"]
+                chained, extra["bundle"] = bundle_poses(chain["frames"], chain["labels"], mem, chain["depth_maps"],
+                                                        ref, chained, b.bundle_window, b.bundle_depth_sigma,
+                                                        b.bundle_accel_deg, chain["min_inliers"])
             for m in sorted(chained):
                 q = rotmat_to_quat(chained[m][0])
                 if quat and float(q @ quat[-1]) < 0.0:

@@ -138,9 +138,13 @@ class Model:
                 say(f"rigid movers (motion_init.rigid): {minfo['num_clusters']} tracks as rigid objects, "
                     f"{int(np.sum(rigid['cluster'] >= 0))} seeds in them, the rest deform freely")
                 if "rigid_pairs" in minfo:
-                    say(f"rigid paths chained from frame pairs (motion_init.rigid_fit = 'pairs'): "
+                    say(f"rigid paths chained from frame pairs (motion_init.rigid_fit = {config.motion_init.rigid_fit!r}): "
                         f"{minfo['rigid_pairs'] - minfo['rigid_pairs_missed']} of {minfo['rigid_pairs']} pairs "
                         "measured a rigid motion, the rest carried by the centroids' shift (no turn)")
+                for c, b in enumerate(minfo.get("rigid_bundles", ())):
+                    say(f"rigid path {c} refined by the object bundle: " + (
+                        f"{b['points']} points, {b['observations']} observations, rms {b['rms_px']:.2f} px, "
+                        f"{b['nfev']} evaluations" if b["points"] else "too few points seen twice, kept as chained"))
         say(f"initialised {gaussians.num_static(params)} static and {gaussians.num_dynamic(params)} "
             f"dynamic Gaussians in {time.perf_counter() - t0:.1f}s ({_short(info)})")
         if components.blur:

@@ -138,14 +138,15 @@ def test_chained_poses_follow_a_turning_object_and_carry_pairs_without_a_motion(
     assert np.all(np.isfinite(poses[2][1])) and poses[2][1][0] > poses[1][1][0]  # moved right with the object
 
 
-def test_pairs_needs_the_seeds_depth_maps():
-    """rigid_fit = 'pairs' without depth maps, or with a map list of the wrong length, is refused
-    by name before any fitting; so is a config whose dynamic seeds have no depth maps."""
+@pytest.mark.parametrize("fit", ["pairs", "bundle"])
+def test_pairs_needs_the_seeds_depth_maps(fit):
+    """rigid_fit = 'pairs' or 'bundle' without depth maps, or with a map list of the wrong length, is
+    refused by name before any fitting; so is a config whose dynamic seeds have no depth maps."""
     frames, *_ = _two_frames(12.0)
     scene = SimpleNamespace(frames=frames, has_masks=True)
-    cfg = MotionInitConfig(rigid=True, rigid_fit="pairs")
+    cfg = MotionInitConfig(rigid=True, rigid_fit=fit)
     seeds = np.array([[0.0, 0.0, 3.0]] * 4)
-    with pytest.raises(ValueError, match="init.dynamic_depth"):
+    with pytest.raises(ValueError, match=f"rigid_fit = '{fit}'.*init.dynamic_depth"):
         initialize_deformation(scene, seeds, np.zeros(4, int), np.full((4, 2), 80.0), DeformConfig(), cfg)
     with pytest.raises(ValueError, match="depth_maps has 1 entries for 2 frames"):
         initialize_deformation(scene, seeds, np.zeros(4, int), np.full((4, 2), 80.0), DeformConfig(), cfg,
@@ -154,9 +155,13 @@ def test_pairs_needs_the_seeds_depth_maps():
         ExperimentConfig(motion_init=cfg, init=InitConfig(dynamic_depth="static_median"))
     for ok in ("prior", "scene", "auto"):
         ExperimentConfig(motion_init=cfg, init=InitConfig(dynamic_depth=ok))
-    ExperimentConfig(motion_init=MotionInitConfig(rigid=False, rigid_fit="pairs"))  # unused without rigid
+    ExperimentConfig(motion_init=MotionInitConfig(rigid=False, rigid_fit=fit))  # unused without rigid
     with pytest.raises(ValueError, match="rigid_fit"):
-        MotionInitConfig(rigid=True, rigid_fit="bundle")
+        MotionInitConfig(rigid=True, rigid_fit="bundles")
+    for bad in (dict(bundle_window=0), dict(bundle_depth_sigma=0.0), dict(bundle_accel_deg=-1.0),
+                dict(bundle_depth_sigma=float("nan"))):
+        with pytest.raises(ValueError, match="MotionInitConfig.bundle_"):
+            MotionInitConfig(**bad)
 
 
 def test_pairs_path_follows_a_suite_mover_that_turns_out_of_the_image_plane():
