@@ -382,8 +382,9 @@ def initialize_deformation(scene, seed_points, seed_frames, seed_pixels, deform_
     frames = scene.frames
     if config.rigid and config.rigid_fit in ("pairs", "bundle"):
         if depth_maps is None:
-            raise ValueError(f"MotionInitConfig.rigid_fit = {config.rigid_fit!r} lifts the pairs' correspondences at the depth "
-                             "the dynamic seeds were lifted at, and these seeds have none: set init.dynamic_depth "
+            raise ValueError(f"MotionInitConfig.rigid_fit = {config.rigid_fit!r} lifts the pairs' correspondences at "
+                             "the depth the dynamic seeds were lifted at, and these seeds have none: set "
+                             "init.dynamic_depth "
                              "to 'prior' (a scene with depth priors) or 'scene' (true depth), or rigid_fit to "
                              "'kabsch'")
         if len(depth_maps) != len(frames):

@@ -419,8 +419,9 @@ class ExperimentConfig:
         m, d = self.motion_init, self.init.dynamic_depth
         if m.rigid and m.rigid_fit in ("pairs", "bundle") and d not in ("prior", "scene", "auto"):
             raise ValueError(f"motion_init.rigid_fit = {m.rigid_fit!r} lifts each pair's correspondences at the "
-                             f"dynamic seeds' depth maps, which init.dynamic_depth = {d!r} has none of: set init.dynamic_depth to "
-                             "'prior' (depth priors), 'scene' (true depth) or 'auto', or rigid_fit to 'kabsch'")
+                             f"dynamic seeds' depth maps, which init.dynamic_depth = {d!r} has none of: set "
+                             "init.dynamic_depth to 'prior' (depth priors), 'scene' (true depth) or 'auto', or "
+                             "rigid_fit to 'kabsch'")
 
     def to_dict(self) -> dict:
         return _to_plain(self)

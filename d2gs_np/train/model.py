@@ -138,7 +138,8 @@ class Model:
                 say(f"rigid movers (motion_init.rigid): {minfo['num_clusters']} tracks as rigid objects, "
                     f"{int(np.sum(rigid['cluster'] >= 0))} seeds in them, the rest deform freely")
                 if "rigid_pairs" in minfo:
-                    say(f"rigid paths chained from frame pairs (motion_init.rigid_fit = {config.motion_init.rigid_fit!r}): "
+                    fit = config.motion_init.rigid_fit
+                    say(f"rigid paths chained from frame pairs (motion_init.rigid_fit = {fit!r}): "
                         f"{minfo['rigid_pairs'] - minfo['rigid_pairs_missed']} of {minfo['rigid_pairs']} pairs "
                         "measured a rigid motion, the rest carried by the centroids' shift (no turn)")
                 for c, b in enumerate(minfo.get("rigid_bundles", ())):
