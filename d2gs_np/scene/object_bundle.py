@@ -13,7 +13,8 @@ frame of its track and its shape are fitted together to what the frames saw:
   where the map is within ``PAIR_DEPTH_GATE`` of its region's median; the second difference of the
   pose path (its turn per frame in degrees over ``accel_deg``, its travel per frame over the object's
   size times the same angle), which holds the frames where the track is short;
-- the soft-L1 loss (scale 1) over all of them: flow that slid off a turning face is an outlier;
+- the soft-L1 loss (scale 1) over the observations' residuals (flow that slid off a turning face is an
+  outlier), plain squares over the path's: a robust loss there would let a track's end turn away;
 - unknowns: each member's pose (a left rotation increment and a translation) but the reference
   member's, which fixes the gauge, and every point's position in the object's frame. The scale is
   the depth maps'.
@@ -35,6 +36,7 @@ BUNDLE_GRID = 60  # points seeded per frame of the track, on a regular grid over
 BUNDLE_MIN_POINTS = 12  # a track with fewer points seen twice keeps its given poses
 BUNDLE_Z_MIN = 1e-6  # camera depths below this fraction of the depth maps' median are clamped (no gradient)
 BUNDLE_MAX_NFEV = 200
+BUNDLE_BORDER_PX = 3.0  # observations within this of the image's border are dropped
 
 
 def _rot_jac_inv(phi, right):
@@ -139,6 +141,19 @@ def bundle_jacobian(R0, t0, X0, x, obs, cams, depth_sigma, accel_deg, size, ref)
     return sp.csr_matrix((np.concatenate(vals), (np.concatenate(rows), np.concatenate(cols))), shape=(row, ncol))
 
 
+def _soft_l1_first(n):
+    """scipy's loss callable: soft-L1 on the first n residuals (the observations), plain squares on the
+    rest (the path's smoothness, which a robust loss would let a track's end break)."""
+    def loss(z):
+        out = np.empty((3, len(z)))
+        out[0], out[1], out[2] = z, 1.0, 0.0
+        a = z[:n]
+        t = np.sqrt(1.0 + a)
+        out[0, :n], out[1, :n], out[2, :n] = 2.0 * (t - 1.0), 1.0 / t, -0.5 / (t * (1.0 + a))
+        return out
+    return loss
+
+
 def _unpack(R0, t0, X0, x, ref):
     M, P = len(R0), len(X0)
     free = [n for n in range(M) if n != ref]
@@ -206,6 +221,8 @@ def track_observations(frames, labels, mem, depth_maps, window, min_inliers=6, g
                 cur = (fwd[k] if step == 1 else bwd[nk])(cur)
                 h, w = regions[nk].shape
                 ok = np.isfinite(cur).all(axis=1)
+                # inside the image, off its border: the flow there sees a replicated border, not the object
+                ok &= np.all((cur >= BUNDLE_BORDER_PX) & (cur <= np.array([w, h]) - BUNDLE_BORDER_PX), axis=1)
                 qi = np.clip(np.floor(np.nan_to_num(cur)).astype(np.int64), 0, [w - 1, h - 1])
                 ok &= regions[nk][qi[:, 1], qi[:, 0]]
                 cur, cid, k = cur[ok], cid[ok], nk
@@ -263,8 +280,9 @@ def bundle_poses(frames, labels, mem, depth_maps, ref, poses, window, depth_sigm
     args = (R0, t0, X0)
     kw = dict(obs=o, cams=cams, depth_sigma=depth_sigma, accel_deg=accel_deg, size=size, ref=r)
     x0 = np.zeros(6 * (len(mem) - 1) + 3 * len(X0))
+    robust = 2 * len(o["point"]) + int(np.isfinite(o["depth"]).sum())
     sol = least_squares(lambda x: bundle_residuals(*args, x, **kw), x0, jac=lambda x: bundle_jacobian(*args, x, **kw),
-                        loss="soft_l1", f_scale=1.0, x_scale="jac", method="trf", tr_solver="lsmr",
+                        loss=_soft_l1_first(robust), x_scale="jac", method="trf", tr_solver="lsmr",
                         max_nfev=max_nfev)
     if not np.all(np.isfinite(sol.x)):
         return dict(poses), info
