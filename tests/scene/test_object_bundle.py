@@ -1,15 +1,14 @@
 """The object bundle (``MotionInitConfig.rigid_fit = "bundle"``, scene/object_bundle.py): its hand-derived
 Jacobian against central differences, and a tumbling box's turn recovered from its frames where depth
 maps with a smooth relative error leave the frame pairs without a rigid motion."""
-from types import SimpleNamespace
-
 import cv2
 import numpy as np
 import pytest
 
 from d2gs_np.geometry.so3 import so3_exp
-from d2gs_np.scene.motion_init import _chained_poses, mask_components
+from d2gs_np.scene.motion_init import _chained_poses
 from d2gs_np.scene.object_bundle import bundle_jacobian, bundle_poses, bundle_residuals, track_observations
+from mover_fixtures import big_mover_path_errors, single_mover_frames
 
 W, H = 160, 120
 K = np.array([[180.0, 0.0, W / 2], [0.0, 180.0, H / 2], [0.0, 0.0, 1.0]])
@@ -63,18 +62,15 @@ def _tumble(num=9, turn_deg=8.0, rel=0.0, seed=0):
     tex = _textures()
     rng = np.random.default_rng(seed)
     R_start = so3_exp(np.radians([25.0, -30.0, 10.0]))
-    frames, labels, members, maps, poses = [], [], [], [], []
+    renders, maps, poses = [], [], []
     for k in range(num):
         R = so3_exp(np.radians([0.0, turn_deg * k, 0.0])) @ R_start
         c = np.array([-0.3 + 0.07 * k, 0.0, 3.2])
         image, depth, mask = _render_box(R, c, tex)
-        frames.append(SimpleNamespace(image=image, mask=mask, cam_T_world=np.eye(4), K=K, width=W, height=H,
-                                      time=float(k)))
-        lab, cents, _ = mask_components(mask, 10)
-        labels.append(lab)
-        members.append((k, cents[0], 0))
+        renders.append((image, mask))
         maps.append(np.where(mask, depth * (_smooth_error(rng, rel) if rel else 1.0), depth))
         poses.append((R, c))
+    frames, labels, members = single_mover_frames(renders, K)
     return frames, labels, members, maps, poses
 
 
@@ -212,33 +208,9 @@ def test_bundle_path_follows_a_suite_mover_under_the_modelled_prior():
     bundle's fitted path is within 4.5 degrees of the panel's turn (median over frames; measured
     2.9), under half of the chained pairs' error (measured 7.8: the prior tilts the lifted panel
     anew in every frame), and the run reports the bundle's points."""
-    from d2gs_np.data.suite import build_suite_world, make_suite_scene, mover_pose, resolve
-    from d2gs_np.scene.config import DeformConfig, InitConfig, MotionInitConfig
-    from d2gs_np.scene.initialize import initialize_points
-    from d2gs_np.scene.motion_init import initialize_deformation
-    from d2gs_np.scene.rigid import cluster_poses
-
-    kw = dict(width=120, height=68, num_frames=12, num_test_views=0, rot_noise_deg=0.0, trans_noise=0.0,
-              subframes=8, depth_prior="video")
-    scene = make_suite_scene("big_mover", 0, **kw)
-    mover = build_suite_world(resolve("big_mover", 0, **kw)).movers[0]
-    _, _, d, _, info = initialize_points(scene, InitConfig(dynamic_points=400, dynamic_depth="prior"),
-                                         np.random.default_rng(0))
-    times = [f.time for f in scene.frames]
-    mid = len(times) // 2
-    err = {}
-    for fit in ("pairs", "bundle"):
-        cfg = DeformConfig()
-        _, _, minfo = initialize_deformation(scene, d, info["dynamic_source_frames"], info["dynamic_source_pixels"],
-                                             cfg, MotionInitConfig(rigid=True, rigid_fit=fit),
-                                             depth_maps=info["dynamic_depth_maps"])
-        B = minfo["rigid"]["blocks"]
-        Rs = [cluster_poses(B, t, cfg)[0][0] for t in times]
-        true = [mover_pose(mover, t)[0] @ mover_pose(mover, times[mid])[0].T for t in times]
-        err[fit] = float(np.median([_angle_deg(Rs[k] @ Rs[mid].T @ true[k].T) for k in range(len(times))]))
-        if fit == "bundle":
-            (b,) = minfo["rigid_bundles"]
-            assert b["points"] > 100 and b["rms_px"] < 2.0
-        else:
-            assert "rigid_bundles" not in minfo
+    out = big_mover_path_errors("prior", ("pairs", "bundle"), depth_prior="video")
+    err = {fit: e for fit, (e, _) in out.items()}
+    (b,) = out["bundle"][1]["rigid_bundles"]
+    assert b["points"] > 100 and b["rms_px"] < 2.0
+    assert "rigid_bundles" not in out["pairs"][1]
     assert err["bundle"] < 4.5 and 2 * err["bundle"] < err["pairs"], err

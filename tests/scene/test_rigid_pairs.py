@@ -10,6 +10,7 @@ from d2gs_np.geometry.so3 import so3_exp
 from d2gs_np.scene.config import DeformConfig, InitConfig, MotionInitConfig
 from d2gs_np.scene.motion_init import _chained_poses, initialize_deformation, mask_components, pair_motion
 from d2gs_np.train.config import ExperimentConfig
+from mover_fixtures import big_mover_path_errors, single_mover_frames
 
 W, H = 160, 120
 K = np.array([[180.0, 0.0, W / 2], [0.0, 180.0, H / 2], [0.0, 0.0, 1.0]])
@@ -52,15 +53,9 @@ def _frames(poses):
     """Frames of the box at each (R, c) of ``poses``, the camera put (identity cam_T_world):
     (frames, component labels, track members, depth maps)."""
     tex = _texture()
-    frames, labels, members, maps = [], [], [], []
-    for k, (R, c) in enumerate(poses):
-        image, depth, mask = _render_box(R, c, tex)
-        frames.append(SimpleNamespace(image=image, mask=mask, cam_T_world=np.eye(4), K=K, width=W, height=H,
-                                      time=float(k)))
-        lab, cents, _ = mask_components(mask, 10)
-        labels.append(lab)
-        members.append((k, cents[0], 0))
-        maps.append(depth)
+    renders = [_render_box(R, c, tex) for R, c in poses]
+    frames, labels, members = single_mover_frames([(image, mask) for image, _, mask in renders], K)
+    maps = [depth for _, depth, _ in renders]
     return frames, labels, members, maps
 
 
@@ -169,31 +164,10 @@ def test_pairs_path_follows_a_suite_mover_that_turns_out_of_the_image_plane():
     turns 18 degrees about the vertical; the chained path's rotation relative to the middle frame is
     within 1.5 degrees of the truth (median over frames; measured 0.27), where the Kabsch fit to the
     seeds' targets (lifted at each seed's own depth) misses most of it (measured 7.8)."""
-    from d2gs_np.data.suite import build_suite_world, make_suite_scene, mover_pose, resolve
-    from d2gs_np.scene.initialize import initialize_points
-    from d2gs_np.scene.rigid import cluster_poses
-
-    kw = dict(width=120, height=68, num_frames=12, num_test_views=0, rot_noise_deg=0.0, trans_noise=0.0,
-              subframes=8)
-    scene = make_suite_scene("big_mover", 0, **kw)
-    mover = build_suite_world(resolve("big_mover", 0, **kw)).movers[0]
-    _, _, d, _, info = initialize_points(scene, InitConfig(dynamic_points=400, dynamic_depth="scene"),
-                                         np.random.default_rng(0))
-    times = [f.time for f in scene.frames]
-    mid = len(times) // 2
-    err = {}
-    for fit in ("kabsch", "pairs"):
-        cfg = DeformConfig()
-        _, _, minfo = initialize_deformation(scene, d, info["dynamic_source_frames"], info["dynamic_source_pixels"],
-                                             cfg, MotionInitConfig(rigid=True, rigid_fit=fit),
-                                             depth_maps=info["dynamic_depth_maps"])
-        B = minfo["rigid"]["blocks"]
-        assert len(B["rigid.means"]) == 1
-        Rs = [cluster_poses(B, t, cfg)[0][0] for t in times]
-        true = [mover_pose(mover, t)[0] @ mover_pose(mover, times[mid])[0].T for t in times]
-        err[fit] = float(np.median([_angle_deg(Rs[k] @ Rs[mid].T @ true[k].T) for k in range(len(times))]))
-        if fit == "pairs":
-            assert minfo["rigid_pairs"] == len(times) - 1 and minfo["rigid_pairs_missed"] <= 1
+    out = big_mover_path_errors("scene", ("kabsch", "pairs"))
+    err = {fit: e for fit, (e, _) in out.items()}
+    minfo = out["pairs"][1]
+    assert minfo["rigid_pairs"] == 11 and minfo["rigid_pairs_missed"] <= 1
     assert err["pairs"] < 1.5 and err["kabsch"] > 4.0, err
 
 
