@@ -8,7 +8,7 @@ import pytest
 
 from d2gs_np.geometry.so3 import so3_exp
 from d2gs_np.scene.config import DeformConfig, InitConfig, MotionInitConfig
-from d2gs_np.scene.motion_init import _chained_poses, initialize_deformation, mask_components, pair_motion
+from d2gs_np.scene.motion_init import _chained_poses, initialize_deformation, pair_motion
 from d2gs_np.train.config import ExperimentConfig
 from mover_fixtures import big_mover_path_errors, single_mover_frames
 
