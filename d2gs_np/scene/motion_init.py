@@ -359,6 +359,25 @@ def _chained_poses(frames, labels, mem, depth_maps, ref, centre, min_inliers):
     return poses, missed
 
 
+def bundle_track(frames, labels, mem, depth_maps, ref, poses, window, depth_sigma, accel_deg, min_inliers=6):
+    """Poses {frame: (R, t)} of track members mem refined by the object bundle (``rigid_fit =
+    "bundle"``, ``scene/object_bundle.py``) from ``poses`` ({frame: (R, t)}, e.g. ``_chained_poses``');
+    the member at frame ``ref`` keeps its pose. The points are tracked by the pair maps of step 3
+    inside the object's regions (``_object_region``), their depths gated by ``PAIR_DEPTH_GATE``.
+    Returns (poses, the bundle's info)."""
+    from d2gs_np.scene.object_bundle import bundle_poses, track_observations
+
+    ks = [k for k, _, _ in mem]
+    M = len(mem)
+    fwd = [_pair_map(frames, labels, mem[n], mem[n + 1], min_inliers) for n in range(M - 1)]
+    bwd = [_pair_map(frames, labels, mem[n + 1], mem[n], min_inliers) for n in range(M - 1)]
+    regions = [_object_region(labels, k, c) for k, _, c in mem]
+    obs = track_observations(fwd, bwd, regions, [depth_maps[k] for k in ks], window, PAIR_DEPTH_GATE)
+    out, info = bundle_poses([(frames[k].cam_T_world, frames[k].K) for k in ks], obs, ks.index(ref),
+                             [poses[k] for k in ks], depth_sigma, accel_deg)
+    return dict(zip(ks, out)), info
+
+
 def _centroid_shift(frames, a, b, at):
     """World shift of an object between members a and b from its components' centroids, each lifted
     at the depth of the point ``at`` in that member's camera (a pair without a measured motion)."""
@@ -512,7 +531,7 @@ def _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, ridge, f
     (``rigid_fit = "pairs"``: the frames, component labels, track members, depth maps and the
     similarity's inlier count; ``bundle``: the MotionInitConfig of ``rigid_fit = "bundle"`` or None)
     the poses are ``_chained_poses`` over the track's members instead, from the shape's centroid at
-    the middle frame, and with ``bundle`` refined by ``object_bundle.bundle_poses``.
+    the middle frame, and with ``bundle`` refined by ``bundle_track``.
     Returns {track: dict(seeds, p (1 + K, 3), q (1 + K, 4), local (S, 3)[, missed, pairs[, bundle]])}.
     """
     from d2gs_np.geometry.quaternion import quat_to_rotmat, rotmat_to_quat
@@ -547,10 +566,8 @@ def _rigid_clusters(paths, seed_track, seed_frames, seed_points, basis, ridge, f
                                              centre, chain["min_inliers"])
             extra = dict(missed=missed, pairs=len(mem) - 1)
             if chain.get("bundle") is not None:
-                from d2gs_np.scene.object_bundle import bundle_poses
-
                 b = chain["bundle"]
-                chained, extra["bundle"] = bundle_poses(chain["frames"], chain["labels"], mem, chain["depth_maps"],
+                chained, extra["bundle"] = bundle_track(chain["frames"], chain["labels"], mem, chain["depth_maps"],
                                                         ref, chained, b.bundle_window, b.bundle_depth_sigma,
                                                         b.bundle_accel_deg, chain["min_inliers"])
             for m in sorted(chained):

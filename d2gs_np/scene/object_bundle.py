@@ -10,9 +10,10 @@ frame of its track and its shape are fitted together to what the frames saw:
   track's pair maps (``motion_init._pair_map``), kept while it stays inside the object's region;
 - residuals, each in its own unit: the reprojection of every observation (pixels); the log depth of
   the point in each frame's camera against the depth map there (``depth_sigma``, a relative error),
-  where the map is within ``PAIR_DEPTH_GATE`` of its region's median; the second difference of the
-  pose path (its turn per frame in degrees over ``accel_deg``, its travel per frame over the object's
-  size times the same angle), which holds the frames where the track is short;
+  where the map is within the depth gate (``motion_init.PAIR_DEPTH_GATE``) of its region's median;
+  the second difference of the pose path (its turn per frame in degrees over ``accel_deg``, its
+  travel per frame over the object's size times the same angle), which holds the frames where the
+  track is short;
 - the soft-L1 loss (scale 1) over the observations' residuals (flow that slid off a turning face is an
   outlier), plain squares over the path's: a robust loss there would let a track's end turn away;
 - unknowns: each member's pose (a left rotation increment and a translation) but the reference
@@ -20,7 +21,8 @@ frame of its track and its shape are fitted together to what the frames saw:
   the depth maps'.
 
 Pure functions on plain arrays: ``bundle_residuals`` and its Jacobian ``bundle_jacobian``
-(hand-derived, sparse), ``track_observations`` and ``bundle_poses`` on the library's frames.
+(hand-derived, sparse), ``track_observations`` (from a track's pair maps and regions) and
+``bundle_poses``; ``motion_init.bundle_track`` runs them on a track of the library's frames.
 """
 from __future__ import annotations
 
@@ -172,19 +174,17 @@ def _camera_points(R, t, X, m, p, cams):
     return pc, np.maximum(pc[:, 2], cams["z_min"])
 
 
-def track_observations(frames, labels, mem, depth_maps, window, min_inliers=6, grid=BUNDLE_GRID):
-    """The bundle's points and observations for track members mem (list of (frame, centroid,
-    component)). Returns dict(seed_member (P,), seed_depth (P,), seed_uv (P, 2), point (O,),
-    member (O,), uv (O, 2), depth (O,) the depth map there, NaN outside the gate)."""
+def track_observations(fwd, bwd, regions, depths, window, depth_gate, grid=BUNDLE_GRID):
+    """The bundle's points and observations for the M members of one track: fwd / bwd (M - 1) maps of
+    (P, 2) pixels from member n to n + 1 and back (``motion_init._pair_map``), regions (M) (H, W) bool
+    the object's (eroded) region, depths (M) (H, W) the depth maps (NaN or non-positive where
+    unknown), kept within ``depth_gate`` of their region's median. Returns dict(seed_member (P,),
+    seed_depth (P,), seed_uv (P, 2), point (O,), member (O,), uv (O, 2), depth (O,) the depth map
+    there, NaN outside the gate)."""
     from d2gs_np.scene.initialize import sample_image_bilinear
-    from d2gs_np.scene.motion_init import PAIR_DEPTH_GATE, _object_region, _pair_map
 
-    M = len(mem)
-    fwd = [_pair_map(frames, labels, mem[n], mem[n + 1], min_inliers) for n in range(M - 1)]
-    bwd = [_pair_map(frames, labels, mem[n + 1], mem[n], min_inliers) for n in range(M - 1)]
-    regions = [_object_region(labels, k, c) for k, _, c in mem]
-    maps = [np.nan_to_num(np.asarray(depth_maps[k], np.float64), nan=0.0, posinf=0.0, neginf=0.0)[..., None]
-            for k, _, _ in mem]
+    M = len(regions)
+    maps = [np.nan_to_num(np.asarray(d, np.float64), nan=0.0, posinf=0.0, neginf=0.0)[..., None] for d in depths]
     med = []
     for n in range(M):
         ys, xs = np.nonzero(regions[n])
@@ -193,7 +193,7 @@ def track_observations(frames, labels, mem, depth_maps, window, min_inliers=6, g
 
     def gated(n, uv):
         dz = sample_image_bilinear(maps[n], uv)[:, 0]
-        ok = (dz > med[n] / PAIR_DEPTH_GATE) & (dz < PAIR_DEPTH_GATE * med[n])
+        ok = (dz > med[n] / depth_gate) & (dz < depth_gate * med[n])
         return np.where(ok, dz, np.nan)
 
     seed_member, seed_uv, seed_depth = [], [], []
@@ -242,52 +242,49 @@ def track_observations(frames, labels, mem, depth_maps, window, min_inliers=6, g
     return out
 
 
-def bundle_poses(frames, labels, mem, depth_maps, ref, poses, window, depth_sigma, accel_deg, min_inliers=6,
-                 max_nfev=BUNDLE_MAX_NFEV):
-    """Object -> world poses {frame: (R, t)} of track members mem refined by the object bundle from
-    ``poses`` (the same dict, e.g. ``motion_init._chained_poses``'); the member at frame ``ref`` keeps
-    its pose. Returns (poses, info dict(points, observations, nfev, rms_px)); the given poses and
-    info["points"] = 0 where the track has too few points seen twice or the solve fails."""
-    ks = [k for k, _, _ in mem]
-    r = ks.index(ref)
-    R0 = np.stack([np.asarray(poses[k][0], np.float64) for k in ks])
-    t0 = np.stack([np.asarray(poses[k][1], np.float64) for k in ks])
+def bundle_poses(cameras, obs, r, poses, depth_sigma, accel_deg, max_nfev=BUNDLE_MAX_NFEV):
+    """Object -> world poses [(R, t)] of a track's members refined by the object bundle from
+    ``poses`` (the same list, e.g. ``motion_init._chained_poses``' in member order); member r keeps
+    its pose. cameras: [(cam_T_world, K)] per member; obs: ``track_observations``'. Returns (poses,
+    info dict(points, observations, nfev, rms_px)); the given poses and info["points"] = 0 where the
+    track has too few points seen twice or the solve fails."""
+    R0 = np.stack([np.asarray(R, np.float64) for R, _ in poses])
+    t0 = np.stack([np.asarray(t, np.float64) for _, t in poses])
     info = dict(points=0, observations=0, nfev=0, rms_px=float("nan"))
-    if len(mem) < 2:
-        return dict(poses), info
-    obs = track_observations(frames, labels, mem, depth_maps, window, min_inliers)
+    if len(poses) < 2 or not len(obs["seed_member"]):
+        return list(poses), info
     seen = np.bincount(obs["point"], minlength=len(obs["seed_member"]))
     if int((seen >= 2).sum()) < BUNDLE_MIN_POINTS:
-        return dict(poses), info
+        return list(poses), info
     keep = seen[obs["point"]] >= 2  # a point seen once holds nothing
     renum = np.cumsum(seen >= 2) - 1
     sm = obs["seed_member"][seen >= 2]
     X0 = []
     for i in np.flatnonzero(seen >= 2):
         n = obs["seed_member"][i]
-        f = frames[ks[n]]
-        Xw = unproject_points(obs["seed_uv"][i][None], obs["seed_depth"][i:i + 1], f.cam_T_world, f.K)[0]
+        T, K = cameras[n]
+        Xw = unproject_points(obs["seed_uv"][i][None], obs["seed_depth"][i:i + 1], T, K)[0]
         X0.append(R0[n].T @ (Xw - t0[n]))
     X0 = np.stack(X0)
     o = dict(point=renum[obs["point"][keep]], member=obs["member"][keep], uv=obs["uv"][keep],
              depth=obs["depth"][keep])
-    cams = dict(T=np.stack([np.asarray(frames[k].cam_T_world, np.float64) for k in ks]),
-                K=np.stack([np.asarray(frames[k].K, np.float64) for k in ks]),
+    cams = dict(T=np.stack([np.asarray(T, np.float64) for T, _ in cameras]),
+                K=np.stack([np.asarray(K, np.float64) for _, K in cameras]),
                 z_min=BUNDLE_Z_MIN * float(np.nanmedian(obs["seed_depth"])))
     size = float(np.sqrt(np.median(((X0 - np.median(X0, axis=0)) ** 2).sum(axis=1))))
     if not size > 0:
-        return dict(poses), info
+        return list(poses), info
     args = (R0, t0, X0)
     kw = dict(obs=o, cams=cams, depth_sigma=depth_sigma, accel_deg=accel_deg, size=size, ref=r)
-    x0 = np.zeros(6 * (len(mem) - 1) + 3 * len(X0))
+    x0 = np.zeros(6 * (len(poses) - 1) + 3 * len(X0))
     robust = 2 * len(o["point"]) + int(np.isfinite(o["depth"]).sum())
     sol = least_squares(lambda x: bundle_residuals(*args, x, **kw), x0, jac=lambda x: bundle_jacobian(*args, x, **kw),
                         loss=_soft_l1_first(robust), x_scale="jac", method="trf", tr_solver="lsmr",
                         max_nfev=max_nfev)
     if not np.all(np.isfinite(sol.x)):
-        return dict(poses), info
+        return list(poses), info
     R, t, _, _ = _unpack(*args, sol.x, r)
     uv = sol.fun[:2 * len(o["point"])].reshape(-1, 2)
     info = dict(points=len(X0), observations=len(o["point"]), nfev=int(sol.nfev),
                 rms_px=float(np.sqrt(np.mean((uv ** 2).sum(axis=1)))), seeded=int(len(sm)))
-    return {k: (R[n], t[n]) for n, k in enumerate(ks)}, info
+    return [(R[n], t[n]) for n in range(len(R))], info

@@ -6,8 +6,8 @@ import numpy as np
 import pytest
 
 from d2gs_np.geometry.so3 import so3_exp
-from d2gs_np.scene.motion_init import _chained_poses
-from d2gs_np.scene.object_bundle import bundle_jacobian, bundle_poses, bundle_residuals, track_observations
+from d2gs_np.scene.motion_init import PAIR_DEPTH_GATE, _chained_poses, _object_region, _pair_map, bundle_track
+from d2gs_np.scene.object_bundle import bundle_jacobian, bundle_residuals, track_observations
 from mover_fixtures import big_mover_path_errors, single_mover_frames
 
 W, H = 160, 120
@@ -136,7 +136,10 @@ def test_track_observations_follow_the_box():
     """Every observation of a tracked point lands inside the object's region in its frame, each
     point is seen in its own frame, and the depth there is the map's where inside the gate."""
     frames, labels, mem, maps, _ = _tumble(num=4)
-    obs = track_observations(frames, labels, mem, maps, window=2)
+    fwd = [_pair_map(frames, labels, mem[n], mem[n + 1], 6) for n in range(len(mem) - 1)]
+    bwd = [_pair_map(frames, labels, mem[n + 1], mem[n], 6) for n in range(len(mem) - 1)]
+    regions = [_object_region(labels, k, c) for k, _, c in mem]
+    obs = track_observations(fwd, bwd, regions, maps, 2, PAIR_DEPTH_GATE)
     assert len(obs["seed_member"]) > 100
     px = np.floor(obs["uv"]).astype(int)
     for n in range(len(mem)):
@@ -164,7 +167,7 @@ def test_bundle_recovers_a_tumble_that_the_pairs_miss():
     ref = 4
     chained, _ = _chained_poses(frames, labels, mem, maps, ref, poses[ref][1], 6)
     pairs_err = _turn_errors(chained, poses, ref)
-    refined, info = bundle_poses(frames, labels, mem, maps, ref, chained, window=5, depth_sigma=0.1, accel_deg=3.0)
+    refined, info = bundle_track(frames, labels, mem, maps, ref, chained, window=5, depth_sigma=0.1, accel_deg=3.0)
     err = _turn_errors(refined, poses, ref)
     assert info["points"] > 100 and np.isfinite(info["rms_px"])
     assert err.max() < 10.0, err
@@ -182,8 +185,8 @@ def test_bundle_with_exact_depth_stays_near_the_truth():
     chained, _ = _chained_poses(frames, labels, mem, maps, ref, poses[ref][1], 6)
     Rr = poses[ref][0]
     truth = {k: (R @ Rr.T, c + R @ Rr.T @ (chained[ref][1] - poses[ref][1])) for k, (R, c) in enumerate(poses)}
-    a, _ = bundle_poses(frames, labels, mem, maps, ref, chained, window=5, depth_sigma=0.1, accel_deg=3.0)
-    b, _ = bundle_poses(frames, labels, mem, maps, ref, truth, window=5, depth_sigma=0.1, accel_deg=3.0)
+    a, _ = bundle_track(frames, labels, mem, maps, ref, chained, window=5, depth_sigma=0.1, accel_deg=3.0)
+    b, _ = bundle_track(frames, labels, mem, maps, ref, truth, window=5, depth_sigma=0.1, accel_deg=3.0)
     err_a, err_b = _turn_errors(a, poses, ref), _turn_errors(b, poses, ref)
     assert err_a.max() < 5.0, err_a
     np.testing.assert_allclose(err_a, err_b, atol=0.2)
@@ -194,10 +197,10 @@ def test_bundle_keeps_the_given_poses_without_points():
     given poses come back unchanged, with no points counted."""
     frames, labels, mem, maps, poses = _tumble(num=3)
     given = {k: (np.eye(3), np.asarray(c, np.float64)) for k, (_, c) in enumerate(poses)}
-    out, info = bundle_poses(frames, labels, mem[:1], maps, 0, {0: given[0]}, 5, 0.1, 3.0)
+    out, info = bundle_track(frames, labels, mem[:1], maps, 0, {0: given[0]}, 5, 0.1, 3.0)
     assert info["points"] == 0 and out[0] is given[0]
     nan_maps = [np.full_like(m, np.nan) for m in maps]
-    out, info = bundle_poses(frames, labels, mem, nan_maps, 1, given, 5, 0.1, 3.0)
+    out, info = bundle_track(frames, labels, mem, nan_maps, 1, given, 5, 0.1, 3.0)
     assert info["points"] == 0
     assert all(out[k] is given[k] for k in given)
 
