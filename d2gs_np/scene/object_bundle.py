@@ -32,18 +32,13 @@ from scipy.optimize import least_squares
 
 from d2gs_np.constants import PIXEL_CENTER_OFFSET
 from d2gs_np.geometry.camera import unproject_points
-from d2gs_np.geometry.so3 import hat, left_jacobian, left_jacobian_inv, so3_exp, so3_log
+from d2gs_np.geometry.so3 import hat, left_jacobian, left_jacobian_inv, right_jacobian_inv, so3_exp, so3_log
 
 BUNDLE_GRID = 60  # points seeded per frame of the track, on a regular grid over the object
 BUNDLE_MIN_POINTS = 12  # a track with fewer points seen twice keeps its given poses
 BUNDLE_Z_MIN = 1e-6  # camera depths below this fraction of the depth maps' median are clamped (no gradient)
 BUNDLE_MAX_NFEV = 200
 BUNDLE_BORDER_PX = 3.0  # observations within this of the image's border are dropped
-
-
-def _rot_jac_inv(phi, right):
-    """J_l(phi)^-1 or J_r(phi)^-1 (``right``), (..., 3) -> (..., 3, 3)."""
-    return left_jacobian_inv(-phi if right else phi)
 
 
 def bundle_residuals(R0, t0, X0, x, obs, cams, depth_sigma, accel_deg, size, ref):
@@ -128,7 +123,7 @@ def bundle_jacobian(R0, t0, X0, x, obs, cams, depth_sigma, accel_deg, size, ref)
         # phi_n = log(R_{n+1} R_n^T): d/d eps_{n+1} = J_l^-1(phi_n), d/d eps_n = -J_r^-1(phi_n), where
         # eps_k = J_l(dphi_k) d dphi_k is member k's left perturbation
         A_next = left_jacobian_inv(phi) @ Jl[1:]
-        A_prev = -_rot_jac_inv(phi, True) @ Jl[:-1]
+        A_prev = -right_jacobian_inv(phi) @ Jl[:-1]
         scale = np.degrees(1.0) / accel_deg
         n = np.arange(M - 2)
         # a_n = phi_{n+1} - phi_n depends on members n, n + 1, n + 2

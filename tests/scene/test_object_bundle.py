@@ -8,7 +8,7 @@ import pytest
 from d2gs_np.geometry.so3 import so3_exp
 from d2gs_np.scene.motion_init import PAIR_DEPTH_GATE, _chained_poses, _object_region, _pair_map, bundle_track
 from d2gs_np.scene.object_bundle import bundle_jacobian, bundle_residuals, track_observations
-from mover_fixtures import big_mover_path_errors, single_mover_frames
+from mover_fixtures import angle_deg, big_mover_path_errors, single_mover_frames
 
 W, H = 160, 120
 K = np.array([[180.0, 0.0, W / 2], [0.0, 180.0, H / 2], [0.0, 0.0, 1.0]])
@@ -74,14 +74,10 @@ def _tumble(num=9, turn_deg=8.0, rel=0.0, seed=0):
     return frames, labels, members, maps, poses
 
 
-def _angle_deg(R):
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-
-
 def _turn_errors(est, poses, ref):
     """Per frame: the estimated turn from the reference frame against the true one, degrees."""
     Rr, Tr = est[ref][0], poses[ref][0]
-    return np.array([_angle_deg((est[k][0] @ Rr.T) @ (poses[k][0] @ Tr.T).T) for k in range(len(poses))])
+    return np.array([angle_deg((est[k][0] @ Rr.T) @ (poses[k][0] @ Tr.T).T) for k in range(len(poses))])
 
 
 def _random_problem(rng, M=6, P=20, O=60, behind=False):

@@ -10,7 +10,7 @@ from d2gs_np.geometry.so3 import so3_exp
 from d2gs_np.scene.config import DeformConfig, InitConfig, MotionInitConfig
 from d2gs_np.scene.motion_init import _chained_poses, initialize_deformation, pair_motion
 from d2gs_np.train.config import ExperimentConfig
-from mover_fixtures import big_mover_path_errors, single_mover_frames
+from mover_fixtures import angle_deg, big_mover_path_errors, single_mover_frames
 
 W, H = 160, 120
 K = np.array([[180.0, 0.0, W / 2], [0.0, 180.0, H / 2], [0.0, 0.0, 1.0]])
@@ -69,10 +69,6 @@ def _two_frames(turn_deg, axis=(0.0, 1.0, 0.0), shift=(0.15, 0.0, 0.1)):
     return (*_frames([(R0, C0), (R1, c1)]), R_true, c1 - R_true @ C0)
 
 
-def _angle_deg(R):
-    return float(np.degrees(np.arccos(np.clip((np.trace(R) - 1.0) / 2.0, -1.0, 1.0))))
-
-
 @pytest.mark.parametrize("turn_deg, axis", [(12.0, (0.0, 1.0, 0.0)), (12.0, (1.0, 0.0, 0.0)),
                                             (10.0, (0.0, 0.0, 1.0)), (0.0, (0.0, 1.0, 0.0))])
 def test_pair_motion_recovers_a_turn_out_of_the_image_plane(turn_deg, axis):
@@ -85,7 +81,7 @@ def test_pair_motion_recovers_a_turn_out_of_the_image_plane(turn_deg, axis):
     assert out is not None
     R, t, n = out
     assert n >= 100
-    assert _angle_deg(R @ R_true.T) < 0.5
+    assert angle_deg(R @ R_true.T) < 0.5
     X = np.array([[0.0, 0.0, 3.0], [0.3, 0.2, 3.1], [-0.2, 0.3, 2.9]])  # points near the face
     np.testing.assert_allclose(X @ R.T + t, X @ R_true.T + t_true, atol=0.01 * HALF)
 
@@ -111,7 +107,7 @@ def test_pair_motion_ignores_the_background_inside_a_blurred_mask():
     wide = [cv2.dilate((lab == 0).astype(np.uint8), np.ones((17, 17), np.uint8)).astype(np.int32) - 1
             for lab in labels]
     R, _, _ = pair_motion(frames, wide, mem[0], mem[1], maps)
-    assert _angle_deg(R @ R_true.T) < 0.5
+    assert angle_deg(R @ R_true.T) < 0.5
 
 
 def test_chained_poses_follow_a_turning_object_and_carry_pairs_without_a_motion():
@@ -125,7 +121,7 @@ def test_chained_poses_follow_a_turning_object_and_carry_pairs_without_a_motion(
     assert missed == 0 and sorted(poses) == [0, 1, 2]
     np.testing.assert_array_equal(poses[1][0], np.eye(3))
     for k in (0, 2):
-        assert _angle_deg(poses[k][0] @ (Rs[k] @ Rs[1].T).T) < 0.5
+        assert angle_deg(poses[k][0] @ (Rs[k] @ Rs[1].T).T) < 0.5
     maps[2] = None
     poses, missed = _chained_poses(frames, labels, mem, maps, 1, np.array([0.0, 0.0, 3.0]), 6)
     assert missed == 1
@@ -181,4 +177,4 @@ def test_pair_motion_keeps_its_turn_under_a_depth_scale(scales):
     assert out is not None
     R, t, _ = out
     assert np.all(np.isfinite(t))
-    assert _angle_deg(R @ R_true.T) < 0.5
+    assert angle_deg(R @ R_true.T) < 0.5
