@@ -257,6 +257,11 @@ EXPERIMENTS = {
         Variant("stereo_prior_fused_rigid_bundle", scene={"depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
                         "motion_init": {"rigid": True, "rigid_residual": False, "rigid_fit": "bundle"}}),
+        # the same with each point tracked 8 frames each way, not 5: more of a small mover's turn per track
+        Variant("stereo_prior_fused_rigid_bundle_w8", scene={"depth_prior": "video"},
+                config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
+                        "motion_init": {"rigid": True, "rigid_residual": False, "rigid_fit": "bundle",
+                                        "bundle_window": 8}}),
         Variant("stereo_prior_true_fused_rigid_bundle", scene={**_TRUE_POSES, "depth_prior": "video"},
                 config={"init": {"static_depth": "stereo_prior", "dynamic_depth": "prior", "depth_prior_fusion": True},
                         "motion_init": {"rigid": True, "rigid_residual": False, "rigid_fit": "bundle"}}),
