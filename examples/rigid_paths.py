@@ -48,7 +48,14 @@ def turn_errors_deg(cam_R, obj_R, cam_R_true, obj_R_true, ref):
     rel = Q @ np.swapaxes(Q[ref:ref + 1], 1, 2)
     rel_t = Qt @ np.swapaxes(Qt[ref:ref + 1], 1, 2)
     E = rel @ np.swapaxes(rel_t, 1, 2)
-    return np.degrees(np.arccos(np.clip((np.trace(E, axis1=1, axis2=2) - 1.0) / 2.0, -1.0, 1.0)))
+    return _angle_deg(E)
+
+
+def _angle_deg(R):
+    """(..., 3, 3) rotations -> (...,) their angle in degrees (so3_log's, exact near 0 and pi)."""
+    from d2gs_np.geometry.so3 import so3_log
+
+    return np.degrees(np.linalg.norm(so3_log(R), axis=-1))
 
 
 def best_clusters(errors):
@@ -108,8 +115,7 @@ def measure(scene_name, seed, variant_name, sets=(), work="runs/rigid_paths"):
     errors, turns = {}, {}
     for m, mover in enumerate(movers):
         true_R = np.stack([mover_pose(mover, t)[0] for t in times])
-        turns[m] = float(turn_errors_deg(cam_R_true, true_R, cam_R_true, np.broadcast_to(true_R[ref], true_R.shape),
-                                         ref).max())
+        turns[m] = float(_angle_deg(true_R @ true_R[ref].T).max())  # the mover's own turn from the middle frame
         for c in range(obj_R.shape[1]):
             errors[(c, m)] = turn_errors_deg(cam_R, obj_R[:, c], cam_R_true, true_R, ref)
     rows = []
